@@ -270,7 +270,8 @@ def robot_from_dict(data: Any, origin: str = "<robot>") -> Robot:
     if ctrl_raw is None:
         controlled: tuple[int, ...] = ()
     else:
-        if not isinstance(ctrl_raw, list) or any(c not in AXES for c in ctrl_raw) or len(set(ctrl_raw)) != len(ctrl_raw):
+        valid = isinstance(ctrl_raw, list) and all(c in AXES for c in ctrl_raw)
+        if not valid or len(set(ctrl_raw)) != len(ctrl_raw):
             raise rd.fail("controlled", ctrl_raw, f"must be a list of distinct names from {', '.join(AXES)}")
         if len(ctrl_raw) != min(n, 6):
             raise rd.fail("controlled", ctrl_raw, f"must name {min(n, 6)} coordinates (one per cable)")
@@ -286,9 +287,12 @@ def robot_from_dict(data: Any, origin: str = "<robot>") -> Robot:
     noise = NoiseLevels(
         tension=rd.number(rd.get(nz, "tension", "noise.tension", 10.0), "noise.tension", positive=True),
         length=rd.number(rd.get(nz, "length", "noise.length", 0.01), "noise.length", positive=True),
-        swivel=math.radians(rd.number(rd.get(nz, "swivel_deg", "noise.swivel_deg", 1.0), "noise.swivel_deg", positive=True)),
+        swivel=math.radians(
+            rd.number(rd.get(nz, "swivel_deg", "noise.swivel_deg", 1.0), "noise.swivel_deg", positive=True)
+        ),
         orientation=math.radians(
-            rd.number(rd.get(nz, "orientation_deg", "noise.orientation_deg", 2.0), "noise.orientation_deg", positive=True)
+            rd.number(rd.get(nz, "orientation_deg", "noise.orientation_deg", 2.0), "noise.orientation_deg",
+                      positive=True)
         ),
     )
     ws = rd.get(data, "workspace", "workspace", None)
@@ -356,7 +360,9 @@ def _sensors_from_dict(rd: _Reader, s: Any, n: int) -> SensorSpec:
         swivel_encoder_accuracy=num("swivel_encoder_accuracy_deg", base.swivel_encoder_accuracy, deg=True, nonneg=True),
         load_cell_full_scale=num("load_cell_full_scale", base.load_cell_full_scale, positive=True),
         load_cell_accuracy=num("load_cell_accuracy", base.load_cell_accuracy, nonneg=True),
-        ahrs_roll_pitch_accuracy=num("ahrs_roll_pitch_accuracy_deg", base.ahrs_roll_pitch_accuracy, deg=True, nonneg=True),
+        ahrs_roll_pitch_accuracy=num(
+            "ahrs_roll_pitch_accuracy_deg", base.ahrs_roll_pitch_accuracy, deg=True, nonneg=True
+        ),
         ahrs_yaw_accuracy=num("ahrs_yaw_accuracy_deg", base.ahrs_yaw_accuracy, deg=True, nonneg=True),
     )
 

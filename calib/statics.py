@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.kinematics import (
-    Kinematics,
     KinematicJacobians,
+    Kinematics,
     cable_direction_jacobian,
     euler_axes_derivative,
     inverse_kinematics,
