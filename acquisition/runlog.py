@@ -1,0 +1,684 @@
+"""Runs in the `cdpr-run/1` format (../shared/spec/run-format.md): reader, writers, solution file.
+
+A run is a folder with ``run.yaml`` (metadata: robot, procedure, events) and ``samples.csv`` (one line per
+logged sample). SI units, angles in radians. Readers accept extra keys and columns; :func:`read_run`
+validates what it knows and raises :class:`RunFormatError` with one sentence naming the file, the field or
+column and the value. A ``samples.csv`` cut in the middle of a line (a crash while logging) reads back up to
+its last complete line, with a warning.
+
+Numbers are written with ``repr`` (shortest string that reads back to the same float), so writing is
+lossless and deterministic: the same values give the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import warnings
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calib.robot import Robot, RobotDescriptionError, builtin_robot_names, load_robot, robot_from_dict
+
+FORMAT = "cdpr-run/1"
+METHODS = ("equilibrium", "kinematic")
+RUN_YAML = "run.yaml"
+SAMPLES_CSV = "samples.csv"
+SOLUTION_JSON = "solution.json"
+CABLE_GROUPS = ("tau", "tau_ref", "dl", "dsigma")
+SCALAR_COLUMNS = ("roll", "pitch", "dyaw")
+
+
+class RunFormatError(ValueError):
+    """A run that does not follow `cdpr-run/1`; the message names the file, field or column, and value."""
+
+
+class RunTruncatedWarning(UserWarning):
+    """samples.csv ends in the middle of a line; the incomplete line was dropped."""
+
+
+def sample_columns(n: int) -> list[str]:
+    """The standard columns of samples.csv for n cables, in the order the writers use."""
+    cols = ["t"]
+    for g in CABLE_GROUPS:
+        cols += [f"{g}_{i}" for i in range(1, n + 1)]
+    return cols + list(SCALAR_COLUMNS) + ["phase", "setpoint"]
+
+
+def required_columns(n: int) -> list[str]:
+    """Columns a reader needs (phase and setpoint are optional: readers must not rely on them)."""
+    return sample_columns(n)[:-2]
+
+
+@dataclass
+class Run:
+    """One run in memory. Arrays: (N,) or (N, n) over the N samples; SI units, radians.
+
+    ``meta`` is the run.yaml mapping (extra keys kept); ``extra`` holds the extra columns of samples.csv
+    by name (float arrays, or str arrays for non-numeric columns).
+    """
+
+    path: Path | None
+    meta: dict[str, Any]
+    robot: Robot
+    method: str
+    sample_period: float
+    setpoints: np.ndarray | None
+    ideal_poses: np.ndarray | None
+    events: list[dict[str, Any]]
+    t: np.ndarray
+    tau: np.ndarray
+    tau_ref: np.ndarray
+    dl: np.ndarray
+    dsigma: np.ndarray
+    roll: np.ndarray
+    pitch: np.ndarray
+    dyaw: np.ndarray
+    phase: np.ndarray
+    setpoint: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        """Number of cables."""
+        return self.robot.n
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def source(self) -> str:
+        return str(self.meta.get("source", ""))
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """All columns of samples.csv by name, standard ones first, then the extra ones."""
+        out: dict[str, np.ndarray] = {"t": self.t}
+        for g in CABLE_GROUPS:
+            a = getattr(self, g)
+            for i in range(self.n):
+                out[f"{g}_{i + 1}"] = a[:, i]
+        for name in SCALAR_COLUMNS:
+            out[name] = getattr(self, name)
+        out["phase"] = self.phase
+        out["setpoint"] = self.setpoint
+        out.update(self.extra)
+        return out
+
+
+def new_run(
+    robot_spec: str | Mapping[str, Any] | Robot,
+    method: str,
+    sample_period: float,
+    source: str,
+    *,
+    t: Any,
+    tau: Any,
+    tau_ref: Any,
+    dl: Any,
+    dsigma: Any,
+    roll: Any,
+    pitch: Any,
+    dyaw: Any,
+    phase: Any = None,
+    setpoint: Any = None,
+    setpoints: Any = None,
+    ideal_poses: Any = None,
+    extra: Mapping[str, Any] | None = None,
+    meta_extra: Mapping[str, Any] | None = None,
+) -> Run:
+    """A run in memory (path None) from arrays, checked for shapes; write it with :func:`write_run`."""
+    spec, robot = _robot_spec(robot_spec)
+    meta = _base_meta(spec, method, sample_period, source, setpoints, ideal_poses, robot.n, meta_extra)
+    tt = np.asarray(t, dtype=float).reshape(-1)
+    N, n = tt.shape[0], robot.n
+
+    def cab(name: str, a: Any) -> np.ndarray:
+        arr = np.asarray(a, dtype=float)
+        if arr.shape != (N, n):
+            raise ValueError(f"new_run: '{name}' has shape {arr.shape}, expected ({N}, {n}).")
+        return arr
+
+    def sca(name: str, a: Any) -> np.ndarray:
+        arr = np.asarray(a, dtype=float).reshape(-1)
+        if arr.shape != (N,):
+            raise ValueError(f"new_run: '{name}' has {arr.shape[0]} samples, expected {N}.")
+        return arr
+
+    ph = np.full(N, "", dtype=object) if phase is None else np.asarray(phase, dtype=object).reshape(-1)
+    sp = np.full(N, -1, dtype=int) if setpoint is None else np.asarray(setpoint, dtype=int).reshape(-1)
+    if ph.shape != (N,) or sp.shape != (N,):
+        raise ValueError(f"new_run: 'phase' and 'setpoint' must have {N} samples.")
+    ext = {}
+    for k, v in (extra or {}).items():
+        arr = np.asarray(v)
+        if arr.shape != (N,):
+            raise ValueError(f"new_run: extra column '{k}' has shape {arr.shape}, expected ({N},).")
+        ext[k] = arr
+    pro = meta["procedure"]
+    return Run(
+        path=None,
+        meta=meta,
+        robot=robot,
+        method=method,
+        sample_period=float(sample_period),
+        setpoints=None if "setpoints" not in pro else np.array(pro["setpoints"], dtype=float),
+        ideal_poses=None if "ideal_poses" not in pro else np.array(pro["ideal_poses"], dtype=float),
+        events=meta["events"],
+        t=tt,
+        tau=cab("tau", tau),
+        tau_ref=cab("tau_ref", tau_ref),
+        dl=cab("dl", dl),
+        dsigma=cab("dsigma", dsigma),
+        roll=sca("roll", roll),
+        pitch=sca("pitch", pitch),
+        dyaw=sca("dyaw", dyaw),
+        phase=np.array([str(p) for p in ph], dtype=str) if N else np.array([], dtype=str),
+        setpoint=sp,
+        extra=ext,
+    )
+
+
+# ----------------------------------------------------------------------------------------------- writing
+
+
+def format_value(v: Any) -> str:
+    """One CSV cell: ints as ints, floats with repr (round-trip exact), text as is (no commas allowed)."""
+    if isinstance(v, bool | np.bool_):
+        return "1" if v else "0"
+    if isinstance(v, int | np.integer):
+        return str(int(v))
+    if isinstance(v, float | np.floating):
+        return repr(float(v))
+    s = str(v)
+    if "," in s or "\n" in s or "\r" in s:
+        raise ValueError(f"text value {s!r} cannot be written to samples.csv (contains a comma or newline).")
+    return s
+
+
+def _plain(obj: Any) -> Any:
+    """numpy scalars/arrays to plain Python for YAML/JSON."""
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, Mapping):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def _robot_spec(robot_spec: str | Mapping[str, Any] | Robot) -> tuple[Any, Robot]:
+    """(what run.yaml stores under 'robot', the Robot)."""
+    if isinstance(robot_spec, Robot):
+        if robot_spec.name in builtin_robot_names():
+            return robot_spec.name, robot_spec
+        return robot_spec.to_dict(), robot_spec
+    if isinstance(robot_spec, str):
+        if robot_spec not in builtin_robot_names():
+            raise ValueError(
+                f"robot '{robot_spec}' is not a built-in robot ({', '.join(builtin_robot_names())}); "
+                "pass a full description mapping instead."
+            )
+        return robot_spec, load_robot(robot_spec)
+    spec = _plain(dict(robot_spec))
+    return spec, robot_from_dict(spec, "<robot mapping>")
+
+
+def _base_meta(
+    spec: Any,
+    method: str,
+    sample_period: float,
+    source: str,
+    setpoints: Any,
+    ideal_poses: Any,
+    n: int,
+    meta_extra: Mapping[str, Any] | None,
+) -> dict[str, Any]:
+    if method not in METHODS:
+        raise ValueError(f"method {method!r} is not one of {', '.join(METHODS)}.")
+    if not (isinstance(sample_period, int | float) and math.isfinite(sample_period) and sample_period > 0):
+        raise ValueError(f"sample_period {sample_period!r} must be a positive number of seconds.")
+    procedure: dict[str, Any] = {"method": method, "sample_period": float(sample_period)}
+    if setpoints is not None:
+        sp = np.asarray(setpoints, dtype=float)
+        if sp.ndim != 2 or sp.shape[1] != n:
+            raise ValueError(f"setpoints have shape {sp.shape}, expected (k, {n}).")
+        procedure["setpoints"] = _plain(sp)
+    if ideal_poses is not None:
+        ip = np.asarray(ideal_poses, dtype=float)
+        if ip.ndim != 2 or ip.shape[1] != 6:
+            raise ValueError(f"ideal_poses have shape {ip.shape}, expected (k, 6).")
+        procedure["ideal_poses"] = _plain(ip)
+    meta: dict[str, Any] = {
+        "format": FORMAT,
+        "robot": spec,
+        "created": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "source": source,
+        "procedure": procedure,
+        "events": [],
+    }
+    for k, v in (meta_extra or {}).items():
+        if k in ("format", "robot", "procedure", "events"):
+            raise ValueError(f"meta_extra may not replace the standard key '{k}'.")
+        meta[k] = _plain(v)
+    return meta
+
+
+def _dump_yaml(meta: Mapping[str, Any]) -> str:
+    return yaml.safe_dump(_plain(meta), sort_keys=False, default_flow_style=None, width=120, allow_unicode=True)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    """Write a file via a temporary file and os.replace, fsynced: readers never see a half-written file."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _prepare_folder(path: Path, overwrite: bool) -> None:
+    if path.exists() and not path.is_dir():
+        raise FileExistsError(f"{path} exists and is not a folder.")
+    if (path / RUN_YAML).exists() or (path / SAMPLES_CSV).exists():
+        if not overwrite:
+            raise FileExistsError(f"{path} already holds a run (run.yaml or samples.csv); refusing to overwrite it.")
+        (path / SOLUTION_JSON).unlink(missing_ok=True)
+    path.mkdir(parents=True, exist_ok=True)
+
+
+def write_run(path: str | Path, run: Run, overwrite: bool = False) -> Run:
+    """Write a run folder (run.yaml then samples.csv) and return the run with its path set."""
+    path = Path(path)
+    _prepare_folder(path, overwrite)
+    meta = dict(run.meta)
+    meta["format"] = FORMAT
+    cols = run.columns()
+    names = list(cols)
+    lines = [",".join(names)]
+    arrays = [cols[k] for k in names]
+    kinds = [_column_kind(a) for a in arrays]
+    for j in range(len(run)):
+        lines.append(",".join(_cell(a[j], kd) for a, kd in zip(arrays, kinds, strict=True)))
+    _write_atomic(path / RUN_YAML, _dump_yaml(meta))
+    _write_atomic(path / SAMPLES_CSV, "\n".join(lines) + "\n")
+    run.path = path
+    run.meta = meta
+    return run
+
+
+def _column_kind(a: np.ndarray) -> str:
+    if a.dtype.kind in "iub":
+        return "i"
+    if a.dtype.kind == "f":
+        return "f"
+    return "s"
+
+
+def _cell(v: Any, kind: str) -> str:
+    if kind == "i":
+        return str(int(v))
+    if kind == "f":
+        return repr(float(v))
+    return format_value(str(v))
+
+
+class RunWriter:
+    """Streams a run to disk during a live acquisition: one flushed line per sample.
+
+    ``append`` writes and flushes one line, ``sync`` fsyncs (call it at each equilibrium window),
+    ``add_event`` and ``update_meta`` rewrite run.yaml atomically, ``close`` ends the run. Tensions in N,
+    lengths in m, angles in rad, time in s since the start of the run.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        robot_spec: str | Mapping[str, Any] | Robot,
+        method: str,
+        sample_period: float,
+        source: str,
+        setpoints: Any = None,
+        ideal_poses: Any = None,
+        extra_columns: Sequence[str] = (),
+        meta_extra: Mapping[str, Any] | None = None,
+        overwrite: bool = False,
+    ):
+        self.path = Path(path)
+        spec, self.robot = _robot_spec(robot_spec)
+        self.meta = _base_meta(spec, method, sample_period, source, setpoints, ideal_poses, self.robot.n, meta_extra)
+        self.extra_columns = tuple(extra_columns)
+        std = sample_columns(self.robot.n)
+        for c in self.extra_columns:
+            if c in std or "," in c or not c:
+                raise ValueError(f"extra column name {c!r} is empty, has a comma, or is a standard column.")
+        self.columns = std + list(self.extra_columns)
+        _prepare_folder(self.path, overwrite)
+        _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
+        self._fh = open(self.path / SAMPLES_CSV, "w", encoding="utf-8", newline="\n")  # noqa: SIM115
+        self._fh.write(",".join(self.columns) + "\n")
+        self._fh.flush()
+        self.count = 0
+
+    def append(
+        self,
+        t: float,
+        tau: Iterable[float],
+        tau_ref: Iterable[float],
+        dl: Iterable[float],
+        dsigma: Iterable[float],
+        roll: float,
+        pitch: float,
+        dyaw: float,
+        phase: str = "",
+        setpoint: int = -1,
+        **extra: Any,
+    ) -> None:
+        """Write one sample (one line) and flush it."""
+        if self._fh is None:
+            raise ValueError(f"{self.path}: the run is closed; no more samples can be appended.")
+        n = self.robot.n
+        cells = [repr(float(t))]
+        for name, vec in (("tau", tau), ("tau_ref", tau_ref), ("dl", dl), ("dsigma", dsigma)):
+            v = np.asarray(vec, dtype=float).reshape(-1)
+            if v.shape[0] != n:
+                raise ValueError(f"{self.path}: '{name}' has {v.shape[0]} values, expected {n}.")
+            cells += [repr(float(x)) for x in v]
+        cells += [repr(float(roll)), repr(float(pitch)), repr(float(dyaw))]
+        cells += [format_value(str(phase)), str(int(setpoint))]
+        unknown = set(extra) - set(self.extra_columns)
+        if unknown:
+            raise ValueError(f"{self.path}: unknown extra column(s) {sorted(unknown)}; declare them in extra_columns.")
+        cells += [format_value(extra[c]) if c in extra else "" for c in self.extra_columns]
+        self._fh.write(",".join(cells) + "\n")
+        self._fh.flush()
+        self.count += 1
+
+    def sync(self) -> None:
+        """Force the lines written so far to the disk (fsync)."""
+        if self._fh is not None:
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+
+    def add_event(self, t: float, kind: str, message: str) -> None:
+        """Append an event {t, kind, message} to run.yaml (atomic rewrite)."""
+        self.meta["events"].append({"t": float(t), "kind": str(kind), "message": str(message)})
+        _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
+
+    def update_meta(self, **keys: Any) -> None:
+        """Add or replace extra top-level keys of run.yaml (e.g. where the sensors were zeroed)."""
+        for k in keys:
+            if k in ("format", "robot", "procedure", "events"):
+                raise ValueError(f"update_meta may not replace the standard key '{k}'.")
+        self.meta.update(_plain(keys))
+        _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
+
+    def close(self) -> None:
+        """Flush, fsync and close samples.csv."""
+        if self._fh is not None:
+            self.sync()
+            self._fh.close()
+            self._fh = None
+
+    def __enter__(self) -> RunWriter:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+
+def _fail(file: Path, what: str) -> RunFormatError:
+    return RunFormatError(f"{file}: {what}.")
+
+
+def _read_meta(folder: Path) -> dict[str, Any]:
+    f = folder / RUN_YAML
+    if not folder.is_dir():
+        raise RunFormatError(f"{folder}: not a run folder (no such directory).")
+    if not f.is_file():
+        raise _fail(f, "missing (a cdpr-run/1 folder holds run.yaml and samples.csv)")
+    try:
+        meta = yaml.safe_load(f.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise _fail(f, f"not valid YAML ({str(exc).splitlines()[0]})") from exc
+    if not isinstance(meta, dict):
+        raise _fail(f, f"must be a mapping, got {type(meta).__name__}")
+    return meta
+
+
+def _number(f: Path, field_name: str, v: Any, positive: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or (positive and v <= 0):
+        kind = "a positive number" if positive else "a finite number"
+        raise _fail(f, f"field '{field_name}' = {v!r} must be {kind}")
+    return float(v)
+
+
+def _matrix(f: Path, field_name: str, v: Any, width: int) -> np.ndarray:
+    if not isinstance(v, list):
+        raise _fail(f, f"field '{field_name}' = {v!r} must be a list of lists of {width} numbers")
+    rows = []
+    for j, row in enumerate(v):
+        if not isinstance(row, list) or len(row) != width:
+            raise _fail(f, f"field '{field_name}[{j}]' = {row!r} must be a list of {width} numbers")
+        rows.append([_number(f, f"{field_name}[{j}][{i}]", x) for i, x in enumerate(row)])
+    return np.array(rows, dtype=float).reshape(len(rows), width)
+
+
+def _parse_meta(folder: Path, meta: dict[str, Any]) -> tuple[Robot, str, float, Any, Any, list]:
+    f = folder / RUN_YAML
+    if "format" not in meta:
+        raise _fail(f, "required field 'format' is missing (expected 'cdpr-run/1')")
+    if meta["format"] != FORMAT:
+        raise _fail(f, f"field 'format' = {meta['format']!r} is not a known format (expected '{FORMAT}')")
+    if "robot" not in meta:
+        raise _fail(f, "required field 'robot' is missing")
+    spec = meta["robot"]
+    try:
+        if isinstance(spec, str):
+            if spec not in builtin_robot_names():
+                raise _fail(f, f"field 'robot' = {spec!r} is not a built-in robot ({', '.join(builtin_robot_names())})")
+            robot = load_robot(spec)
+        elif isinstance(spec, dict):
+            robot = robot_from_dict(spec, f"{f} field 'robot'")
+        else:
+            raise _fail(f, f"field 'robot' = {spec!r} must be a built-in robot name or a description mapping")
+    except RobotDescriptionError as exc:
+        raise RunFormatError(str(exc)) from exc
+    pro = meta.get("procedure")
+    if pro is None:
+        raise _fail(f, "required field 'procedure' is missing")
+    if not isinstance(pro, dict):
+        raise _fail(f, f"field 'procedure' = {pro!r} must be a mapping")
+    if "method" not in pro:
+        raise _fail(f, "required field 'procedure.method' is missing")
+    method = pro["method"]
+    if method not in METHODS:
+        raise _fail(f, f"field 'procedure.method' = {method!r} must be one of {', '.join(METHODS)}")
+    if "sample_period" not in pro:
+        raise _fail(f, "required field 'procedure.sample_period' is missing")
+    period = _number(f, "procedure.sample_period", pro["sample_period"], positive=True)
+    setpoints = None if pro.get("setpoints") is None else _matrix(f, "procedure.setpoints", pro["setpoints"], robot.n)
+    ideal = None if pro.get("ideal_poses") is None else _matrix(f, "procedure.ideal_poses", pro["ideal_poses"], 6)
+    if setpoints is not None and ideal is not None and len(setpoints) != len(ideal):
+        raise _fail(
+            f, f"field 'procedure.ideal_poses' has {len(ideal)} poses but 'procedure.setpoints' has {len(setpoints)}"
+        )
+    events = meta.get("events") or []
+    if not isinstance(events, list):
+        raise _fail(f, f"field 'events' = {events!r} must be a list")
+    for j, ev in enumerate(events):
+        if not isinstance(ev, dict):
+            raise _fail(f, f"field 'events[{j}]' = {ev!r} must be a mapping with t, kind, message")
+        if "t" in ev:
+            _number(f, f"events[{j}].t", ev["t"])
+    return robot, method, period, setpoints, ideal, events
+
+
+def _read_samples(folder: Path, n: int) -> tuple[list[str], list[list[str]]]:
+    f = folder / SAMPLES_CSV
+    if not f.is_file():
+        raise _fail(f, "missing (a cdpr-run/1 folder holds run.yaml and samples.csv)")
+    raw = f.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise _fail(f, f"is not UTF-8 text (byte {exc.start})") from exc
+    if not text.strip():
+        raise _fail(f, "is empty (no header line)")
+    lines = text.split("\n")
+    if lines[-1] == "":
+        lines.pop()
+    elif len(lines) > 1:
+        warnings.warn(
+            f"{f}: line {len(lines)} is incomplete (the log was cut while writing it); "
+            f"it was dropped and the {len(lines) - 2} complete samples before it were kept.",
+            RunTruncatedWarning,
+            stacklevel=3,
+        )
+        lines.pop()
+    header = [h.strip() for h in lines[0].rstrip("\r").split(",")]
+    seen = set()
+    for h in header:
+        if h == "":
+            raise _fail(f, "header line has an empty column name")
+        if h in seen:
+            raise _fail(f, f"header line names column '{h}' twice")
+        seen.add(h)
+    for c in required_columns(n):
+        if c not in seen:
+            raise _fail(f, f"required column '{c}' is missing from the header (robot with {n} cables)")
+    width = len(header)
+    rows = []
+    for k, line in enumerate(lines[1:], start=2):
+        cells = line.rstrip("\r").split(",")
+        if len(cells) != width:
+            if line.strip() == "":
+                raise _fail(f, f"line {k} is blank")
+            raise _fail(f, f"line {k} has {len(cells)} values but the header has {width} columns (ragged line)")
+        rows.append(cells)
+    return header, rows
+
+
+def _numeric_column(f: Path, name: str, cells: list[str], first_line: int, required: bool) -> np.ndarray:
+    try:
+        a = np.array(cells, dtype=float)
+    except ValueError:
+        for k, c in enumerate(cells):
+            try:
+                float(c)
+            except ValueError:
+                raise _fail(f, f"line {k + first_line} column '{name}' has the non-numeric value {c!r}") from None
+        raise
+    if required:
+        bad = np.flatnonzero(~np.isfinite(a))
+        if bad.size:
+            k = int(bad[0])
+            raise _fail(f, f"line {k + first_line} column '{name}' has the value {cells[k]!r} (NaN or infinite)")
+    return a
+
+
+def read_run(path: str | Path) -> Run:
+    """Read and validate a run folder. Raises RunFormatError naming file, field/column and value."""
+    folder = Path(path)
+    meta = _read_meta(folder)
+    robot, method, period, setpoints, ideal, events = _parse_meta(folder, meta)
+    n = robot.n
+    f = folder / SAMPLES_CSV
+    header, rows = _read_samples(folder, n)
+    index = {h: j for j, h in enumerate(header)}
+    cols = list(zip(*rows, strict=True)) if rows else [()] * len(header)
+    N = len(rows)
+
+    def num(name: str, required: bool = True) -> np.ndarray:
+        return _numeric_column(f, name, list(cols[index[name]]), 2, required)
+
+    t = num("t")
+    groups = {g: np.stack([num(f"{g}_{i}") for i in range(1, n + 1)], axis=1).reshape(N, n) for g in CABLE_GROUPS}
+    scal = {s: num(s) for s in SCALAR_COLUMNS}
+    phase = np.array([c.strip() for c in cols[index["phase"]]], dtype=str) if "phase" in index else np.full(N, "")
+    if "setpoint" in index:
+        setpoint = np.empty(N, dtype=int)
+        for k, c in enumerate(cols[index["setpoint"]]):
+            s = c.strip()
+            try:
+                setpoint[k] = -1 if s == "" else int(s)
+            except ValueError:
+                raise _fail(f, f"line {k + 2} column 'setpoint' has the value {c!r} (expected an integer)") from None
+    else:
+        setpoint = np.full(N, -1, dtype=int)
+    known = set(sample_columns(n))
+    extra: dict[str, np.ndarray] = {}
+    for name in header:
+        if name in known:
+            continue
+        cells = [c.strip() for c in cols[index[name]]]
+        try:
+            extra[name] = np.array([float(c) if c != "" else np.nan for c in cells], dtype=float)
+        except ValueError:
+            extra[name] = np.array(cells, dtype=str)
+    return Run(
+        path=folder,
+        meta=meta,
+        robot=robot,
+        method=method,
+        sample_period=period,
+        setpoints=setpoints,
+        ideal_poses=ideal,
+        events=events,
+        t=t,
+        tau=groups["tau"],
+        tau_ref=groups["tau_ref"],
+        dl=groups["dl"],
+        dsigma=groups["dsigma"],
+        roll=scal["roll"],
+        pitch=scal["pitch"],
+        dyaw=scal["dyaw"],
+        phase=phase,
+        setpoint=setpoint,
+        extra=extra,
+    )
+
+
+# ---------------------------------------------------------------------------------------------- solution
+
+
+def solution_path(run_path: str | Path) -> Path:
+    """Where `cdpr solve` saves its JSON result for a run: RUN/solution.json."""
+    return Path(run_path) / SOLUTION_JSON
+
+
+def read_solution(run_path: str | Path) -> dict[str, Any] | None:
+    """The solution saved with a run (the `cdpr solve --json` object), or None when the run is not solved."""
+    f = solution_path(run_path)
+    if not f.is_file():
+        return None
+    try:
+        data = json.loads(f.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise _fail(f, f"is not valid JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise _fail(f, f"must hold a JSON object, got {type(data).__name__}")
+    return data
+
+
+def write_solution(run_path: str | Path, solution: Mapping[str, Any]) -> Path:
+    """Save a solution next to the run (atomic write), deterministic JSON with sorted keys."""
+    f = solution_path(run_path)
+    _write_atomic(f, json.dumps(_plain(solution), indent=2, sort_keys=True, allow_nan=False) + "\n")
+    return f
