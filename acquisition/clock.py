@@ -1,0 +1,116 @@
+"""The control loop's clock: real (wall time, sleep to the next period) or simulated (lockstep ticks).
+
+A clock hands out ticks: ``advance()`` returns the index of the next tick and its time since the start (s).
+``lockstep`` says whether the loop must wait for the readings answering this tick's SYNC (simulated
+prototype: deterministic) or take the latest readings (real robot). Both clocks send nothing themselves: the
+device set sends SYNC at each tick.
+"""
+
+from __future__ import annotations
+
+import abc
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Tick:
+    index: int  # 0 for the first tick after start()
+    t: float  # s since start() on this clock's time base
+
+
+class Clock(abc.ABC):
+    """Ticks every ``period`` seconds of this clock's time."""
+
+    def __init__(self, period: float):
+        if not period > 0:
+            raise ValueError(f"clock period must be positive, got {period!r} s.")
+        self.period = float(period)
+        self._index = -1
+
+    @property
+    @abc.abstractmethod
+    def lockstep(self) -> bool:
+        """True when every tick's readings must be awaited (deterministic simulation)."""
+
+    @abc.abstractmethod
+    def advance(self) -> Tick:
+        """Wait for the next tick and return it."""
+
+    @property
+    def index(self) -> int:
+        """Index of the last tick handed out (-1 before the first)."""
+        return self._index
+
+    def now(self) -> float:
+        """Time of the last tick, s."""
+        return max(self._index, 0) * self.period
+
+
+class SimClock(Clock):
+    """Simulated time: each tick is one control period later; nothing sleeps (the simulator is in lockstep)."""
+
+    @property
+    def lockstep(self) -> bool:
+        return True
+
+    def advance(self) -> Tick:
+        self._index += 1
+        return Tick(self._index, self._index * self.period)
+
+
+@dataclass
+class Overruns:
+    """Ticks whose deadline had passed when the loop asked for them, and the worst lateness (s)."""
+
+    count: int = 0
+    worst: float = 0.0
+
+
+class RealClock(Clock):
+    """Wall time: ``advance`` sleeps until start + (index + 1) period; late ticks are counted, not skipped.
+
+    ``lockstep=True`` paces a simulated prototype in real time while still waiting for each tick's readings
+    (``cdpr startup --backend sim --realtime``).
+    """
+
+    def __init__(
+        self,
+        period: float,
+        lockstep: bool = False,
+        monotonic: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ):
+        super().__init__(period)
+        self._lockstep = lockstep
+        self._monotonic = monotonic
+        self._sleep = sleep
+        self._t0: float | None = None
+        self.overruns = Overruns()
+
+    @property
+    def lockstep(self) -> bool:
+        return self._lockstep
+
+    def start(self) -> None:
+        """Set time zero to now (called by the first ``advance`` if not called before)."""
+        self._t0 = self._monotonic()
+
+    def advance(self) -> Tick:
+        if self._t0 is None:
+            self.start()
+        self._index += 1
+        deadline = self._t0 + self._index * self.period
+        now = self._monotonic()
+        if now < deadline:
+            self._sleep(deadline - now)
+        elif self._index > 0 and now - deadline > 0.5 * self.period:
+            lateness = now - deadline
+            self.overruns.count += 1
+            self.overruns.worst = max(self.overruns.worst, lateness)
+        return Tick(self._index, self._index * self.period)
+
+    def elapsed(self) -> float:
+        """Wall time since start, s."""
+        return 0.0 if self._t0 is None else self._monotonic() - self._t0

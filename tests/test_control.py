@@ -1,0 +1,153 @@
+"""Tension controller, clocks and equilibrium detector on real numbers.
+
+The controller drives a small but real winch plant defined here: a motor and drum (inertia, viscous and
+Coulomb friction) reeling an elastic cable tied to a fixed point, integrated with substeps.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from acquisition.clock import RealClock, SimClock
+from acquisition.control import ControllerConfig, TensionController, transmission_radius
+from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
+from acquisition.trajectory import TensionTrajectory
+from calib.robot import load_robot
+
+
+class Winch:
+    """n motors with drums reeling elastic cables: tension = k (s0 + radius theta), never negative."""
+
+    def __init__(self, radius, k=20000.0, inertia=2e-4, viscous=2e-3, coulomb=0.02, pretension=20.0):
+        self.r = np.asarray(radius, float)
+        self.k, self.J, self.b, self.fc = k, inertia, viscous, coulomb
+        self.theta = np.zeros_like(self.r)
+        self.omega = np.zeros_like(self.r)
+        self.s0 = pretension / k
+
+    def tension(self):
+        return np.maximum(0.0, self.k * (self.s0 + self.r * self.theta))
+
+    def step(self, torque, dt, substeps=20):
+        h = dt / substeps
+        for _ in range(substeps):
+            friction = self.b * self.omega + self.fc * np.tanh(self.omega / 1e-3)
+            acc = (torque - self.r * self.tension() - friction) / self.J
+            self.omega = self.omega + h * acc
+            self.theta = self.theta + h * self.omega
+
+
+def run(controller, plant, reference, duration, dt, noise=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    steps = int(round(duration / dt))
+    log_ref, log_tau, log_torque = [], [], []
+    for k in range(steps):
+        meas = plant.tension() + noise * rng.standard_normal(plant.r.size)
+        ref = reference(k * dt)
+        torque = controller.update(ref, meas, dt)
+        plant.step(torque, dt)
+        log_ref.append(ref)
+        log_tau.append(plant.tension())
+        log_torque.append(torque)
+    return np.array(log_ref), np.array(log_tau), np.array(log_torque)
+
+
+def test_transmission_radius_sign_and_size_for_irma4u():
+    r = transmission_radius(load_robot("irma4u"))
+    np.testing.assert_allclose(r, np.array([0.028807, 0.028652, 0.028448, 0.028641]) / (2 * math.pi))
+
+
+def test_pi_tracks_a_quintic_and_removes_the_friction_offset():
+    radius = transmission_radius(load_robot("irma4u"))
+    cfg = ControllerConfig(rate=500.0)
+    ctl = TensionController(radius, cfg)
+    plant = Winch(radius)
+    ctl.reset(plant.tension())
+    traj = TensionTrajectory.through(np.array([[20.0] * 4, [118.48, 170.83, 115.57, 82.98]]), max_rate=60.0)
+    ref, tau, torque = run(ctl, plant, traj.at, traj.duration + 3.0, cfg.period, noise=0.05)
+    err = np.abs(ref - tau)
+    assert err.max() < 2.0  # N, during the move
+    assert err[-200:].mean() < 0.1 and err[-200:].max() < 0.2  # N, at rest: within the load cells' uncertainty
+    # feed-forward alone leaves the Coulomb friction's offset (0.02 N m / 4.6 mm = 4.4 N)
+    ff = TensionController(radius, ControllerConfig(kp=0.0, ki=0.0))
+    plant2 = Winch(radius)
+    ff.reset(plant2.tension())
+    ref2, tau2, _ = run(ff, plant2, traj.at, traj.duration + 2.0, cfg.period)
+    assert np.abs(ref2 - tau2)[-1].max() > 2.0
+
+
+def test_torque_rate_limit_and_anti_windup():
+    radius = np.array([0.0046])
+    cfg = ControllerConfig(rate=500.0, max_command=120.0, max_command_rate=300.0)
+    ctl = TensionController(radius, cfg)
+    plant = Winch(radius, pretension=50.0)
+    ctl.reset(plant.tension())
+    # a step to 200 N: the command ramps at 300 N/s and stops at 120 N; the integral stays frozen
+    ref, tau, torque = run(ctl, plant, lambda t: np.array([200.0]), 1.0, cfg.period)
+    steps = np.diff(torque[:, 0]) / radius[0]
+    assert steps.max() <= 300.0 * cfg.period + 1e-9
+    assert torque[:, 0].max() == pytest.approx(120.0 * radius[0])
+    assert abs(ctl.integral[0]) < 5.0  # frozen while saturated
+    # back to a reachable 100 N: settles without a windup overshoot
+    ref, tau, _ = run(ctl, plant, lambda t: np.array([100.0]), 1.5, cfg.period)
+    assert tau[:, 0].min() > 90.0 and tau[-1, 0] == pytest.approx(100.0, abs=0.2)
+
+
+def test_open_loop_channel_ignores_its_load_cell():
+    ctl = TensionController(np.array([0.005, 0.005]), ControllerConfig())
+    ctl.reset(np.array([100.0, 100.0]))
+    t = ctl.update(np.array([100.0, 100.0]), np.array([0.0, 0.0]), 0.002)
+    ctl.open_loop(np.array([1]))
+    t2 = ctl.update(np.array([100.0, 100.0]), np.array([0.0, 0.0]), 0.002)
+    assert t[0] > 0.5 and t2[1] == pytest.approx(0.5)  # feed-forward only on channel 2
+
+
+def test_sim_clock_is_lockstep_and_real_clock_sleeps_to_deadlines():
+    c = SimClock(0.002)
+    ticks = [c.advance() for _ in range(3)]
+    assert c.lockstep and [k.index for k in ticks] == [0, 1, 2] and ticks[2].t == pytest.approx(0.004)
+    now = [10.0]
+    slept = []
+
+    def sleep(d):
+        slept.append(d)
+        now[0] += d
+
+    rc = RealClock(0.004, monotonic=lambda: now[0], sleep=sleep)
+    rc.advance()
+    now[0] += 0.001  # the loop computes for 1 ms
+    rc.advance()
+    assert slept == [pytest.approx(0.003)]
+    now[0] += 0.010  # a 10 ms hiccup: the next deadline has passed
+    rc.advance()
+    assert rc.overruns.count == 1 and rc.overruns.worst == pytest.approx(0.006)
+    assert not rc.lockstep and RealClock(0.002, lockstep=True).lockstep
+
+
+def test_detector_settles_on_a_decaying_swing_and_times_out_on_a_sustained_one():
+    dt = 0.1
+    cfg = DetectorConfig(window=1.5, thresholds=(("tau", 0.196), ("dl", 2e-4)), timeout=20.0)
+    det = EquilibriumDetector(dt, cfg)
+    det.start(0.0)
+    rng = np.random.default_rng(1)
+    settled_at = None
+    for k in range(1, 400):
+        t = k * dt
+        swing = math.exp(-t / 1.5) * math.sin(2 * math.pi * 0.7 * t)
+        tau = 100.0 + 5.0 * swing + 0.05 * rng.standard_normal(4)
+        dl = 0.01 * swing + 2e-5 * rng.standard_normal(4)
+        st = det.push(t, tau=tau, dl=dl)
+        if st.settled:
+            settled_at = t
+            break
+    # 5 N e^(-t/1.5) / sqrt(2) < 0.196 N needs t > 4.3 s; the window adds up to 1.5 s
+    assert settled_at is not None and 4.0 < settled_at < 7.5
+    det.start(100.0)
+    for k in range(1, 300):
+        t = 100.0 + k * dt
+        st = det.push(t, tau=np.full(4, 100.0), dl=np.full(4, 3e-3 * math.sin(2 * math.pi * 0.5 * t)))
+        if st.timed_out:
+            break
+    assert st.timed_out and not st.settled and st.elapsed == pytest.approx(20.1)
+    assert st.ripple["dl"].max() > 1e-3 and st.ripple["tau"].max() == 0.0
