@@ -1,0 +1,129 @@
+"""The CAN side of the master: open the bus from the device configuration, produce SYNC, watch heartbeats.
+
+One :class:`canopen.Network` per bus carries every CANopen node (winch drives and swivel encoders); the
+drivers share it. :class:`SyncProducer` sends the SYNC frames of the control loop and remembers the
+counter of the last one, so that each driver can stamp the TPDOs that answer it with that counter.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import can
+import canopen
+
+from drivers.interfaces import DeviceError
+
+SYNC_COB_ID = 0x80
+HEARTBEAT_BASE = 0x700
+
+
+def open_bus(interface: str, channel: str, bitrate: int | None = None, **kwargs) -> can.BusABC:
+    """Open a python-can bus (``can.Bus(interface=..., channel=..., bitrate=...)``); DeviceError on failure."""
+    if bitrate is not None and interface != "virtual":
+        kwargs["bitrate"] = int(bitrate)
+    try:
+        return can.Bus(interface=interface, channel=channel, **kwargs)
+    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
+        raise DeviceError(
+            f"cannot open CAN interface {interface!r} channel {channel!r} at {bitrate} bit/s: {exc}"
+        ) from exc
+
+
+def open_bus_from_config(can_config) -> can.BusABC:
+    """Open the bus a :class:`drivers.config.CanConfig` describes."""
+    return open_bus(can_config.interface, can_config.channel, can_config.bitrate)
+
+
+def open_network(bus: can.BusABC) -> canopen.Network:
+    """A connected :class:`canopen.Network` on ``bus`` (its notifier thread receives for every node)."""
+    network = canopen.Network(bus)
+    network.connect()
+    return network
+
+
+class SyncProducer:
+    """Sends SYNC frames with the CiA 301 counter and keeps the count of SYNCs sent.
+
+    ``count`` is unwrapped (1, 2, 3, ... since this producer was created); the frame carries
+    ``(count - 1) % overflow + 1`` (1..overflow, object 0x1019 of the nodes). With ``overflow=0`` the
+    frame carries no counter byte.
+    """
+
+    def __init__(self, network: canopen.Network, overflow: int = 240):
+        if overflow != 0 and not 2 <= overflow <= 240:
+            raise ValueError(f"SYNC counter overflow must be 0 or 2..240, got {overflow}")
+        self.network = network
+        self.overflow = overflow
+        self._count = 0
+        self._lock = threading.Lock()
+
+    @property
+    def count(self) -> int:
+        """Unwrapped counter of the last SYNC sent, 0 before the first."""
+        return self._count
+
+    def wire_counter(self, count: int) -> int:
+        """The counter byte a SYNC with unwrapped ``count`` carries on the wire."""
+        return (count - 1) % self.overflow + 1 if self.overflow else 0
+
+    def send_sync(self) -> int:
+        """Send one SYNC; returns its unwrapped counter (recorded before the frame leaves)."""
+        with self._lock:
+            self._count += 1
+            count = self._count
+            data = bytes([self.wire_counter(count)]) if self.overflow else b""
+            self.network.send_message(SYNC_COB_ID, data)
+        return count
+
+
+class HeartbeatMonitor:
+    """Heartbeat consumer for one node: the node is lost when no heartbeat came for ``factor`` periods.
+
+    Times are taken from ``clock`` (s) when a heartbeat arrives and when the monitor is asked, so that the
+    simulated prototype can run it on its own clock. Monitoring starts at :meth:`start` (a node that never
+    sends is lost ``factor`` periods later).
+    """
+
+    def __init__(self, node: canopen.RemoteNode, period: float, clock: Callable[[], float] = time.monotonic,
+                 factor: float = 2.5):
+        self.node = node
+        self.period = float(period)
+        self.clock = clock
+        self.factor = float(factor)
+        self.last: float | None = None
+        self.state: int | None = None  # last NMT state reported (0 boot-up, 4, 5, 127)
+        self.count = 0
+        self._started: float | None = None
+        node.nmt.add_heartbeat_callback(self._on_heartbeat)
+
+    def _on_heartbeat(self, state: int) -> None:
+        self.last = self.clock()
+        self.state = state
+        self.count += 1
+
+    def start(self) -> None:
+        self._started = self.clock()
+
+    def silence(self) -> float | None:
+        """Time since the last heartbeat (or since start), s; None when not monitoring."""
+        if self._started is None or self.period <= 0:
+            return None
+        ref = self.last if self.last is not None and self.last >= self._started else self._started
+        return self.clock() - ref
+
+    def lost(self) -> bool:
+        silence = self.silence()
+        return silence is not None and silence > self.factor * self.period
+
+    def describe_loss(self, name: str) -> str | None:
+        silence = self.silence()
+        if silence is None or silence <= self.factor * self.period:
+            return None
+        return (f"{name} (node {self.node.id}) lost its heartbeat: none for {silence:.3f} s "
+                f"(period {self.period:.3f} s)")
+
+
+NMT_STATE_NAMES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
