@@ -1,0 +1,520 @@
+"""Rigid-body platform on elastic, unilateral cables driven by winches: the simulated prototype's physics.
+
+Model (SI units throughout):
+
+* the platform: a 6-DOF rigid body (mass m, centre of mass G at ``com`` in the platform frame, inertia
+  about G in the platform frame), gravity along -z, light linear and angular damping (air, cable
+  slapping) so that it swings and settles in a few seconds after each tension transition;
+* cable i runs from its winch drum over the swivel pulley (entry point d_i, local frame, radius r_i,
+  the geometry of ``calib.kinematics``) to the platform anchor A_i. Its unstretched length is
+  ``l0_i = l00_i + k_i * theta_i`` with ``k_i`` the transmission (m of cable per rad of motor,
+  ``length_per_motor_rev / 2 pi``, negative on IRMA4U: the cable shortens as the motor angle grows).
+  Tension ``tau = EA (L - l0) / l0 + c dL/dt`` when taut, 0 when slack (unilateral);
+* optional cable mass (kg/m): parabolic sag, which lengthens the path by ``w^2 Lc^3 cos^2(alpha) /
+  (24 tau^2)``, loads each anchor with half the cable weight and makes the tension at the pulley (where
+  the load cell is) exceed the chord tension by ``w dz / 2``;
+* each winch: inertia J at the motor shaft (rotor + drum + gear, reflected), viscous and Coulomb
+  friction (Coulomb regularised over ``coulomb_speed``), motor torque u (positive reels the cable in),
+  an optional holding brake (engaged at power-on until the drive is enabled).
+
+Integrator: one step per control period (optionally split into substeps) of a semi-implicit scheme:
+the slow dynamics (gravity, damping, gyroscopic terms, motor torques) are explicit (symplectic Euler),
+the stiff cable springs are solved implicitly in the 4-dimensional cable space: the tensions at the end
+of the step solve ``(I + dt S D) tau = K e + S J v*`` with D = J M^-1 J^T the cable-space inverse
+inertia, S = theta_imp dt K + C, which is unconditionally stable for any EA. Slack cables are handled by
+an active set (a cable whose solved tension is negative carries none). Everything is plain float math on
+lists (n = 4): numpy calls on arrays of four elements cost more than the arithmetic they do.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.kinematics import rotation, rotation_to_euler
+from calib.robot import Robot
+
+
+class SimulationError(RuntimeError):
+    """The simulation cannot continue (diverged state); the message says when."""
+
+
+@dataclass(frozen=True)
+class WinchParams:
+    """One winch at the motor shaft: inertia kg m^2, viscous N m s/rad, Coulomb N m, smoothing rad/s."""
+
+    inertia: float = 5.0e-5
+    viscous: float = 2.0e-4
+    coulomb: float = 0.01
+    coulomb_speed: float = 0.05
+
+
+@dataclass(frozen=True)
+class PhysicsParams:
+    """Nominal physical parameters of the simulated prototype.
+
+    ea: cable axial stiffness EA, N. The nominal 2e6 N stretches a 2.3 m cable by 0.23 mm under 200 N,
+    so the static equilibria match the rigid-cable model to well below the sensors' resolution.
+    cable_damping: stiffness-proportional cable damping, s (c = cable_damping * EA / l0).
+    linear_damping N s/m and angular_damping N m s/rad on the platform (residual swing of a few seconds).
+    cable_density: kg/m, 0 for massless cables (the ``cable_sag`` hidden effect sets it).
+    substeps per step; stiff_theta: 1 = implicit Euler on the cable springs, 0.5 = trapezoidal-like.
+    """
+
+    ea: float = 2.0e6
+    cable_damping: float = 2.0e-4
+    linear_damping: float = 20.0
+    angular_damping: float = 0.6
+    cable_density: float = 0.0
+    winch: WinchParams = field(default_factory=WinchParams)
+    substeps: int = 1
+    stiff_theta: float = 1.0
+
+
+@dataclass(frozen=True)
+class PhysicsState:
+    """A snapshot of the simulated state: time s, pose (6,) m/rad, motor angles (n,) rad, tensions (n,) N."""
+
+    time: float
+    pose: np.ndarray
+    motor_position: np.ndarray
+    cable_tension: np.ndarray
+
+
+def _solve(a: list[list[float]], b: list[float]) -> list[float]:
+    """Gaussian elimination with partial pivoting on a small dense system (lists, modified in place)."""
+    n = len(b)
+    for c in range(n):
+        p = max(range(c, n), key=lambda r: abs(a[r][c]))
+        if p != c:
+            a[c], a[p] = a[p], a[c]
+            b[c], b[p] = b[p], b[c]
+        piv = a[c][c]
+        row = a[c]
+        for r in range(c + 1, n):
+            f = a[r][c] / piv
+            if f != 0.0:
+                ar = a[r]
+                for j in range(c, n):
+                    ar[j] -= f * row[j]
+                b[r] -= f * b[c]
+    x = [0.0] * n
+    for c in range(n - 1, -1, -1):
+        s = b[c]
+        row = a[c]
+        for j in range(c + 1, n):
+            s -= row[j] * x[j]
+        x[c] = s / row[c]
+    return x
+
+
+class CablePhysics:
+    """The simulated prototype (implements ``sim_backend.plant.Plant``).
+
+    ``robot`` is the TRUE robot (hidden effects on geometry, mass and centre of mass already applied);
+    ``transmission`` (n,) the true m of cable per rad of motor; ``pose`` the initial pose (6,) and
+    ``tensions`` (n,) the tensions in which the platform starts at rest (the initial unstretched lengths
+    are chosen so that those tensions hold there: start at a static equilibrium to start at rest).
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        params: PhysicsParams,
+        transmission: np.ndarray,
+        pose: np.ndarray,
+        tensions: np.ndarray,
+        brakes: bool = True,
+    ):
+        n = robot.n
+        self.n = n
+        self.robot = robot
+        self.params = params
+        self._t = 0.0
+        self._k = [float(x) for x in np.asarray(transmission, float).reshape(n)]
+        self._d = robot.d.tolist()
+        self._fr = robot.frames.tolist()
+        self._r = robot.r.tolist()
+        self._com = robot.com.tolist()
+        self._rb = (robot.a_local - robot.com).tolist()  # anchors relative to G, platform frame
+        self._m = float(robot.mass)
+        self._g = float(robot.gravity)
+        ib = np.asarray(robot.inertia, float)
+        self._ib = ib.tolist()
+        self._ibinv = np.linalg.inv(ib).tolist()
+        self._ea = float(params.ea)
+        self._w = float(params.cable_density) * self._g  # cable weight per length, N/m
+        w = params.winch
+        self._jm, self._bm, self._fc, self._ws = w.inertia, w.viscous, w.coulomb, w.coulomb_speed
+        # state
+        pose = np.asarray(pose, float).reshape(6)
+        rot = rotation(pose[3:], robot.orientation)[0]
+        xg = pose[:3] + rot @ robot.com
+        self._xg = xg.tolist()
+        self._q = _quat_from_matrix(rot)
+        self._v = [0.0, 0.0, 0.0]
+        self._wb = [0.0, 0.0, 0.0]
+        self._th = [0.0] * n
+        self._thd = [0.0] * n
+        self._u = [0.0] * n
+        self._brake = [bool(brakes)] * n
+        tensions = [float(x) for x in np.asarray(tensions, float).reshape(n)]
+        self._tau = list(tensions)
+        self._tau_cell = list(tensions)
+        geo = self._geometry()
+        self._l00 = [0.0] * n
+        for i in range(n):
+            length = geo[i][0] + geo[i][5]
+            self._l00[i] = length * self._ea / (self._ea + tensions[i]) if tensions[i] > 0 else length
+        self._geo = self._geometry()
+        self._tau_cell = self._cell_tensions(self._geo, self._tau)
+        if not brakes:
+            self._u = [-self._k[i] * tensions[i] for i in range(n)]
+
+    # --- Plant protocol -------------------------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        """Simulated time since power-on, s."""
+        return self._t
+
+    def motor_position(self) -> np.ndarray:
+        return np.array(self._th)
+
+    def motor_velocity(self) -> np.ndarray:
+        return np.array(self._thd)
+
+    def motor_torque(self) -> np.ndarray:
+        return np.array(self._u)
+
+    def set_motor_torque(self, i: int, torque: float) -> None:
+        self._u[i] = float(torque)
+
+    def cable_tension(self) -> np.ndarray:
+        """(n,) true tension at the load cells (pulley end), N."""
+        return np.array(self._tau_cell)
+
+    def swivel_angle(self) -> np.ndarray:
+        return np.array([g[4] for g in self._geo])
+
+    def orientation(self) -> np.ndarray:
+        return self.pose()[3:]
+
+    # --- beyond the protocol --------------------------------------------------------------------------
+    def set_brake(self, i: int, engaged: bool) -> None:
+        """Engage (motor shaft locked) or release the holding brake of winch i."""
+        self._brake[i] = bool(engaged)
+        if engaged:
+            self._thd[i] = 0.0
+
+    def brake(self, i: int) -> bool:
+        return self._brake[i]
+
+    def slip_cable(self, i: int, length: float) -> None:
+        """Fault: cable i slips on its drum by ``length`` m (its unstretched length grows: it goes slack)."""
+        self._l00[i] += float(length)
+
+    def rotation_matrix(self) -> np.ndarray:
+        return np.array(_quat_to_matrix(self._q))
+
+    def pose(self) -> np.ndarray:
+        """The true pose (6,) [x, y, z, roll, pitch, yaw] of the platform frame, m and rad."""
+        rot = self.rotation_matrix()
+        p = np.array(self._xg) - rot @ np.array(self._com)
+        ang = rotation_to_euler(rot, self.robot.orientation)[0]
+        return np.r_[p, ang]
+
+    def cable_lengths(self) -> np.ndarray:
+        """(n,) true geometric cable lengths from drum exit over the pulley to the anchor (with sag), m."""
+        return np.array([g[0] + g[5] for g in self._geo])
+
+    def unstretched_lengths(self) -> np.ndarray:
+        """(n,) unstretched lengths l0 paid out by the winches, m."""
+        return np.array([self._l00[i] + self._k[i] * self._th[i] for i in range(self.n)])
+
+    def chord_tension(self) -> np.ndarray:
+        """(n,) cable tension along the straight segment (at the anchor for massless cables), N."""
+        return np.array(self._tau)
+
+    def state(self) -> PhysicsState:
+        return PhysicsState(self._t, self.pose(), self.motor_position(), self.cable_tension())
+
+    def energy(self) -> float:
+        """Mechanical energy, J: kinetic + gravity + cable strain - work of the (constant) motor torques."""
+        m = self._m
+        ke = 0.5 * m * sum(x * x for x in self._v)
+        ib, wb = self._ib, self._wb
+        ke += 0.5 * sum(wb[a] * sum(ib[a][b] * wb[b] for b in range(3)) for a in range(3))
+        ke += 0.5 * self._jm * sum(x * x for x in self._thd)
+        pe = m * self._g * self._xg[2]
+        for i in range(self.n):
+            l0 = self._l00[i] + self._k[i] * self._th[i]
+            e = self._geo[i][0] + self._geo[i][5] - l0
+            if e > 0:
+                pe += 0.5 * self._ea / l0 * e * e
+            pe -= self._u[i] * self._th[i]
+        return ke + pe
+
+    # --- geometry -------------------------------------------------------------------------------------
+    def _geometry(self) -> list[tuple]:
+        """Per cable: (length over pulley, t (3), tb (3) in body, jw (3), swivel, sag extra, dz)."""
+        qw, qx, qy, qz = self._q
+        r00 = 1 - 2 * (qy * qy + qz * qz)
+        r01 = 2 * (qx * qy - qw * qz)
+        r02 = 2 * (qx * qz + qw * qy)
+        r10 = 2 * (qx * qy + qw * qz)
+        r11 = 1 - 2 * (qx * qx + qz * qz)
+        r12 = 2 * (qy * qz - qw * qx)
+        r20 = 2 * (qx * qz - qw * qy)
+        r21 = 2 * (qy * qz + qw * qx)
+        r22 = 1 - 2 * (qx * qx + qy * qy)
+        xg0, xg1, xg2 = self._xg
+        w = self._w
+        out = []
+        for i in range(self.n):
+            b0, b1, b2 = self._rb[i]
+            d = self._d[i]
+            q0 = xg0 + r00 * b0 + r01 * b1 + r02 * b2 - d[0]
+            q1 = xg1 + r10 * b0 + r11 * b1 + r12 * b2 - d[1]
+            q2 = xg2 + r20 * b0 + r21 * b1 + r22 * b2 - d[2]
+            fi, fj, fk = self._fr[i]
+            qi = q0 * fi[0] + q1 * fi[1] + q2 * fi[2]
+            qj = q0 * fj[0] + q1 * fj[1] + q2 * fj[2]
+            qk = q0 * fk[0] + q1 * fk[1] + q2 * fk[2]
+            sw = math.atan2(qj, qi)
+            r = self._r[i]
+            if r > 0.0:
+                ru = math.hypot(qi, qj)
+                cs, ss = qi / ru, qj / ru
+                ratio = qk / ru
+                psi = 2.0 * math.atan(ratio + math.sqrt(ratio * ratio + 1.0 - 2.0 * r / ru))
+                cp, sp = math.cos(psi), math.sin(psi)
+                # u + nv in the local frame: (1 + cp) u + sp k, with u = cs i + ss j
+                a_ = r * (1.0 + cp)
+                c_ = r * sp
+                ri = qi - a_ * cs
+                rj = qj - a_ * ss
+                rk = qk - c_
+                arc = r * (math.pi - psi)
+                rho0 = ri * fi[0] + rj * fj[0] + rk * fk[0]
+                rho1 = ri * fi[1] + rj * fj[1] + rk * fk[1]
+                rho2 = ri * fi[2] + rj * fj[2] + rk * fk[2]
+            else:
+                arc = 0.0
+                rho0, rho1, rho2 = q0, q1, q2
+            lc = math.sqrt(rho0 * rho0 + rho1 * rho1 + rho2 * rho2)
+            t0, t1, t2 = rho0 / lc, rho1 / lc, rho2 / lc
+            # body-frame direction and moment arm
+            tb0 = r00 * t0 + r10 * t1 + r20 * t2
+            tb1 = r01 * t0 + r11 * t1 + r21 * t2
+            tb2 = r02 * t0 + r12 * t1 + r22 * t2
+            jw = (b1 * tb2 - b2 * tb1, b2 * tb0 - b0 * tb2, b0 * tb1 - b1 * tb0)
+            sag = 0.0
+            if w > 0.0:
+                tau = max(self._tau[i], 1.0)
+                cos2 = (rho0 * rho0 + rho1 * rho1) / (lc * lc)
+                sag = w * w * lc * lc * lc * cos2 / (24.0 * tau * tau)
+            out.append((lc + arc, (t0, t1, t2), (tb0, tb1, tb2), jw, sw, sag, -rho2, lc))
+        return out
+
+    def _cell_tensions(self, geo: list[tuple], tau: list[float]) -> list[float]:
+        w = self._w
+        if w == 0.0:
+            return list(tau)
+        return [tau[i] + 0.5 * w * geo[i][6] if tau[i] > 0.0 else 0.0 for i in range(self.n)]
+
+    # --- integration ----------------------------------------------------------------------------------
+    def step(self, dt: float) -> None:
+        """Advance the simulation by dt seconds (``params.substeps`` substeps)."""
+        ns = self.params.substeps
+        h = dt / ns
+        for _ in range(ns):
+            self._substep(h)
+        if not all(math.isfinite(x) for x in self._xg) or not all(math.isfinite(x) for x in self._tau):
+            raise SimulationError(f"the simulated platform diverged at t = {self._t:.3f} s (unstable commands?).")
+
+    def _substep(self, h: float) -> None:
+        n = self.n
+        p = self.params
+        m = self._m
+        geo = self._geo
+        ibinv = self._ibinv
+        ib = self._ib
+        v0, v1, v2 = self._v
+        w0, w1, w2 = self._wb
+        # explicit forces on the body: gravity, damping, sag loads, gyroscopic moment
+        cl, ca = p.linear_damping, p.angular_damping
+        f0, f1, f2 = -cl * v0, -cl * v1, -cl * v2 - m * self._g
+        iw0 = ib[0][0] * w0 + ib[0][1] * w1 + ib[0][2] * w2
+        iw1 = ib[1][0] * w0 + ib[1][1] * w1 + ib[1][2] * w2
+        iw2 = ib[2][0] * w0 + ib[2][1] * w1 + ib[2][2] * w2
+        mb0 = -(w1 * iw2 - w2 * iw1) - ca * w0
+        mb1 = -(w2 * iw0 - w0 * iw2) - ca * w1
+        mb2 = -(w0 * iw1 - w1 * iw0) - ca * w2
+        if self._w > 0.0:
+            rmat = _quat_to_matrix(self._q)
+            for i in range(n):
+                if self._tau[i] <= 0.0:
+                    continue
+                fz = -0.5 * self._w * geo[i][7]  # half the cable weight hangs on the anchor
+                f2 += fz
+                # body-frame force = R^T (0, 0, fz)
+                fb0, fb1, fb2 = rmat[2][0] * fz, rmat[2][1] * fz, rmat[2][2] * fz
+                b0, b1, b2 = self._rb[i]
+                mb0 += b1 * fb2 - b2 * fb1
+                mb1 += b2 * fb0 - b0 * fb2
+                mb2 += b0 * fb1 - b1 * fb0
+        vs0, vs1, vs2 = v0 + h * f0 / m, v1 + h * f1 / m, v2 + h * f2 / m
+        ws0 = w0 + h * (ibinv[0][0] * mb0 + ibinv[0][1] * mb1 + ibinv[0][2] * mb2)
+        ws1 = w1 + h * (ibinv[1][0] * mb0 + ibinv[1][1] * mb1 + ibinv[1][2] * mb2)
+        ws2 = w2 + h * (ibinv[2][0] * mb0 + ibinv[2][1] * mb1 + ibinv[2][2] * mb2)
+        # motors: linearly implicit friction, brake = locked shaft
+        thds = [0.0] * n
+        minv = [0.0] * n
+        for i in range(n):
+            if self._brake[i]:
+                continue
+            x = self._thd[i]
+            th_ = math.tanh(x / self._ws)
+            fric = self._bm * x + self._fc * th_
+            dfric = self._bm + self._fc / self._ws * (1.0 - th_ * th_)
+            jeff = self._jm + h * dfric
+            thds[i] = x + h * (self._u[i] - fric) / jeff
+            minv[i] = 1.0 / jeff
+        # cable-space implicit solve
+        ea = self._ea
+        kc = [0.0] * n
+        e = [0.0] * n
+        ed = [0.0] * n
+        s = [0.0] * n
+        ijw = []
+        for i in range(n):
+            g = geo[i]
+            l0 = self._l00[i] + self._k[i] * self._th[i]
+            kc[i] = ea / l0
+            e[i] = g[0] + g[5] - l0
+            t = g[1]
+            jw = g[3]
+            ed[i] = (
+                t[0] * vs0 + t[1] * vs1 + t[2] * vs2 + jw[0] * ws0 + jw[1] * ws1 + jw[2] * ws2 - self._k[i] * thds[i]
+            )
+            s[i] = kc[i] * (p.stiff_theta * h + p.cable_damping)
+            ijw.append(
+                (
+                    ibinv[0][0] * jw[0] + ibinv[0][1] * jw[1] + ibinv[0][2] * jw[2],
+                    ibinv[1][0] * jw[0] + ibinv[1][1] * jw[1] + ibinv[1][2] * jw[2],
+                    ibinv[2][0] * jw[0] + ibinv[2][1] * jw[1] + ibinv[2][2] * jw[2],
+                )
+            )
+        dmat = [[0.0] * n for _ in range(n)]
+        for i in range(n):
+            ti, ji = geo[i][1], geo[i][3]
+            for j in range(i, n):
+                tj, ij = geo[j][1], ijw[j]
+                val = (ti[0] * tj[0] + ti[1] * tj[1] + ti[2] * tj[2]) / m
+                val += ji[0] * ij[0] + ji[1] * ij[1] + ji[2] * ij[2]
+                dmat[i][j] = val
+                dmat[j][i] = val
+            dmat[i][i] += self._k[i] * self._k[i] * minv[i]
+        active = [True] * n
+        tau = [0.0] * n
+        for _ in range(n + 1):
+            idx = [i for i in range(n) if active[i]]
+            if not idx:
+                tau = [0.0] * n
+                break
+            a = [[(1.0 if i == j else 0.0) + h * s[i] * dmat[i][j] for j in idx] for i in idx]
+            b = [kc[i] * e[i] + s[i] * ed[i] for i in idx]
+            x = _solve(a, b)
+            tau = [0.0] * n
+            for c, i in enumerate(idx):
+                tau[i] = x[c]
+            neg = [i for i in idx if tau[i] < 0.0]
+            if not neg:
+                break
+            for i in neg:
+                active[i] = False
+        # velocity update with the cable impulses
+        for i in range(n):
+            ti = tau[i]
+            if ti == 0.0:
+                continue
+            t = geo[i][1]
+            ij = ijw[i]
+            c = h * ti
+            vs0 -= c * t[0] / m
+            vs1 -= c * t[1] / m
+            vs2 -= c * t[2] / m
+            ws0 -= c * ij[0]
+            ws1 -= c * ij[1]
+            ws2 -= c * ij[2]
+            thds[i] += c * minv[i] * self._k[i]
+        self._v = [vs0, vs1, vs2]
+        self._wb = [ws0, ws1, ws2]
+        self._thd = thds
+        xg = self._xg
+        self._xg = [xg[0] + h * vs0, xg[1] + h * vs1, xg[2] + h * vs2]
+        self._th = [self._th[i] + h * thds[i] for i in range(n)]
+        self._q = _quat_integrate(self._q, ws0 * h, ws1 * h, ws2 * h)
+        self._t += h
+        self._tau = tau
+        self._geo = self._geometry()
+        self._tau_cell = self._cell_tensions(self._geo, tau)
+
+
+def _quat_to_matrix(q: list[float]) -> list[list[float]]:
+    qw, qx, qy, qz = q
+    return [
+        [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)],
+        [2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)],
+        [2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)],
+    ]
+
+
+def _quat_from_matrix(r: np.ndarray) -> list[float]:
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    if tr > 0:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    else:
+        i = int(np.argmax([r[0, 0], r[1, 1], r[2, 2]]))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k])
+        q = [0.0] * 4
+        q[0] = (r[k, j] - r[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (r[j, i] + r[i, j]) / s
+        q[1 + k] = (r[k, i] + r[i, k]) / s
+    nq = math.sqrt(sum(x * x for x in q))
+    return [float(x) / nq for x in q]
+
+
+def _quat_integrate(q: list[float], a0: float, a1: float, a2: float) -> list[float]:
+    """q * exp(a / 2) for a body-frame rotation vector a (rad), renormalised."""
+    ang = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if not ang < 1e3:
+        return [math.nan] * 4
+    if ang < 1e-12:
+        dw, dx, dy, dz = 1.0, 0.5 * a0, 0.5 * a1, 0.5 * a2
+    else:
+        sh = math.sin(0.5 * ang) / ang
+        dw, dx, dy, dz = math.cos(0.5 * ang), a0 * sh, a1 * sh, a2 * sh
+    qw, qx, qy, qz = q
+    rw = qw * dw - qx * dx - qy * dy - qz * dz
+    rx = qw * dx + qx * dw + qy * dz - qz * dy
+    ry = qw * dy - qx * dz + qy * dw + qz * dx
+    rz = qw * dz + qx * dy - qy * dx + qz * dw
+    nq = 1.0 / math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
+    return [rw * nq, rx * nq, ry * nq, rz * nq]
+
+
+def transmission_of(robot: Robot) -> np.ndarray:
+    """Nominal transmission (n,) m of cable per rad of motor from ``robot.sensors.length_per_motor_rev``."""
+    lpr = robot.sensors.length_per_motor_rev
+    if len(lpr) != robot.n:
+        raise ValueError(
+            f"robot '{robot.name}': field 'sensors.length_per_motor_rev' = {list(lpr)!r} must give one value "
+            f"per cable ({robot.n}) for the simulator."
+        )
+    return np.asarray(lpr, float) / (2.0 * math.pi)
