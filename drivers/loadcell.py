@@ -1,0 +1,294 @@
+"""Load-cell amplifier: the line protocol of docs/protocols/loadcell.md (codec) and the serial driver.
+
+Device to host, one line per sample: ``$LC,<seq>,<f_1>,...,<f_n>*HH\\r\\n`` with ``seq`` a decimal
+counter (+1 per sample, 32-bit), ``f_i`` the force of channel i in N with two decimals, or ``OPEN``
+(bridge disconnected) or ``OVER`` (beyond the measuring range), and ``HH`` the XOR of every byte between
+``$`` and ``*`` in two upper-case hex digits. Host to device: ``$INFO*HH`` is answered with
+``$INFO,<model>,<channels>,<full scale N>,<rate Hz>*HH``.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.interfaces import DeviceError, LinkStats, TensionReading
+from drivers.interfaces import LoadCellAmplifier as LoadCellBase
+from drivers.serial_util import LatestBox, PortReader, open_port
+
+MAX_LINE = 256
+SEQ_MODULUS = 1 << 32
+OPEN = "OPEN"
+OVER = "OVER"
+_NUMBER = re.compile(r"-?[0-9]{1,7}(\.[0-9]{1,6})?")
+_SEQ = re.compile(r"[0-9]{1,10}")
+
+
+def checksum(body: bytes) -> int:
+    """XOR of the bytes between ``$`` and ``*``."""
+    x = 0
+    for b in body:
+        x ^= b
+    return x
+
+
+def frame(body: str) -> bytes:
+    """``$body*HH\\r\\n`` for an ASCII body."""
+    raw = body.encode("ascii")
+    return b"$" + raw + b"*" + f"{checksum(raw):02X}".encode() + b"\r\n"
+
+
+def encode_sample(seq: int, values: Sequence[float | str]) -> bytes:
+    """One sample line: forces in N (rounded to 0.01 N) or the flags OPEN / OVER."""
+    fields = [v if isinstance(v, str) else f"{v:.2f}" for v in values]
+    return frame(",".join(["LC", str(seq % SEQ_MODULUS), *fields]))
+
+
+@dataclass(frozen=True)
+class SampleLine:
+    seq: int
+    tau: np.ndarray  # (n,) N, NaN where a flag stands
+    flags: tuple[str, ...]  # per channel: "" or OPEN / OVER
+
+
+@dataclass(frozen=True)
+class InfoLine:
+    model: str
+    channels: int
+    full_scale: float  # N
+    rate_hz: float
+
+
+def unframe(line: bytes) -> str | None:
+    """The body of ``$body*HH`` (trailing CR/LF allowed) when the checksum matches, else None."""
+    line = line.rstrip(b"\r\n")
+    if len(line) < 4 or line[:1] != b"$" or line[-3:-2] != b"*":
+        return None
+    body, hh = line[1:-3], line[-2:]
+    try:
+        if int(hh, 16) != checksum(body) or hh.upper() != hh:
+            return None
+        return body.decode("ascii")
+    except (ValueError, UnicodeDecodeError):
+        return None
+
+
+def parse_line(line: bytes) -> SampleLine | InfoLine | None:
+    """Decode one line (garbage before its ``$`` is ignored); None when it is not a valid line."""
+    start = line.rfind(b"$")
+    if start < 0:
+        return None
+    body = unframe(line[start:])
+    if body is None:
+        return None
+    parts = body.split(",")
+    try:
+        if parts[0] == "LC" and len(parts) >= 3:
+            if not _SEQ.fullmatch(parts[1]) or int(parts[1]) >= SEQ_MODULUS:
+                return None
+            flags = tuple(p if p in (OPEN, OVER) else "" for p in parts[2:])
+            if not all(f or _NUMBER.fullmatch(p) for p, f in zip(parts[2:], flags, strict=True)):
+                return None
+            tau = np.array([math.nan if f else float(p) for p, f in zip(parts[2:], flags, strict=True)])
+            return SampleLine(seq=int(parts[1]), tau=tau, flags=flags)
+        if parts[0] == "INFO" and len(parts) == 5 and _SEQ.fullmatch(parts[2]) and all(
+                _NUMBER.fullmatch(p) for p in parts[3:]):
+            return InfoLine(model=parts[1], channels=int(parts[2]), full_scale=float(parts[3]),
+                            rate_hz=float(parts[4]))
+    except ValueError:
+        return None
+    return None
+
+
+@dataclass
+class LineDecoder:
+    """Incremental splitter: bytes in, decoded lines out; bad lines and overlong junk are counted."""
+
+    bad_lines: int = 0
+    bytes_discarded: int = 0
+    _buf: bytearray = field(default_factory=bytearray, repr=False)
+
+    def feed(self, data: bytes) -> list[SampleLine | InfoLine]:
+        self._buf += data
+        out: list[SampleLine | InfoLine] = []
+        while True:
+            nl = self._buf.find(b"\n")
+            if nl < 0:
+                break
+            line = bytes(self._buf[: nl + 1])
+            del self._buf[: nl + 1]
+            msg = parse_line(line)
+            if msg is None:
+                self.bad_lines += 1
+                self.bytes_discarded += len(line)
+            else:
+                start = line.rfind(b"$")
+                self.bytes_discarded += start
+                out.append(msg)
+        if len(self._buf) > MAX_LINE:  # no newline for too long: keep only from the last '$'
+            start = self._buf.rfind(b"$")
+            cut = len(self._buf) if start < 0 or len(self._buf) - start > MAX_LINE else start
+            self.bytes_discarded += cut
+            del self._buf[:cut]
+        return out
+
+
+# ---- the driver ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LoadCellConfig:
+    port: str
+    baud: int = 115200
+    channels: int = 4
+    rate_hz: float = 100.0  # expected sample rate, for the staleness rule
+    stale_periods: float = 3.0
+    stuck_samples: int = 50  # identical consecutive values that mark a stuck channel
+    info_timeout: float = 1.0  # s
+
+
+class LoadCellDriver(LoadCellBase):
+    """A multi-channel amplifier on a serial port; implements :class:`drivers.interfaces.LoadCellAmplifier`."""
+
+    name = "loadcells"
+
+    def __init__(self, config: LoadCellConfig) -> None:
+        self.config = config
+        self.info: InfoLine | None = None
+        self._port = None
+        self._reader: PortReader | None = None
+        self._decoder = LineDecoder()
+        self._stats = LinkStats()
+        self._box = LatestBox(1.0 / config.rate_hz, config.stale_periods)
+        self._info_event = threading.Event()
+        self._last_seq: int | None = None
+        self._same = np.zeros(config.channels, dtype=int)
+        self._prev: np.ndarray | None = None
+        self._flags: tuple[str, ...] = ("",) * config.channels
+
+    def open(self) -> None:
+        if self._port is not None:
+            return
+        self._port = open_port(self.config.port, self.config.baud, "load-cell amplifier")
+        self._reader = PortReader(self._port, self._on_bytes, name=f"loadcell-{self.config.port}")
+        self._reader.start()
+        try:
+            self._handshake()
+        except DeviceError:
+            self.close()
+            raise
+        self._box.opened_at = time.monotonic()
+
+    def _handshake(self) -> None:
+        self._info_event.clear()
+        try:
+            self._port.write(frame("INFO"))
+        except Exception as exc:  # serial.SerialException, OSError, write timeout
+            raise DeviceError(f"load-cell amplifier: writing INFO to {self.config.port} failed ({exc}).") from exc
+        if not self._info_event.wait(self.config.info_timeout):
+            raise DeviceError(f"load-cell amplifier on {self.config.port} did not answer INFO within "
+                              f"{self.config.info_timeout:g} s.")
+        if self.info.channels != self.config.channels:
+            raise DeviceError(f"load-cell amplifier on {self.config.port} has {self.info.channels} channels, "
+                              f"the configuration expects {self.config.channels}.")
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.stop()
+            self._reader = None
+        if self._port is not None:
+            try:
+                self._port.close()
+            finally:
+                self._port = None
+
+    def _on_bytes(self, data: bytes, t: float) -> None:
+        for msg in self._decoder.feed(data):
+            if isinstance(msg, InfoLine):
+                self.info = msg
+                self._info_event.set()
+            else:
+                self._on_sample(msg, t)
+        self._stats.checksum_errors = self._decoder.bad_lines
+        self._stats.bytes_discarded = self._decoder.bytes_discarded
+
+    def _on_sample(self, s: SampleLine, t: float) -> None:
+        if len(s.tau) != self.config.channels:
+            self._stats.extra["wrong_width"] = self._stats.extra.get("wrong_width", 0) + 1
+            return
+        if self._last_seq is not None:
+            step = (s.seq - self._last_seq) % SEQ_MODULUS
+            if step == 0:
+                return  # a repeated line
+            if step > SEQ_MODULUS // 2:  # the counter went back: the amplifier restarted
+                self._stats.extra["restarts"] = self._stats.extra.get("restarts", 0) + 1
+            elif step > 1:
+                self._stats.sequence_gaps += step - 1
+        self._last_seq = s.seq
+        if self._prev is not None:
+            same = (s.tau == self._prev) & np.isfinite(s.tau)
+            self._same = np.where(same, self._same + 1, 0)
+        self._prev = s.tau
+        self._flags = s.flags
+        self._stats.frames += 1
+        self._box.put(TensionReading(t=t, seq=s.seq, tau=s.tau, device_seq=s.seq))
+
+    # ---- the LoadCellAmplifier interface ----
+    def latest(self) -> TensionReading | None:
+        return self._box.latest  # type: ignore[return-value]
+
+    def wait_for(self, device_seq: int, timeout: float) -> TensionReading:
+        return self._box.wait(lambda r: r.device_seq >= device_seq, timeout,  # type: ignore[return-value]
+                              f"load-cell amplifier on {self.config.port}: no sample with sequence >= "
+                              f"{device_seq} within {timeout:g} s.")
+
+    @property
+    def stats(self) -> LinkStats:
+        return self._stats
+
+    def staleness(self, now: float | None = None) -> str | None:
+        """A fault sentence when no line arrived for ``stale_periods`` sample periods, else None."""
+        quiet = self._box.silence(now)
+        if quiet is None:
+            return None
+        return (f"load-cell amplifier on {self.config.port} silent for {quiet:.3f} s (more than "
+                f"{self.config.stale_periods:g} periods at {self.config.rate_hz:g} Hz).")
+
+    def channel_faults(self) -> list[str]:
+        """One sentence per faulty channel (1-based): open bridge, over range, stuck value."""
+        out = []
+        for i, f in enumerate(self._flags):
+            if f == OPEN:
+                out.append(f"load cell {i + 1} on {self.config.port} is disconnected (the amplifier reports "
+                           f"an open bridge).")
+            elif f == OVER:
+                out.append(f"load cell {i + 1} on {self.config.port} is over its measuring range.")
+            elif self._same[i] + 1 >= self.config.stuck_samples and self._prev is not None:
+                out.append(f"load cell {i + 1} on {self.config.port} is stuck at {self._prev[i]:.2f} N for "
+                           f"{self._same[i] + 1} consecutive samples.")
+        return out
+
+    def fault(self) -> str | None:
+        if self._reader is not None and self._reader.error:
+            return f"load-cell amplifier: {self._reader.error}."
+        stale = self.staleness()
+        if stale:
+            return stale
+        faults = self.channel_faults()
+        return faults[0] if faults else None
+
+    def status(self) -> str:
+        r = self.latest()
+        model = self.info.model if self.info else "?"
+        if r is None:
+            return f"load-cell amplifier {model} on {self.config.port}: no sample yet"
+        tau = ", ".join("nan" if math.isnan(v) else f"{v:.1f}" for v in r.tau)
+        return (f"load-cell amplifier {model} on {self.config.port}: [{tau}] N, sequence {r.seq}, "
+                f"{self._stats.frames} lines, {self._stats.checksum_errors} bad, "
+                f"{self._stats.sequence_gaps} missing")

@@ -1,0 +1,210 @@
+"""Xsens MTi-630 AHRS driver over a serial port (Xbus, see docs/protocols/xbus.md).
+
+``open`` puts the device in configuration mode, reads its device id, sets the output configuration
+(PacketCounter and SampleTimeFine with every packet, EulerAngles float32 at ``rate_hz``) and returns it
+to measurement mode; a reader thread then turns every MTData2 into an :class:`AhrsReading` (angles in rad).
+Error messages from the device are surfaced: during configuration as a DeviceError, while streaming as
+the pending :meth:`fault`. ``seq`` is the packet counter unwrapped past its 16-bit roll-over.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+from drivers import xbus
+from drivers.interfaces import Ahrs as AhrsBase
+from drivers.interfaces import AhrsReading, DeviceError, LinkStats
+from drivers.serial_util import LatestBox, PortReader, open_port
+from drivers.xbus import MID, XDI
+
+
+@dataclass(frozen=True)
+class XsensConfig:
+    port: str
+    baud: int = 115200
+    rate_hz: int = 100  # EulerAngles output rate; must divide 400
+    ack_timeout: float = 1.0  # s to wait for each acknowledgement
+    retries: int = 3  # GoToConfig attempts (a device streaming fast may miss the first)
+    stale_periods: float = 3.0
+
+
+class XsensMti(AhrsBase):
+    """An MTi-630 on a serial port; implements :class:`drivers.interfaces.Ahrs`."""
+
+    name = "ahrs"
+
+    def __init__(self, config: XsensConfig) -> None:
+        if not (0 < config.rate_hz <= 400 and 400 % config.rate_hz == 0):
+            raise ValueError(f"Xsens output rate {config.rate_hz} Hz is not a divisor of 400 Hz")
+        self.config = config
+        self.device_id: int | None = None
+        self._port = None
+        self._reader: PortReader | None = None
+        self._decoder = xbus.XbusDecoder()
+        self._stats = LinkStats()
+        self._box = LatestBox(1.0 / config.rate_hz, config.stale_periods)
+        self._replies: list[xbus.Message] = []
+        self._reply_cond = threading.Condition()
+        self._errors: list[str] = []
+        self._unwrapped = -1
+        self._last_raw_pc: int | None = None
+
+    # ---- life cycle ----
+    def open(self) -> None:
+        if self._port is not None:
+            return
+        self._port = open_port(self.config.port, self.config.baud, "Xsens MTi")
+        self._reader = PortReader(self._port, self._on_bytes, name=f"xsens-{self.config.port}")
+        self._reader.start()
+        try:
+            self._configure()
+        except DeviceError:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.stop()
+            self._reader = None
+        if self._port is not None:
+            try:
+                self._port.close()
+            finally:
+                self._port = None
+
+    def _configure(self) -> None:
+        for attempt in range(self.config.retries):
+            try:
+                self.request(MID.GO_TO_CONFIG, b"", MID.GO_TO_CONFIG_ACK)
+                break
+            except DeviceError:
+                if attempt == self.config.retries - 1:
+                    raise
+        did = self.request(MID.REQ_DID, b"", MID.DEVICE_ID)
+        self.device_id = xbus.decode_device_id(did.payload)
+        wanted = [(XDI.PACKET_COUNTER, XDI.MAX_RATE), (XDI.SAMPLE_TIME_FINE, XDI.MAX_RATE),
+                  (XDI.EULER_ANGLES, self.config.rate_hz)]
+        ack = self.request(MID.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(wanted),
+                           MID.OUTPUT_CONFIGURATION)
+        got = xbus.decode_output_configuration(ack.payload)
+        if got != wanted:
+            raise DeviceError(f"Xsens MTi on {self.config.port} applied output configuration {got} "
+                              f"instead of {wanted}.")
+        self._box.opened_at = time.monotonic()
+        self.request(MID.GO_TO_MEASUREMENT, b"", MID.GO_TO_MEASUREMENT_ACK)
+        self._box.opened_at = time.monotonic()
+
+    def request(self, mid: int, payload: bytes, answer: int) -> xbus.Message:
+        """Send one message and wait for ``answer``; an Error reply raises DeviceError naming the code."""
+        if self._port is None:
+            raise DeviceError(f"Xsens MTi on {self.config.port} is not open.")
+        with self._reply_cond:
+            self._replies.clear()
+        try:
+            self._port.write(xbus.encode(mid, payload))
+        except Exception as exc:  # serial.SerialException, OSError, write timeout
+            raise DeviceError(f"Xsens MTi: writing {xbus.mid_name(mid)} to {self.config.port} failed ({exc}).") from exc
+        deadline = time.monotonic() + self.config.ack_timeout
+        with self._reply_cond:
+            while True:
+                for msg in self._replies:
+                    if msg.mid == answer:
+                        return msg
+                    if msg.mid == MID.ERROR:
+                        code = xbus.decode_error(msg.payload)
+                        text = xbus.error_text(code) if code is not None else "no code"
+                        raise DeviceError(f"Xsens MTi on {self.config.port} answered {xbus.mid_name(mid)} "
+                                          f"with Error 0x{(code or 0):02X} ({text}).")
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise DeviceError(f"Xsens MTi on {self.config.port} did not acknowledge "
+                                      f"{xbus.mid_name(mid)} within {self.config.ack_timeout:g} s.")
+                self._reply_cond.wait(left)
+
+    # ---- the reader thread ----
+    def _on_bytes(self, data: bytes, t: float) -> None:
+        for msg in self._decoder.feed(data):
+            if msg.mid == MID.MTDATA2:
+                self._on_mtdata2(msg.payload, t)
+                continue
+            if msg.mid == MID.ERROR:
+                code = xbus.decode_error(msg.payload)
+                self._errors.append(f"Xsens MTi on {self.config.port} reported Error 0x{(code or 0):02X} "
+                                    f"({xbus.error_text(code) if code is not None else 'no code'}).")
+                self._stats.extra["device_errors"] = len(self._errors)
+            with self._reply_cond:
+                self._replies.append(msg)
+                self._reply_cond.notify_all()
+        c = self._decoder.counts
+        self._stats.checksum_errors, self._stats.bytes_discarded = c.checksum_errors, c.bytes_discarded
+        self._stats.resyncs = c.resyncs
+
+    def _on_mtdata2(self, payload: bytes, t: float) -> None:
+        sample = xbus.decode_sample(payload)
+        if sample is None or sample.euler_deg is None:
+            self._stats.extra["incomplete_mtdata2"] = self._stats.extra.get("incomplete_mtdata2", 0) + 1
+            return
+        pc = sample.packet_counter
+        if pc is not None:
+            if self._last_raw_pc is None:
+                self._unwrapped = pc
+            else:
+                step = (pc - self._last_raw_pc) & 0xFFFF
+                if step == 0:  # a repeated counter: a duplicate frame, drop it
+                    return
+                if step > 1:
+                    self._stats.sequence_gaps += step - 1
+                self._unwrapped += step
+            self._last_raw_pc = pc
+        else:
+            self._unwrapped += 1
+        roll, pitch, yaw = (math.radians(a) for a in sample.euler_deg)
+        self._stats.frames += 1
+        self._box.put(AhrsReading(t=t, seq=self._unwrapped, roll=roll, pitch=pitch, yaw=yaw,
+                                  packet_counter=-1 if pc is None else pc,
+                                  sample_time_fine=-1 if sample.sample_time_fine is None else sample.sample_time_fine))
+
+    # ---- the Ahrs interface ----
+    def latest(self) -> AhrsReading | None:
+        return self._box.latest  # type: ignore[return-value]
+
+    def wait_for(self, packet_counter: int, timeout: float) -> AhrsReading:
+        """Block until a reading with unwrapped packet counter (``seq``) >= ``packet_counter`` arrives."""
+        return self._box.wait(lambda r: r.seq >= packet_counter, timeout,  # type: ignore[return-value]
+                              f"Xsens MTi on {self.config.port}: no sample with packet counter >= "
+                              f"{packet_counter} within {timeout:g} s.")
+
+    @property
+    def stats(self) -> LinkStats:
+        return self._stats
+
+    def staleness(self, now: float | None = None) -> str | None:
+        """A fault sentence when no sample arrived for ``stale_periods`` output periods, else None."""
+        quiet = self._box.silence(now)
+        if quiet is None:
+            return None
+        return (f"Xsens MTi on {self.config.port} silent for {quiet:.3f} s (more than "
+                f"{self.config.stale_periods:g} periods at {self.config.rate_hz} Hz).")
+
+    def fault(self) -> str | None:
+        if self._reader is not None and self._reader.error:
+            return f"Xsens MTi: {self._reader.error}."
+        if self._errors:
+            return self._errors[-1]
+        return self.staleness()
+
+    def clear_errors(self) -> None:
+        """Forget the device errors reported so far (after the operator has seen them)."""
+        self._errors.clear()
+
+    def status(self) -> str:
+        r = self.latest()
+        did = f"{self.device_id:08X}" if self.device_id is not None else "?"
+        if r is None:
+            return f"Xsens MTi {did} on {self.config.port}: no sample yet"
+        return (f"Xsens MTi {did} on {self.config.port}: roll {math.degrees(r.roll):.2f} deg, pitch "
+                f"{math.degrees(r.pitch):.2f} deg, yaw {math.degrees(r.yaw):.2f} deg, packet {r.seq}, "
+                f"{self._stats.frames} frames, {self._stats.checksum_errors} checksum errors")

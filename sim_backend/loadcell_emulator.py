@@ -1,0 +1,194 @@
+"""A 4-channel load-cell amplifier emulated on a pty master (protocol: docs/protocols/loadcell.md).
+
+Clocked by the simulator: :meth:`LoadCellEmulator.emit` is called once per control tick with the true
+cable tensions and writes one line, the device sequence number growing by one per tick (also while the
+line is disconnected, so that the host sees the gap). A reader thread answers ``$INFO``.
+
+Sensor model per channel i (N): reading = gain_i * tau_i + offset_i + a_i + noise, where offset_i and
+gain_i are the hidden effects of the simulation configuration, a_i a constant error drawn once within the
+accuracy class (0.02 % of the 100 kg full scale) and the noise white Gaussian; the result is rounded to
+0.01 N and flagged OVER beyond 110 % of full scale. Faults: :meth:`stick` (a channel repeats its last
+value), :meth:`disconnect` (one channel reads OPEN, or the whole amplifier goes silent), :meth:`corrupt`.
+Channels are 0-based in this API and 1-based in sentences for the operator.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+
+import numpy as np
+
+from drivers import loadcell
+from sim_backend.pty import read_master, write_master
+
+FULL_SCALE = 100.0 * 9.81  # N, the prototype's 100 kg cells
+
+
+class LoadCellEmulator:
+    """One emulated amplifier on ``master_fd``; start the command thread with :meth:`start`."""
+
+    def __init__(
+        self,
+        master_fd: int,
+        rng: np.random.Generator,
+        channels: int = 4,
+        offsets: Sequence[float] | None = None,
+        gains: Sequence[float] | None = None,
+        noise_std: float = 0.1,
+        full_scale: float = FULL_SCALE,
+        accuracy: float = 0.0002,
+        rate_hz: float = 100.0,
+        model: str = "LC4-SIM",
+    ) -> None:
+        self.fd = master_fd
+        self.rng = rng
+        self.n = channels
+        self.offsets = np.zeros(channels) if offsets is None else np.asarray(offsets, dtype=float)
+        self.gains = np.ones(channels) if gains is None else np.asarray(gains, dtype=float)
+        if self.offsets.shape != (channels,) or self.gains.shape != (channels,):
+            raise ValueError(f"load-cell offsets and gains need {channels} values each")
+        self.noise_std = noise_std
+        self.full_scale = full_scale
+        self.rate_hz = rate_hz
+        self.model = model
+        self._accuracy_error = rng.uniform(-accuracy * full_scale, accuracy * full_scale, channels)
+        self.seq = -1
+        self._last = np.zeros(channels)
+        self._stuck = np.zeros(channels, dtype=bool)
+        self._open = np.zeros(channels, dtype=bool)
+        self._silent = False
+        self._corrupt_left = 0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._decoder = loadcell.LineDecoder()
+        self.bytes_written = 0
+        self.bytes_dropped = 0
+
+    # ---- life cycle ----
+    def start(self) -> LoadCellEmulator:
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._serve, name="loadcell-emulator", daemon=True)
+            self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop answering the host (the pty master stays open: its owner closes it)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ---- faults ----
+    def stick(self, channel: int) -> None:
+        """Channel ``channel`` (0-based) keeps repeating its last value."""
+        self._stuck[channel] = True
+
+    def unstick(self, channel: int) -> None:
+        self._stuck[channel] = False
+
+    def disconnect(self, channel: int | None = None) -> None:
+        """One channel's bridge opens (reads OPEN), or with ``None`` the whole amplifier goes silent."""
+        if channel is None:
+            self._silent = True
+        else:
+            self._open[channel] = True
+
+    def reconnect(self, channel: int | None = None) -> None:
+        if channel is None:
+            self._silent = False
+        else:
+            self._open[channel] = False
+
+    def corrupt(self, n_bytes: int) -> None:
+        """Damage the next ``n_bytes`` bytes sent (bit flips)."""
+        with self._lock:
+            self._corrupt_left += int(n_bytes)
+
+    # ---- the simulator's clock ----
+    def measure(self, true_tensions: np.ndarray) -> np.ndarray:
+        """Readings (n,) in N for the true tensions: gain, offset, accuracy error, noise, 0.01 N steps."""
+        tau = np.asarray(true_tensions, dtype=float).reshape(self.n)
+        noise = self.rng.normal(0.0, self.noise_std, self.n)
+        value = np.round(self.gains * tau + self.offsets + self._accuracy_error + noise, 2)
+        value = np.where(self._stuck, self._last, value)
+        self._last = value
+        return value
+
+    def emit(self, sim_time: float, true_tensions: np.ndarray) -> int | None:
+        """One control tick: write one line; returns its sequence number (None while silent)."""
+        value = self.measure(true_tensions)
+        with self._lock:
+            self.seq += 1
+            if self._silent:
+                return None
+            fields: list[float | str] = []
+            for i, v in enumerate(value):
+                if self._open[i]:
+                    fields.append(loadcell.OPEN)
+                elif abs(v) > 1.1 * self.full_scale:
+                    fields.append(loadcell.OVER)
+                else:
+                    fields.append(float(v))
+            self._write(self._maybe_corrupt(loadcell.encode_sample(self.seq, fields)))
+            return self.seq
+
+    def _maybe_corrupt(self, data: bytes) -> bytes:
+        if self._corrupt_left <= 0:
+            return data
+        k = min(self._corrupt_left, len(data))
+        self._corrupt_left -= k
+        b = bytearray(data)
+        for i, x in zip(self.rng.choice(len(b), size=k, replace=False), self.rng.integers(1, 256, size=k),
+                        strict=True):
+            b[int(i)] ^= int(x)
+        return bytes(b)
+
+    def _write(self, data: bytes) -> None:
+        n = write_master(self.fd, data)
+        self.bytes_written += n
+        self.bytes_dropped += len(data) - n
+
+    def info_line(self) -> bytes:
+        return loadcell.frame(f"INFO,{self.model},{self.n},{self.full_scale:.3f},{self.rate_hz:g}")
+
+    def _serve(self) -> None:
+        dec = _CommandSplitter()
+        while not self._stop.is_set():
+            data = read_master(self.fd, 0.02)
+            for cmd in dec.feed(data):
+                if cmd == "INFO" and not self._silent:
+                    with self._lock:
+                        self._write(self.info_line())
+
+
+class _CommandSplitter:
+    """Host commands ``$BODY*HH`` terminated by CR or LF; bodies with a good checksum come out."""
+
+    def __init__(self) -> None:
+        self.buf = bytearray()
+
+    def feed(self, data: bytes) -> list[str]:
+        self.buf += data
+        out = []
+        while True:
+            cut = min((i for i in (self.buf.find(b"\n"), self.buf.find(b"\r")) if i >= 0), default=-1)
+            if cut < 0:
+                break
+            line = bytes(self.buf[:cut])
+            del self.buf[: cut + 1]
+            start = line.rfind(b"$")
+            body = loadcell.unframe(line[start:]) if start >= 0 else None
+            if body is not None:
+                out.append(body)
+        if len(self.buf) > loadcell.MAX_LINE:
+            self.buf.clear()
+        return out

@@ -1,0 +1,262 @@
+"""An Xsens MTi-630 AHRS emulated on a pty master, speaking Xbus.
+
+Clocked by the simulator: :meth:`XsensEmulator.emit` is called once per physics tick with the simulated
+time and the platform's true roll, pitch, yaw (rad, robot convention R = Rx Ry Rz); it writes an MTData2
+message when the device is in measurement mode and a sample is due at the configured output rate
+(SampleTimeFine = sim_time x 10000). A reader thread answers the host's configuration messages:
+GoToConfig, GoToMeasurement, ReqDID, ReqProductCode, SetOutputConfiguration (with the OutputConfiguration
+acknowledgement), Reset, WakeUpAck; anything else, or a configuration message in measurement mode,
+is answered with an Error message.
+
+Sensor model (all seeded by the Generator): mounting tilt (roll, pitch, rad) composed with the platform
+rotation; per-device roll/pitch biases within +-0.1 deg and white noise 0.03 deg (within the +-0.2 deg
+specification); yaw relative to the start-up heading (0 at the first sample), with a constant drift
+rate within +-0.001 deg/s and white noise 0.1 deg (within +-1 deg over a start-up routine).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.kinematics import rotation, rotation_to_euler
+from drivers import xbus
+from drivers.xbus import MID, XDI
+from sim_backend.pty import read_master, write_master
+
+ORIENTATION_MAX_HZ = 400  # MTi-600 series orientation outputs
+TIMESTAMP_MAX_HZ = 2000
+SUPPORTED = {XDI.PACKET_COUNTER, XDI.SAMPLE_TIME_FINE, XDI.QUATERNION, XDI.EULER_ANGLES,
+             XDI.QUATERNION | XDI.FLOAT64, XDI.EULER_ANGLES | XDI.FLOAT64}
+
+
+@dataclass(frozen=True)
+class XsensNoise:
+    """Sensor error model, degrees and degrees per second."""
+
+    roll_pitch_bias: float = 0.1  # bound of the uniform per-device bias
+    roll_pitch_std: float = 0.03
+    yaw_drift: float = 0.001  # bound of the uniform drift rate, deg/s
+    yaw_std: float = 0.1
+
+
+def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """Unit quaternion (q0 scalar first) of R = Rx(roll) Ry(pitch) Rz(yaw)."""
+    hx = (math.cos(roll / 2), math.sin(roll / 2), 0.0, 0.0)
+    hy = (math.cos(pitch / 2), 0.0, math.sin(pitch / 2), 0.0)
+    hz = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+
+    def mul(a, b):
+        return (a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+                a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+                a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+                a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0])
+
+    return mul(mul(hx, hy), hz)
+
+
+class XsensEmulator:
+    """One emulated MTi-630 on ``master_fd`` (see the module docstring). Start with :meth:`start`."""
+
+    def __init__(
+        self,
+        master_fd: int,
+        rng: np.random.Generator,
+        mounting_roll: float = 0.0,
+        mounting_pitch: float = 0.0,
+        noise: XsensNoise | None = None,
+        device_id: int = 0x0630_2A17,
+        product_code: str = "MTi-630-2A8G4",
+    ) -> None:
+        self.fd = master_fd
+        self.rng = rng
+        self.noise = noise or XsensNoise()
+        self.device_id = device_id
+        self.product_code = product_code
+        self._mount = rotation(np.array([mounting_roll, mounting_pitch, 0.0]))[0]
+        b = self.noise.roll_pitch_bias
+        self._bias = np.radians(rng.uniform(-b, b, 2))
+        self._drift = math.radians(rng.uniform(-self.noise.yaw_drift, self.noise.yaw_drift))
+        self._yaw0: float | None = None
+        self._t0 = 0.0
+        # power-on state: measurement mode with a factory-like output configuration (no Euler angles)
+        self.measuring = True
+        self.config: list[tuple[int, int]] = [(XDI.PACKET_COUNTER, XDI.MAX_RATE),
+                                              (XDI.SAMPLE_TIME_FINE, XDI.MAX_RATE), (XDI.QUATERNION, 100)]
+        self.packet_counter = 0
+        self._last_slot: dict[int, int] = {}
+        self._corrupt_left = 0
+        self._silent = False
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._decoder = xbus.XbusDecoder()
+        self.bytes_written = 0
+        self.bytes_dropped = 0
+
+    # ---- life cycle ----
+    def start(self) -> XsensEmulator:
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._serve, name="xsens-emulator", daemon=True)
+            self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop answering the host (the pty master stays open: its owner closes it)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ---- faults the backend injects ----
+    def corrupt(self, n_bytes: int) -> None:
+        """Flip bits in the next ``n_bytes`` bytes of the MTData2 stream (a noisy line)."""
+        with self._lock:
+            self._corrupt_left += int(n_bytes)
+
+    def disconnect(self) -> None:
+        """Stop sending anything (cable pulled); the host sees a silent port."""
+        self._silent = True
+
+    def reconnect(self) -> None:
+        self._silent = False
+
+    # ---- the simulator's clock ----
+    def measured_angles(self, sim_time: float, roll: float, pitch: float, yaw: float) -> np.ndarray:
+        """What the sensor reports for the platform's true angles (rad): mounting, bias, drift, noise."""
+        r = rotation(np.array([roll, pitch, yaw]))[0] @ self._mount
+        ang = rotation_to_euler(r)[0]
+        if self._yaw0 is None:
+            self._yaw0, self._t0 = float(ang[2]), sim_time
+        n = self.noise
+        ang[:2] += self._bias + np.radians(self.rng.normal(0.0, n.roll_pitch_std, 2))
+        ang[2] += -self._yaw0 + self._drift * (sim_time - self._t0) + math.radians(self.rng.normal(0.0, n.yaw_std))
+        ang[2] = (ang[2] + math.pi) % (2 * math.pi) - math.pi
+        return ang
+
+    def emit(self, sim_time: float, roll: float, pitch: float, yaw: float) -> int | None:
+        """One physics tick: write an MTData2 if one is due; returns its packet counter (else None)."""
+        ang = self.measured_angles(sim_time, roll, pitch, yaw)  # drawn every tick: same seed, same bytes
+        with self._lock:
+            if not self.measuring or self._silent:
+                return None
+            items = self._due_items(sim_time)
+            if not items:
+                return None
+            pc = self.packet_counter & 0xFFFF
+            deg = tuple(math.degrees(a) for a in ang)
+            q = euler_to_quaternion(*ang)
+            data = []
+            for xdi in items:
+                if xdi == XDI.PACKET_COUNTER:
+                    data.append((xdi, pc.to_bytes(2, "big")))
+                elif xdi == XDI.SAMPLE_TIME_FINE:
+                    data.append((xdi, (round(sim_time * 10000) & 0xFFFFFFFF).to_bytes(4, "big")))
+                else:
+                    values = q if xdi & 0xFFF0 == XDI.QUATERNION else deg
+                    fmt = "d" if xdi & XDI.FORMAT_MASK == XDI.FLOAT64 else "f"
+                    data.append((xdi, np.array(values, dtype=f">{fmt}{4 if fmt == 'f' else 8}").tobytes()))
+            self.packet_counter += 1
+            frame = xbus.encode(MID.MTDATA2, xbus.encode_mtdata2(data))
+            frame = self._maybe_corrupt(frame)
+            self._write(frame)
+            return pc
+
+    def _due_items(self, sim_time: float) -> list[int]:
+        """Items due at this tick: each explicit rate on its own grid; 0xFFFF items ride along."""
+        due = []
+        for xdi, rate in self.config:
+            if rate in (0, XDI.MAX_RATE):
+                continue
+            slot = math.floor(sim_time * rate + 1e-9)
+            if self._last_slot.get(xdi, -1) < slot:
+                self._last_slot[xdi] = slot
+                due.append(xdi)
+        if not due:
+            return []
+        return [xdi for xdi, rate in self.config if xdi in due or rate in (0, XDI.MAX_RATE)]
+
+    def _maybe_corrupt(self, frame: bytes) -> bytes:
+        if self._corrupt_left <= 0:
+            return frame
+        k = min(self._corrupt_left, len(frame))
+        self._corrupt_left -= k
+        b = bytearray(frame)
+        idx = self.rng.choice(len(b), size=k, replace=False)
+        b_idx = self.rng.integers(1, 256, size=k)
+        for i, x in zip(idx, b_idx, strict=True):
+            b[int(i)] ^= int(x)
+        return bytes(b)
+
+    def _write(self, data: bytes) -> None:
+        n = write_master(self.fd, data)
+        self.bytes_written += n
+        self.bytes_dropped += len(data) - n
+
+    # ---- host commands ----
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            data = read_master(self.fd, 0.02)
+            if not data:
+                continue
+            for msg in self._decoder.feed(data):
+                reply = self.handle(msg)
+                if reply and not self._silent:
+                    with self._lock:
+                        self._write(reply)
+
+    def handle(self, msg: xbus.Message) -> bytes:
+        """The device's answer (framed bytes) to one host message; changes the device state."""
+        with self._lock:
+            mid, p = msg.mid, msg.payload
+            if mid == MID.GO_TO_CONFIG:
+                self.measuring = False
+                return xbus.encode(MID.GO_TO_CONFIG_ACK)
+            if mid == MID.REQ_DID:
+                return xbus.encode(MID.DEVICE_ID, self.device_id.to_bytes(4, "big"))
+            if mid == MID.REQ_PRODUCT_CODE:
+                return xbus.encode(MID.PRODUCT_CODE, self.product_code.encode("ascii"))
+            if mid == MID.WAKE_UP:
+                return b""  # the host's WakeUpAck would be the answer; a device never receives WakeUp
+            if mid == MID.WAKE_UP_ACK:
+                self.measuring = False
+                return b""
+            if mid == MID.RESET:
+                self.measuring, self.packet_counter = True, 0
+                self._last_slot.clear()
+                return xbus.encode(MID.RESET_ACK)
+            if self.measuring:
+                if mid == MID.GO_TO_MEASUREMENT:
+                    return xbus.encode(MID.GO_TO_MEASUREMENT_ACK)
+                return xbus.encode(MID.ERROR, bytes((0x04,)))
+            if mid == MID.GO_TO_MEASUREMENT:
+                self.measuring = True
+                self._last_slot.clear()
+                return xbus.encode(MID.GO_TO_MEASUREMENT_ACK)
+            if mid == MID.SET_OUTPUT_CONFIGURATION:
+                return self._set_output_configuration(p)
+            return xbus.encode(MID.ERROR, bytes((0x04,)))
+
+    def _set_output_configuration(self, payload: bytes) -> bytes:
+        items = xbus.decode_output_configuration(payload)
+        if items is None:
+            return xbus.encode(MID.ERROR, bytes((0x04,)))
+        if not items:  # a request for the current configuration
+            return xbus.encode(MID.OUTPUT_CONFIGURATION, xbus.encode_output_configuration(self.config))
+        for xdi, rate in items:
+            limit = TIMESTAMP_MAX_HZ if xdi & 0xF000 == 0x1000 else ORIENTATION_MAX_HZ
+            if xdi not in SUPPORTED or not (rate == XDI.MAX_RATE or (0 < rate <= limit and limit % rate == 0)):
+                return xbus.encode(MID.ERROR, bytes((0x21,)))
+        self.config = list(items)
+        self._last_slot.clear()
+        return xbus.encode(MID.OUTPUT_CONFIGURATION, xbus.encode_output_configuration(self.config))
