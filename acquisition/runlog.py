@@ -202,14 +202,14 @@ def format_value(v: Any) -> str:
     return s
 
 
-def _plain(obj: Any) -> Any:
-    """numpy scalars/arrays to plain Python for YAML/JSON."""
+def to_plain(obj: Any) -> Any:
+    """Plain Python data (lists, dicts, floats) from numpy scalars and arrays, for YAML and JSON."""
     if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
+        return to_plain(obj.tolist())
     if isinstance(obj, Mapping):
-        return {str(k): _plain(v) for k, v in obj.items()}
+        return {str(k): to_plain(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_plain(v) for v in obj]
+        return [to_plain(v) for v in obj]
     if isinstance(obj, np.integer):
         return int(obj)
     if isinstance(obj, np.floating):
@@ -232,7 +232,7 @@ def _robot_spec(robot_spec: str | Mapping[str, Any] | Robot) -> tuple[Any, Robot
                 "pass a full description mapping instead."
             )
         return robot_spec, load_robot(robot_spec)
-    spec = _plain(dict(robot_spec))
+    spec = to_plain(dict(robot_spec))
     return spec, robot_from_dict(spec, "<robot mapping>")
 
 
@@ -255,12 +255,12 @@ def _base_meta(
         sp = np.asarray(setpoints, dtype=float)
         if sp.ndim != 2 or sp.shape[1] != n:
             raise ValueError(f"setpoints have shape {sp.shape}, expected (k, {n}).")
-        procedure["setpoints"] = _plain(sp)
+        procedure["setpoints"] = to_plain(sp)
     if ideal_poses is not None:
         ip = np.asarray(ideal_poses, dtype=float)
         if ip.ndim != 2 or ip.shape[1] != 6:
             raise ValueError(f"ideal_poses have shape {ip.shape}, expected (k, 6).")
-        procedure["ideal_poses"] = _plain(ip)
+        procedure["ideal_poses"] = to_plain(ip)
     meta: dict[str, Any] = {
         "format": FORMAT,
         "robot": spec,
@@ -272,12 +272,12 @@ def _base_meta(
     for k, v in (meta_extra or {}).items():
         if k in ("format", "robot", "procedure", "events"):
             raise ValueError(f"meta_extra may not replace the standard key '{k}'.")
-        meta[k] = _plain(v)
+        meta[k] = to_plain(v)
     return meta
 
 
 def _dump_yaml(meta: Mapping[str, Any]) -> str:
-    return yaml.safe_dump(_plain(meta), sort_keys=False, default_flow_style=None, width=120, allow_unicode=True)
+    return yaml.safe_dump(to_plain(meta), sort_keys=False, default_flow_style=None, width=120, allow_unicode=True)
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -306,21 +306,26 @@ def write_run(path: str | Path, run: Run, overwrite: bool = False) -> Run:
     _prepare_folder(path, overwrite)
     meta = dict(run.meta)
     meta["format"] = FORMAT
-    cols = run.columns()
-    names = list(cols)
-    lines = [",".join(names)]
-    arrays = [cols[k] for k in names]
-    kinds = [_column_kind(a) for a in arrays]
-    for j in range(len(run)):
-        lines.append(",".join(_cell(a[j], kd) for a, kd in zip(arrays, kinds, strict=True)))
     _write_atomic(path / RUN_YAML, _dump_yaml(meta))
-    _write_atomic(path / SAMPLES_CSV, "\n".join(lines) + "\n")
+    _write_atomic(path / SAMPLES_CSV, csv_text(run.columns(), len(run)))
     run.path = path
     run.meta = meta
     return run
 
 
-def _column_kind(a: np.ndarray) -> str:
+def csv_text(columns: Mapping[str, np.ndarray], count: int) -> str:
+    """CSV text (header and one line per sample) of equally long columns, formatted as samples.csv is."""
+    names = list(columns)
+    arrays = [columns[k] for k in names]
+    kinds = [column_kind(a) for a in arrays]
+    lines = [",".join(names)]
+    for j in range(count):
+        lines.append(",".join(format_cell(a[j], kd) for a, kd in zip(arrays, kinds, strict=True)))
+    return "\n".join(lines) + "\n"
+
+
+def column_kind(a: np.ndarray) -> str:
+    """'i' for integer/bool columns, 'f' for float columns, 's' for text."""
     if a.dtype.kind in "iub":
         return "i"
     if a.dtype.kind == "f":
@@ -328,7 +333,8 @@ def _column_kind(a: np.ndarray) -> str:
     return "s"
 
 
-def _cell(v: Any, kind: str) -> str:
+def format_cell(v: Any, kind: str) -> str:
+    """One CSV cell of a column of the given kind (see column_kind)."""
     if kind == "i":
         return str(int(v))
     if kind == "f":
@@ -423,7 +429,7 @@ class RunWriter:
         for k in keys:
             if k in ("format", "robot", "procedure", "events"):
                 raise ValueError(f"update_meta may not replace the standard key '{k}'.")
-        self.meta.update(_plain(keys))
+        self.meta.update(to_plain(keys))
         _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
 
     def close(self) -> None:
@@ -680,5 +686,5 @@ def read_solution(run_path: str | Path) -> dict[str, Any] | None:
 def write_solution(run_path: str | Path, solution: Mapping[str, Any]) -> Path:
     """Save a solution next to the run (atomic write), deterministic JSON with sorted keys."""
     f = solution_path(run_path)
-    _write_atomic(f, json.dumps(_plain(solution), indent=2, sort_keys=True, allow_nan=False) + "\n")
+    _write_atomic(f, json.dumps(to_plain(solution), indent=2, sort_keys=True, allow_nan=False) + "\n")
     return f

@@ -1,0 +1,409 @@
+"""Importers of the IRMA L@B logs (the authors' IRMA4U recordings) into `cdpr-run/1` runs.
+
+Two inputs, described in ../shared/data/irma4u/README.md:
+
+- the authors' ``*_parsed.mat`` (MATLAB v5 struct ``st``: absolute cable lengths and swivel angles, i.e.
+  with the homing values added; roll, pitch and yaw minus its homing mean, rad; tensions and targets, N);
+- the controller's raw text ``.log``: type-3 lines (one per cable per cycle), type-5 AHRS lines in degrees,
+  type-6 extras (ignored). It starts with a recording at the homing pose, then a pause, then the
+  experiment. The homing recording gives the sensors' readings at the known homing pose.
+
+Both give a run of the prototype (robot ``irma4u``) whose relative channels are referred to the homing
+pose: dl = absolute length - homing length, dsigma = absolute swivel - homing swivel, dyaw = yaw - homing
+yaw. The homing values are stored in run.yaml under ``homing`` so a solve's sensor offsets can be checked
+against them. Time starts at 0 at the first experiment sample; ``time_origin`` keeps the controller's time.
+
+The two inputs differ in one respect (measured on sc_8_final): the authors' parser recomputes the cable
+lengths from the motor counts with one transmission ratio for all winches (0.0280645 m/rev), whereas the
+controller's ``cable_length`` uses each winch's own ratio (0.028807, 0.028652, 0.028448, 0.028641 m/rev,
+as in the robot description). The raw-log import keeps the controller's lengths, so its dl are those of
+the parsed import times 1.0265, 1.0209, 1.0137, 1.0206 per cable. All other channels agree to rounding.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.io
+
+from acquisition.runlog import Run, new_run, read_run, write_run
+
+# Homing pose of the IRMA4U prototype: absolute values the homing procedure establishes (README).
+IRMA_HOMING_LENGTHS = (2.27254824660233, 2.27300821626030, 2.27300821626030, 2.27254824660233)  # m
+IRMA_HOMING_SWIVELS = (0.568104732474427, -0.568104732474427, 0.568104732474427, -0.568104732474427)  # rad
+IRMA_SAMPLE_PERIOD = 0.1  # s, controller logging period
+IRMA_CABLES = 4
+LOG_ACTUATOR_FIELDS = (
+    "op_mode",
+    "motor_position",
+    "motor_speed",
+    "motor_torque",
+    "cable_length",
+    "cable_speed",
+    "cable_tension",
+    "target",
+    "aux_position",
+    "state",
+    "pulley_angle",
+)
+# raw-log fields kept as extra columns of the run (per cable: name_1..name_4)
+LOG_EXTRA_FIELDS = ("motor_position", "motor_speed", "motor_torque", "cable_speed", "aux_position", "op_mode", "state")
+LOG_INT_FIELDS = ("op_mode", "motor_position", "motor_speed", "motor_torque", "aux_position", "state")
+
+
+class IrmaImportError(ValueError):
+    """An IRMA file that cannot be imported; the message names the file, the field or line, and the value."""
+
+
+@dataclass
+class IrmaSignals:
+    """The experiment part of an IRMA recording, in SI units and radians, N samples and 4 cables.
+
+    ``dl``, ``dsigma``, ``dyaw`` are relative to the homing pose; ``t`` is the controller time (s).
+    """
+
+    t: np.ndarray
+    tension: np.ndarray
+    target: np.ndarray
+    dl: np.ndarray
+    dsigma: np.ndarray
+    roll: np.ndarray
+    pitch: np.ndarray
+    dyaw: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    homing: dict[str, Any] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------------ parsed .mat
+
+
+def read_irma_parsed(file: str | Path) -> IrmaSignals:
+    """Read the authors' ``*_parsed.mat`` (struct ``st``) into homing-relative signals."""
+    file = Path(file)
+    try:
+        data = scipy.io.loadmat(str(file), squeeze_me=False, struct_as_record=True)
+    except (ValueError, TypeError, OSError, NotImplementedError) as exc:
+        raise IrmaImportError(f"{file}: not a readable MATLAB v5 file ({exc}).") from exc
+    if "st" not in data:
+        names = ", ".join(k for k in data if not k.startswith("__")) or "none"
+        raise IrmaImportError(f"{file}: variable 'st' is missing (variables found: {names}).")
+    st = data["st"]
+    if st.dtype.names is None or st.size != 1:
+        raise IrmaImportError(f"{file}: variable 'st' must be a 1x1 struct, got an array of shape {st.shape}.")
+    st = st.reshape(-1)[0]
+
+    def fld(name: str, rows: int | None) -> np.ndarray:
+        if name not in st.dtype.names:
+            raise IrmaImportError(f"{file}: field 'st.{name}' is missing.")
+        a = np.asarray(st[name], dtype=float)
+        if rows is None:
+            a = a.reshape(-1)
+        elif a.ndim != 2 or a.shape[0] != rows:
+            raise IrmaImportError(f"{file}: field 'st.{name}' has shape {a.shape}, expected ({rows}, N).")
+        return a
+
+    t = fld("t", None)
+    N = t.shape[0]
+    arrays = {"epsilon": fld("epsilon", 3)}
+    for name in ("cable_length", "swivel", "tensions", "target_tensions"):
+        arrays[name] = fld(name, IRMA_CABLES)
+    for name, a in arrays.items():
+        if a.shape[1] != N:
+            raise IrmaImportError(f"{file}: field 'st.{name}' has {a.shape[1]} samples but 'st.t' has {N}.")
+    for name, a in [("t", t), *arrays.items()]:
+        bad = np.argwhere(~np.isfinite(a))
+        if bad.size:
+            raise IrmaImportError(f"{file}: field 'st.{name}' has a NaN or infinite value at index {bad[0].tolist()}.")
+    if N < 1:
+        raise IrmaImportError(f"{file}: field 'st.t' is empty.")
+    eps = arrays["epsilon"]
+    return IrmaSignals(
+        t=t,
+        tension=arrays["tensions"].T.copy(),
+        target=arrays["target_tensions"].T.copy(),
+        dl=arrays["cable_length"].T - np.array(IRMA_HOMING_LENGTHS),
+        dsigma=arrays["swivel"].T - np.array(IRMA_HOMING_SWIVELS),
+        roll=eps[0].copy(),
+        pitch=eps[1].copy(),
+        dyaw=eps[2].copy(),  # already yaw minus its homing mean
+        homing={"lengths": list(IRMA_HOMING_LENGTHS), "swivels": list(IRMA_HOMING_SWIVELS), "yaw": 0.0},
+    )
+
+
+# ------------------------------------------------------------------------------------------- raw .log
+
+
+def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
+    """Read the controller's raw log: homing recording, pause (> ``min_pause`` s), then the experiment.
+
+    Cable lengths are the controller's (m), pulley angles change sign to become swivel angles, AHRS angles
+    go from degrees to radians. The homing means of length, pulley angle and yaw define the zeros.
+    """
+    file = Path(file)
+    try:
+        text = file.read_bytes().decode("ascii")
+    except UnicodeDecodeError as exc:
+        raise IrmaImportError(f"{file}: not a text log (non-ASCII byte at offset {exc.start}).") from exc
+    lines = text.split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()
+    elif lines:
+        warnings.warn(
+            f"{file}: line {len(lines)} is incomplete (cut while logging) and was dropped.", UserWarning, stacklevel=2
+        )
+        lines.pop()
+    act: dict[float, dict[int, list[float]]] = {}
+    ahrs: dict[float, list[float]] = {}
+    order: list[float] = []
+    for k, line in enumerate(lines, start=1):
+        line = line.strip()
+        if not line:
+            continue
+        cells = line.split(",")
+        kind = cells[0].strip()
+        if kind not in ("3", "5"):
+            continue  # type 6 and others: not used
+        expected = 14 if kind == "3" else 5
+        if len(cells) != expected:
+            raise IrmaImportError(f"{file}: line {k} (type {kind}) has {len(cells)} fields, expected {expected}.")
+        try:
+            vals = [float(c) for c in cells[1:]]
+        except ValueError:
+            bad = next(c for c in cells[1:] if not _is_float(c))
+            raise IrmaImportError(f"{file}: line {k} has the non-numeric value {bad!r}.") from None
+        t = vals[0]
+        if t not in act and t not in ahrs:
+            order.append(t)
+        if kind == "3":
+            cid = int(vals[1])
+            if vals[1] != cid or not 0 <= cid < IRMA_CABLES:
+                raise IrmaImportError(f"{file}: line {k} has actuator id {cells[2]!r}, expected 0..{IRMA_CABLES - 1}.")
+            act.setdefault(t, {})[cid] = vals[2:]
+        else:
+            ahrs[t] = vals[1:]
+    complete = [t for t in order if t in ahrs and len(act.get(t, {})) == IRMA_CABLES]
+    dropped = len(order) - len(complete)
+    if dropped:
+        warnings.warn(f"{file}: {dropped} logging cycles lacked a cable or AHRS line and were dropped.", stacklevel=2)
+    if not complete:
+        raise IrmaImportError(f"{file}: no complete logging cycle (4 type-3 lines and a type-5 line at one time).")
+    t_all = np.array(complete)
+    if np.any(np.diff(t_all) <= 0):
+        j = int(np.flatnonzero(np.diff(t_all) <= 0)[0])
+        raise IrmaImportError(f"{file}: time goes back from {t_all[j]} s to {t_all[j + 1]} s.")
+    A = np.array([[act[t][i] for i in range(IRMA_CABLES)] for t in complete])  # (cycles, 4, 11)
+    E = np.radians(np.array([ahrs[t] for t in complete]))  # (cycles, 3) rad
+    gaps = np.flatnonzero(np.diff(t_all) > min_pause)
+    if gaps.size == 0:
+        raise IrmaImportError(
+            f"{file}: no pause longer than {min_pause} s, so no homing recording before the experiment was found."
+        )
+    split = int(gaps[0]) + 1
+    hom, exp = slice(0, split), slice(split, None)
+    f = {name: A[:, :, j] for j, name in enumerate(LOG_ACTUATOR_FIELDS)}
+    length_hom = f["cable_length"][hom].mean(axis=0)
+    pulley_hom = f["pulley_angle"][hom].mean(axis=0)
+    yaw_hom = E[hom, 2].mean()
+    extra: dict[str, np.ndarray] = {}
+    for name in LOG_EXTRA_FIELDS:
+        col = f[name][exp]
+        for i in range(IRMA_CABLES):
+            c = col[:, i]
+            extra[f"{name}_{i + 1}"] = c.astype(np.int64) if name in LOG_INT_FIELDS and np.all(c == np.round(c)) else c
+    homing = {
+        "lengths": list(IRMA_HOMING_LENGTHS),
+        "swivels": list(IRMA_HOMING_SWIVELS),
+        "yaw": 0.0,
+        "recording": {
+            "t": [float(t_all[0]), float(t_all[split - 1])],
+            "samples": split,
+            "cable_length": [float(x) for x in length_hom],
+            "pulley_angle": [float(x) for x in pulley_hom],
+            "yaw_deg": math.degrees(float(yaw_hom)),
+        },
+    }
+    return IrmaSignals(
+        t=t_all[exp],
+        tension=f["cable_tension"][exp],
+        target=f["target"][exp],
+        dl=f["cable_length"][exp] - length_hom,
+        dsigma=-(f["pulley_angle"][exp] - pulley_hom),  # the pulley angle has the opposite sign
+        roll=E[exp, 0],
+        pitch=E[exp, 1],
+        dyaw=E[exp, 2] - yaw_hom,
+        extra=extra,
+        homing=homing,
+    )
+
+
+def _is_float(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+# ------------------------------------------------------------------------------------------- setpoints
+
+
+@dataclass
+class SetpointSegmentation:
+    """Setpoints found in a target-tension signal and the per-sample phase and setpoint index."""
+
+    setpoints: np.ndarray  # (k, n) N
+    phase: np.ndarray  # (N,) str: pretension | transition | hold
+    index: np.ndarray  # (N,) int, -1 outside holds
+    plateaus: list[tuple[int, int]]  # [first, last] sample of each steady target segment after pretension
+
+
+def segment_targets(
+    target: np.ndarray,
+    sample_period: float,
+    min_hold: float = 1.0,
+    pretension_band: float = 5.0,
+    setpoints: np.ndarray | None = None,
+    match_tol: float = 0.05,
+) -> SetpointSegmentation:
+    """Find where the target tensions (N, n) are steady: the setpoints held, in order.
+
+    The pretension phase lasts until a target first departs by more than ``pretension_band`` N from its
+    first value. After it, every segment where all targets stay constant for at least ``min_hold`` s is a
+    hold. Without ``setpoints``, the holds' values (consecutive equal ones merged) are the setpoints; with
+    them, each hold takes the index of the setpoint it equals within ``match_tol`` N (-1 if none).
+    """
+    T = np.asarray(target, dtype=float)
+    N = T.shape[0]
+    phase = np.full(N, "transition", dtype=object)
+    index = np.full(N, -1, dtype=int)
+    if N == 0:
+        return SetpointSegmentation(np.zeros((0, T.shape[1])), phase.astype(str), index, [])
+    away = np.flatnonzero(np.max(np.abs(T - T[0]), axis=1) > pretension_band)
+    pre_end = int(away[0]) if away.size else N
+    phase[:pre_end] = "pretension"
+    tol = 1e-9 + 1e-7 * np.abs(T[1:])
+    same = np.r_[False, np.all(np.abs(np.diff(T, axis=0)) <= tol, axis=1)]  # same[j]: T[j] == T[j-1]
+    min_len = max(2, int(round(min_hold / sample_period)))
+    plateaus: list[tuple[int, int]] = []
+    j = pre_end
+    while j < N:
+        k = j
+        while k + 1 < N and same[k + 1]:
+            k += 1
+        if k - j + 1 >= min_len:
+            plateaus.append((j, k))
+        j = k + 1
+    found: list[np.ndarray] = []
+    for a, b in plateaus:
+        phase[a : b + 1] = "hold"
+        value = T[a]
+        if setpoints is None:
+            if not found or np.max(np.abs(found[-1] - value)) > match_tol:
+                found.append(value)
+            index[a : b + 1] = len(found) - 1
+        else:
+            d = np.max(np.abs(np.asarray(setpoints) - value), axis=1)
+            if d.min() <= match_tol:
+                index[a : b + 1] = int(np.argmin(d))
+    sp = np.asarray(setpoints, dtype=float) if setpoints is not None else np.array(found).reshape(-1, T.shape[1])
+    return SetpointSegmentation(sp, phase.astype(str), index, plateaus)
+
+
+def read_irma_targets(file: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The authors' ``sc_control_target_*.mat`` (struct ``out``): setpoints (k, 4) N and ideal poses (k, 6)."""
+    file = Path(file)
+    try:
+        data = scipy.io.loadmat(str(file), squeeze_me=False, struct_as_record=True)
+    except (ValueError, TypeError, OSError, NotImplementedError) as exc:
+        raise IrmaImportError(f"{file}: not a readable MATLAB v5 file ({exc}).") from exc
+    if "out" not in data or data["out"].dtype.names is None:
+        raise IrmaImportError(f"{file}: struct variable 'out' is missing.")
+    out = data["out"].reshape(-1)[0]
+    for name in ("static_tensions", "opt_meas_config"):
+        if name not in out.dtype.names:
+            raise IrmaImportError(f"{file}: field 'out.{name}' is missing.")
+    tens = np.asarray(out["static_tensions"], dtype=float)
+    poses = np.asarray(out["opt_meas_config"], dtype=float)
+    if tens.ndim != 2 or tens.shape[0] != IRMA_CABLES:
+        raise IrmaImportError(f"{file}: field 'out.static_tensions' has shape {tens.shape}, expected (4, k).")
+    if poses.shape != (6, tens.shape[1]):
+        raise IrmaImportError(
+            f"{file}: field 'out.opt_meas_config' has shape {poses.shape}, expected (6, {tens.shape[1]})."
+        )
+    return tens.T.copy(), poses.T.copy()
+
+
+# ------------------------------------------------------------------------------------------------ import
+
+
+def detect_irma_format(file: str | Path) -> str:
+    """'parsed' for a MATLAB v5 file, 'log' for the controller's text log."""
+    file = Path(file)
+    if not file.is_file():
+        raise IrmaImportError(f"{file}: no such file.")
+    with open(file, "rb") as fh:
+        head = fh.read(128)
+    if head.startswith(b"MATLAB 5.0"):
+        return "parsed"
+    if head.startswith(b"MATLAB 7.3") or head[:8] == b"\x89HDF\r\n\x1a\n":
+        raise IrmaImportError(f"{file}: MATLAB v7.3 (HDF5) files are not supported; save the struct with -v7.")
+    first = head.split(b"\n", 1)[0].strip()
+    if first[:2] in (b"3,", b"5,", b"6,"):
+        return "log"
+    raise IrmaImportError(
+        f"{file}: neither a MATLAB v5 *_parsed.mat nor a controller log (it starts with {first[:20]!r})."
+    )
+
+
+def import_irma(
+    file: str | Path,
+    out_dir: str | Path,
+    targets: str | Path | None = None,
+    overwrite: bool = False,
+) -> Run:
+    """Convert an IRMA recording (``*_parsed.mat`` or raw ``.log``) into a run folder and return it.
+
+    ``targets`` (optional): the ``sc_control_target_*.mat`` of the same experiment, giving the planned
+    setpoints and ideal poses; without it the setpoints are those found steady in the target tensions.
+    """
+    file = Path(file)
+    kind = detect_irma_format(file)
+    sig = read_irma_parsed(file) if kind == "parsed" else read_irma_log(file)
+    planned = read_irma_targets(targets) if targets is not None else None
+    seg = segment_targets(sig.target, IRMA_SAMPLE_PERIOD, setpoints=None if planned is None else planned[0])
+    t0 = float(sig.t[0])
+    meta_extra: dict[str, Any] = {
+        "homing": sig.homing,
+        "time_origin": t0,
+        "imported_from": file.name,
+        "zeroing": "relative channels referred to the homing pose (dl, dsigma, dyaw = value - homing value)",
+    }
+    if planned is not None:
+        meta_extra["targets_from"] = Path(targets).name
+    run = new_run(
+        "irma4u",
+        "equilibrium",
+        IRMA_SAMPLE_PERIOD,
+        f"import:irma-{kind}",
+        t=np.round(sig.t - t0, 6),
+        tau=sig.tension,
+        tau_ref=sig.target,
+        dl=sig.dl,
+        dsigma=sig.dsigma,
+        roll=sig.roll,
+        pitch=sig.pitch,
+        dyaw=sig.dyaw,
+        phase=seg.phase,
+        setpoint=seg.index,
+        setpoints=seg.setpoints if len(seg.setpoints) else None,
+        ideal_poses=None if planned is None else planned[1],
+        extra=sig.extra,
+        meta_extra=meta_extra,
+    )
+    write_run(out_dir, run, overwrite=overwrite)
+    return read_run(out_dir)
