@@ -159,9 +159,23 @@ def _igsp_moment_residual(robot: Robot, p: np.ndarray, ang: np.ndarray) -> tuple
     kin = inverse_kinematics(robot, poses)
     st = generalised_statics(robot, kin, derivatives=False)
     g = np.array([0.0, 0.0, -robot.weight])
-    tau, feas = distribute_tensions(st.A[:, :3, :], g, robot.tau_min, robot.tau_max)
-    res = np.einsum("kan,kn->ka", st.A[:, 3:, :], tau) - st.b[:, 3:]
-    return res, tau, feas
+    bad = ~(np.isfinite(st.A).all(axis=(1, 2)) & np.isfinite(st.b).all(axis=1))
+    A = np.where(bad[:, None, None], np.eye(6, robot.n), st.A)  # placeholder rows, reported as failed below
+    tau, feas = distribute_tensions(A[:, :3, :], g, robot.tau_min, robot.tau_max)
+    res = np.einsum("kan,kn->ka", A[:, 3:, :], tau) - np.where(bad[:, None], 0.0, st.b[:, 3:])
+    res[bad] = np.inf
+    return res, tau, feas & ~bad
+
+
+def _solve3(jac: np.ndarray, res: np.ndarray) -> np.ndarray:
+    """Newton steps -J^-1 r for a batch of 3x3 systems; singular ones get a least-squares step."""
+    ok = np.abs(np.linalg.det(jac)) > 1e-300
+    step = np.zeros_like(res)
+    if ok.any():
+        step[ok] = np.linalg.solve(jac[ok], -res[ok][..., None])[..., 0]
+    for j in np.flatnonzero(~ok):
+        step[j] = np.linalg.lstsq(jac[j], -res[j], rcond=None)[0]
+    return step
 
 
 def inverse_geometrico_static(
@@ -180,7 +194,7 @@ def inverse_geometrico_static(
     res, tau, feas = _igsp_moment_residual(robot, p, ang)
     norm = np.abs(res).max(1)
     for _ in range(max_iter):
-        active = norm > tol * robot.weight
+        active = (norm > tol * robot.weight) & np.isfinite(norm)
         if not active.any():
             break
         pa, aa, ra = p[active], ang[active], res[active]
@@ -190,7 +204,8 @@ def inverse_geometrico_static(
             da[:, j] += h
             rj, _, _ = _igsp_moment_residual(robot, pa, da)
             jac[:, :, j] = (rj - ra) / h
-        step = np.linalg.solve(jac + 1e-12 * np.eye(3), -ra[..., None])[..., 0]
+        jac = np.where(np.isfinite(jac), jac, 0.0)
+        step = _solve3(jac, ra)
         step /= np.maximum(np.abs(step).max(1) / 0.3, 1.0)[:, None]
         alpha = np.ones(len(pa))
         best_a, best_r = aa.copy(), ra.copy()
@@ -214,7 +229,11 @@ def inverse_geometrico_static(
     poses = np.c_[p, ang]
     converged = norm <= 1e-6 * robot.weight
     within = feas & np.all((tau >= robot.tau_min - 1e-9) & (tau <= robot.tau_max + 1e-9), axis=1)
-    stab = stability(robot, poses, tau)
+    stab = np.full(k, -np.inf)
+    fin = np.isfinite(poses).all(1) & np.isfinite(tau).all(1)
+    if fin.any():
+        stab[fin] = stability(robot, poses[fin], tau[fin])
+    stab = np.where(np.isfinite(stab) | (stab == np.inf), stab, -np.inf)
     return StaticPose(poses, tau, converged, within, stab > 0, stab)
 
 
@@ -233,6 +252,11 @@ def free_motion_stiffness(robot: Robot, poses: np.ndarray, tau: np.ndarray) -> n
     free = 6 - robot.n
     if free <= 0:
         return np.zeros((z.shape[0], 0, 0))
+    bad = ~(np.isfinite(jac.lengths).all(axis=(1, 2)) & np.isfinite(hess).all(axis=(1, 2)))
+    if bad.any():  # degenerate geometry (a cable through its pulley axis): report as not positive
+        jl = np.where(bad[:, None, None], np.eye(robot.n, 6), jac.lengths)
+        hess = np.where(bad[:, None, None], -np.eye(6), hess)
+        jac = type(jac)(jl, jac.swivel, jac.psi)
     _, _, vt = np.linalg.svd(jac.lengths)
     basis = np.swapaxes(vt[:, robot.n :, :], 1, 2)  # (k, 6, 6-n)
     return np.einsum("kai,kab,kbj->kij", basis, hess, basis)

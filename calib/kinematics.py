@@ -24,34 +24,51 @@ def _as_poses(poses: np.ndarray) -> np.ndarray:
     return z
 
 
-def _rx(c, s, one, zero):
-    return np.stack([np.stack([one, zero, zero], -1), np.stack([zero, c, -s], -1), np.stack([zero, s, c], -1)], -2)
-
-
-def _ry(c, s, one, zero):
-    return np.stack([np.stack([c, zero, s], -1), np.stack([zero, one, zero], -1), np.stack([-s, zero, c], -1)], -2)
-
-
-def _rz(c, s, one, zero):
-    return np.stack([np.stack([c, -s, zero], -1), np.stack([s, c, zero], -1), np.stack([zero, zero, one], -1)], -2)
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (broadcasting), faster than np.cross on many small vectors."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
 
 
 def rotation(angles: np.ndarray, convention: str = "xyz") -> np.ndarray:
     """Rotation matrices (k, 3, 3) from Euler angles (k, 3) = [roll, pitch, yaw].
 
-    ``xyz``: R = Rx(roll) Ry(pitch) Rz(yaw) (the IRMA4U authors' code); ``zyx``: R = Rz(yaw) Ry(pitch) Rx(roll).
+    ``xyz``: R = Rx(roll) Ry(pitch) Rz(yaw) (the IRMA4U authors' code);
+    ``zyx``: R = Rz(yaw) Ry(pitch) Rx(roll).
     """
     e = np.atleast_2d(np.asarray(angles, dtype=float))
     c, s = np.cos(e), np.sin(e)
-    one, zero = np.ones(len(e)), np.zeros(len(e))
-    rx = _rx(c[:, 0], s[:, 0], one, zero)
-    ry = _ry(c[:, 1], s[:, 1], one, zero)
-    rz = _rz(c[:, 2], s[:, 2], one, zero)
+    c1, c2, c3 = c[:, 0], c[:, 1], c[:, 2]
+    s1, s2, s3 = s[:, 0], s[:, 1], s[:, 2]
+    R = np.empty((len(e), 3, 3))
     if convention == "xyz":
-        return rx @ ry @ rz
-    if convention == "zyx":
-        return rz @ ry @ rx
-    raise ValueError(f"unknown orientation convention {convention!r}")
+        R[:, 0, 0] = c2 * c3
+        R[:, 0, 1] = -c2 * s3
+        R[:, 0, 2] = s2
+        R[:, 1, 0] = c1 * s3 + s1 * s2 * c3
+        R[:, 1, 1] = c1 * c3 - s1 * s2 * s3
+        R[:, 1, 2] = -s1 * c2
+        R[:, 2, 0] = s1 * s3 - c1 * s2 * c3
+        R[:, 2, 1] = s1 * c3 + c1 * s2 * s3
+        R[:, 2, 2] = c1 * c2
+    elif convention == "zyx":
+        R[:, 0, 0] = c3 * c2
+        R[:, 0, 1] = c3 * s2 * s1 - s3 * c1
+        R[:, 0, 2] = c3 * s2 * c1 + s3 * s1
+        R[:, 1, 0] = s3 * c2
+        R[:, 1, 1] = s3 * s2 * s1 + c3 * c1
+        R[:, 1, 2] = s3 * s2 * c1 - c3 * s1
+        R[:, 2, 0] = -s2
+        R[:, 2, 1] = c2 * s1
+        R[:, 2, 2] = c2 * c1
+    else:
+        raise ValueError(f"unknown orientation convention {convention!r}")
+    return R
 
 
 def euler_axes(angles: np.ndarray, convention: str = "xyz") -> np.ndarray:
@@ -86,7 +103,7 @@ def euler_axes_derivative(angles: np.ndarray, convention: str = "xyz") -> np.nda
     order = (0, 1, 2) if convention == "xyz" else (2, 1, 0)
     for pos, j in enumerate(order):
         for m in order[:pos]:
-            dh[:, :, j, m] = np.cross(cols[m], cols[j])
+            dh[:, :, j, m] = cross(cols[m], cols[j])
     return dh
 
 
@@ -135,48 +152,64 @@ class Kinematics:
 
 
 def inverse_kinematics(robot: Robot, poses: np.ndarray) -> Kinematics:
-    """Cable lengths (eq. 5), swivel angles (eq. 2), tangency angles (eq. 4) and unit vectors at k poses."""
+    """Cable lengths (eq. 5), swivel angles (eq. 2), tangency angles (eq. 4) and unit vectors at k poses.
+
+    Works on the local pulley components of q_i: with q.u = hypot(q.i, q.j) the swivel angle needs no
+    trigonometry, and tan(psi/2) from eq. 4 gives cos(psi) and sin(psi) rationally.
+    """
     z = _as_poses(poses)
     R = rotation(z[:, 3:], robot.orientation)
     H = euler_axes(z[:, 3:], robot.orientation)
-    a_rel = np.einsum("kab,nb->kna", R, robot.a_local)
-    q = z[:, None, :3] + a_rel - robot.d[None]
-    fi, fj, fk = robot.frames[:, 0], robot.frames[:, 1], robot.frames[:, 2]
-    qi = np.einsum("kna,na->kn", q, fi)
-    qj = np.einsum("kna,na->kn", q, fj)
-    rho_k = np.einsum("kna,na->kn", q, fk)
+    a_rel = np.matmul(R, robot.a_local.T).transpose(0, 2, 1)  # (k, n, 3)
+    q = a_rel + (z[:, None, :3] - robot.d[None])
+    ql = np.empty_like(q)  # (k, n, 3): q.i, q.j, q.k
+    for i in range(robot.n):
+        ql[:, i, :] = q[:, i, :] @ robot.frames[i].T
+    qi, qj, rho_k = ql[..., 0], ql[..., 1], ql[..., 2]
     swivel = np.arctan2(qj, qi)
-    cs, ss = np.cos(swivel)[..., None], np.sin(swivel)[..., None]
-    u = cs * fi + ss * fj
-    w = -ss * fi + cs * fj
     rho_u = np.hypot(qi, qj)  # q.u, since q has no component along w
+    cs, ss = qi / rho_u, qj / rho_u
+    fi, fj, fk = robot.frames[:, 0], robot.frames[:, 1], robot.frames[:, 2]
+    u = cs[..., None] * fi + ss[..., None] * fj
+    w = -ss[..., None] * fi + cs[..., None] * fj
     r = robot.r[None, :]
     ratio = rho_k / rho_u
-    psi = 2.0 * np.arctan(ratio + np.sqrt(ratio**2 + 1.0 - 2.0 * r / rho_u))
-    cp, sp = np.cos(psi)[..., None], np.sin(psi)[..., None]
-    nv = cp * u + sp * fk[None]
-    rho = q - r[..., None] * (u + nv)
-    rho_norm = np.linalg.norm(rho, axis=-1)
-    t = rho / rho_norm[..., None]
+    half = ratio + np.sqrt(ratio * ratio + 1.0 - 2.0 * r / rho_u)  # tan(psi / 2), eq. 4
+    psi = 2.0 * np.arctan(half)
+    h2 = half * half
+    cp, sp = (1.0 - h2) / (1.0 + h2), 2.0 * half / (1.0 + h2)
+    nv = cp[..., None] * u + sp[..., None] * fk
+    ru = rho_u - r * (1.0 + cp)  # components of rho along u and k (none along w)
+    rk = rho_k - r * sp
+    rho_norm = np.hypot(ru, rk)
+    t = (ru / rho_norm)[..., None] * u + (rk / rho_norm)[..., None] * fk
+    rho = rho_norm[..., None] * t
     lengths = rho_norm + r * (np.pi - psi)
     return Kinematics(z, R, H, a_rel, q, swivel, psi, u, w, nv, rho, rho_norm, t, rho_u, rho_k, lengths)
+
+
+def pose_gradients(kin: Kinematics, vectors: np.ndarray) -> np.ndarray:
+    """Pose gradients of c_i . q_i for per-cable vectors c (k, n, m, 3): (k, n, m, 6).
+
+    d(c . q)/dp = c and d(c . q)/d(angle_j) = c . (h_j x R a') = h_j . (R a' x c).
+    """
+    out = np.empty(vectors.shape[:-1] + (6,))
+    out[..., :3] = vectors
+    m = cross(kin.a_rel[:, :, None, :], vectors)
+    out[..., 3:] = np.matmul(m, kin.H[:, None])
+    return out
 
 
 def pose_jacobian_of_points(kin: Kinematics) -> np.ndarray:
     """dq_i/dzeta: (k, n, 3, 6). Translation is the identity; rotation: d(R a')/d(angle_j) = h_j x R a'."""
     k, n = kin.lengths.shape
-    dq = np.zeros((k, n, 3, 6))
-    dq[:, :, 0, 0] = dq[:, :, 1, 1] = dq[:, :, 2, 2] = 1.0
-    h = np.swapaxes(kin.H, 1, 2)  # (k, 3 axes, 3 comps)
-    dq[..., 3:] = np.swapaxes(np.cross(h[:, None, :, :], kin.a_rel[:, :, None, :]), -1, -2)
-    return dq
+    return pose_gradients(kin, np.broadcast_to(np.eye(3), (k, n, 3, 3)))
 
 
 @dataclass(frozen=True)
 class KinematicJacobians:
-    """Analytic derivatives with respect to the pose (k, n, 6) and the point Jacobian dq (k, n, 3, 6)."""
+    """Analytic derivatives of lengths, swivel and tangency angles with respect to the pose, (k, n, 6)."""
 
-    dq: np.ndarray
     lengths: np.ndarray
     swivel: np.ndarray
     psi: np.ndarray
@@ -185,27 +218,22 @@ class KinematicJacobians:
 def kinematic_jacobians(robot: Robot, kin: Kinematics) -> KinematicJacobians:
     """d(lengths)/dzeta, d(swivel)/dzeta and d(psi)/dzeta, analytic.
 
-    dl = t . dq (the wrapped arc and the straight segment compensate); dsigma follows from eq. 2;
+    dl = t . dq (the wrapped arc and the straight segment compensate); dsigma = w . dq / (q . u) from eq. 2;
     dpsi from differentiating the tangency condition n.rho = 0, i.e. cos(psi)(rho_u - r) + sin(psi) rho_k = r.
     """
-    dq = pose_jacobian_of_points(kin)
-    dl = np.einsum("kna,knaj->knj", kin.t, dq)
-    fi, fj, fk = robot.frames[:, 0], robot.frames[:, 1], robot.frames[:, 2]
-    # dsigma = (w . dq) / (q . u)
-    dsig = np.einsum("kna,knaj->knj", kin.w, dq) / kin.rho_u[..., None]
-    du = np.einsum("kna,knaj->knj", kin.u, dq)
-    dk = np.einsum("na,knaj->knj", fk, dq)
     cp, sp = np.cos(kin.psi), np.sin(kin.psi)
     r = robot.r[None, :]
     den = kin.rho_k * cp - (kin.rho_u - r) * sp
-    dpsi = -(cp[..., None] * du + sp[..., None] * dk) / den[..., None]
-    del fi, fj
-    return KinematicJacobians(dq, dl, dsig, dpsi)
+    v_psi = -(cp[..., None] * kin.u + sp[..., None] * robot.frames[None, :, 2]) / den[..., None]
+    vecs = np.stack([kin.t, kin.w / kin.rho_u[..., None], v_psi], axis=2)  # (k, n, 3, 3)
+    g = pose_gradients(kin, vecs)
+    return KinematicJacobians(g[:, :, 0], g[:, :, 1], g[:, :, 2])
 
 
 def cable_direction_jacobian(robot: Robot, kin: Kinematics, jac: KinematicJacobians) -> np.ndarray:
     """dt_i/dzeta: (k, n, 3, 6). dt = (I - t t^T)(dq - r (1 + cos psi) w dsigma) / |rho|."""
     r = robot.r[None, :, None, None]
-    drho = jac.dq - r * (1.0 + np.cos(kin.psi))[..., None, None] * kin.w[..., None] * jac.swivel[:, :, None, :]
+    dq = pose_jacobian_of_points(kin)
+    drho = dq - r * (1.0 + np.cos(kin.psi))[..., None, None] * kin.w[..., None] * jac.swivel[:, :, None, :]
     proj = np.einsum("kna,knaj->knj", kin.t, drho)
     return (drho - kin.t[..., None] * proj[:, :, None, :]) / kin.rho_norm[..., None, None]

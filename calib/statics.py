@@ -21,6 +21,7 @@ from calib.kinematics import (
     KinematicJacobians,
     Kinematics,
     cable_direction_jacobian,
+    cross,
     euler_axes_derivative,
     inverse_kinematics,
     kinematic_jacobians,
@@ -35,14 +36,14 @@ def gravity_vector(robot: Robot) -> np.ndarray:
 
 def structure_matrix(kin: Kinematics) -> np.ndarray:
     """Xi^T (k, 6, n): columns [t_i; a'_i x t_i] (eq. 7)."""
-    return np.concatenate([kin.t, np.cross(kin.a_rel, kin.t)], axis=-1).transpose(0, 2, 1)
+    return np.concatenate([kin.t, cross(kin.a_rel, kin.t)], axis=-1).transpose(0, 2, 1)
 
 
 def external_wrench(robot: Robot, kin: Kinematics) -> np.ndarray:
     """f (k, 6) = [m g; s' x m g] of eq. 6, with s' = R s the centre of mass offset in the fixed frame."""
     g = gravity_vector(robot)
     s = np.einsum("kab,b->ka", kin.R, robot.com)
-    return np.concatenate([np.broadcast_to(g, s.shape), np.cross(s, g)], axis=-1)
+    return np.concatenate([np.broadcast_to(g, s.shape), cross(s, g)], axis=-1)
 
 
 def wrench_residual(robot: Robot, poses: np.ndarray, tau: np.ndarray) -> np.ndarray:
@@ -71,10 +72,10 @@ def generalised_statics(
     """The equilibrium in Euler-axis coordinates: forces, then moments projected on H's columns."""
     k, n = kin.lengths.shape
     H = kin.H
-    m_cab = np.cross(kin.a_rel, kin.t)  # (k, n, 3)
+    m_cab = cross(kin.a_rel, kin.t)  # (k, n, 3)
     g = gravity_vector(robot)
     s = np.einsum("kab,b->ka", kin.R, robot.com)
-    m_g = np.cross(s, g)  # (k, 3)
+    m_g = cross(s, g)  # (k, 3)
     A = np.empty((k, 6, n))
     A[:, :3] = kin.t.transpose(0, 2, 1)
     A[:, 3:] = np.einsum("kaj,kna->kjn", H, m_cab)
@@ -89,17 +90,19 @@ def generalised_statics(
     hcols = np.swapaxes(H, 1, 2)  # (k, 3 axes, 3)
     # d(a_rel)/d(angle_m) = h_m x a_rel ; d(s)/d(angle_m) = h_m x s
     da = np.zeros((k, n, 3, 6))
-    da[..., 3:] = np.swapaxes(np.cross(hcols[:, None, :, :], kin.a_rel[:, :, None, :]), -1, -2)
-    dm_cab = np.cross(da, kin.t[..., None], axisa=2, axisb=2, axisc=2) + np.cross(
-        kin.a_rel[..., None], dt, axisa=2, axisb=2, axisc=2
+    da[..., 3:] = np.swapaxes(cross(hcols[:, None, :, :], kin.a_rel[:, :, None, :]), -1, -2)
+    dm_cab = np.swapaxes(
+        cross(np.swapaxes(da, 2, 3), kin.t[:, :, None, :]) + cross(kin.a_rel[:, :, None, :], np.swapaxes(dt, 2, 3)),
+        2,
+        3,
     )  # (k, n, 3, 6)
     dH = euler_axes_derivative(kin.poses[:, 3:], robot.orientation)  # (k, 3 comp, 3 axes j, 3 angles m)
     dA = np.zeros((k, 6, n, 6))
     dA[:, :3] = dt.transpose(0, 2, 1, 3)
     dA[:, 3:] = np.einsum("kaj,knam->kjnm", H, dm_cab)
     dA[:, 3:, :, 3:] += np.einsum("kajm,kna->kjnm", dH, m_cab)
-    ds = np.swapaxes(np.cross(hcols, s[:, None, :]), 1, 2)  # (k, 3, 3 angles)
-    dm_g = np.cross(ds, g[None, :, None], axisa=1, axisb=1, axisc=1)  # (k, 3, 3)
+    ds = np.swapaxes(cross(hcols, s[:, None, :]), 1, 2)  # (k, 3, 3 angles)
+    dm_g = np.swapaxes(cross(np.swapaxes(ds, 1, 2), g), 1, 2)  # (k, 3, 3)
     db = np.zeros((k, 6, 6))
     db[:, 3:, 3:] = np.einsum("kaj,kam->kjm", H, dm_g) + np.einsum("kajm,ka->kjm", dH, m_g)
     return GeneralisedStatics(A, b, dA, db)
