@@ -1,0 +1,350 @@
+"""Simulation configuration (``--sim-config FILE``): hidden effects, faults and physics overrides.
+
+The YAML file (every section optional; nothing is on by default)::
+
+    effects:                                   # what the controller and the run log never see
+      cable_elasticity: {EA: 20000.0}          # N, axial stiffness of every cable (nominal: rigid-like 2e6 N)
+      length_scale: {k: [0.01, 0, 0, -0.01]}   # relative error of each winch's transmission ratio
+      tension_offset: {offset: [2, 0, -1, 0]}  # N, per load-cell channel
+      tension_gain: {gain: [0.02, 0, 0, 0]}    # relative, per channel: reading = (1 + gain) tau + offset
+      pulley_radius: {delta: 0.002}            # m, added to every pulley radius (or a list, one per pulley)
+      ahrs_mounting: {roll: 0.01, pitch: -0.005}   # rad, tilt of the AHRS on the platform
+      com_offset: {offset: [0.0, 0.0, 0.02]}   # m, true centre of mass minus the model's, platform frame
+      mass_scale: {scale: 0.05}                # relative: true mass = (1 + scale) model mass
+      pulley_position: {offset: [[0.01, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]]}   # m, per pulley
+      cable_sag: {density: 0.05}               # kg/m, cable mass per length (parabolic sag)
+    faults:                                    # at a given simulated time t (s)
+      - {kind: can_frames_lost, t: 12.0, duration: 0.5, fraction: 1.0}
+      - {kind: drive_fault, t: 12.0, drive: 2}             # drives, channels and cables count from 1
+      - {kind: loadcell_stuck, t: 12.0, channel: 3}
+      - {kind: loadcell_disconnected, t: 12.0}
+      - {kind: ahrs_corrupt, t: 12.0, bytes: 16}
+      - {kind: cable_slack, t: 12.0, cable: 1, length: 0.05}   # the cable slips on its drum by 'length' m
+    physics: {linear_damping: 20.0}            # overrides of sim_backend.physics.PhysicsParams (SI)
+    initial: {spread: 0.03}                    # m, power-on position randomised within this of home
+
+Effect names are those of the diagnosis (spec/cli.md). Validation errors name file, field and value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calib.robot import Robot
+from sim_backend.physics import PhysicsParams, WinchParams, transmission_of
+
+EFFECTS = (
+    "cable_elasticity",
+    "length_scale",
+    "tension_offset",
+    "tension_gain",
+    "pulley_radius",
+    "ahrs_mounting",
+    "com_offset",
+    "mass_scale",
+    "pulley_position",
+    "cable_sag",
+)
+FAULTS = ("can_frames_lost", "drive_fault", "loadcell_stuck", "loadcell_disconnected", "ahrs_corrupt", "cable_slack")
+
+
+class SimConfigError(ValueError):
+    """An unusable simulation configuration; the message names the file, field and value."""
+
+
+@dataclass(frozen=True)
+class HiddenEffects:
+    """The hidden effects, None when off. Per-cable tuples have n entries; units as in the module doc."""
+
+    cable_elasticity: float | None = None  # EA, N
+    length_scale: tuple[float, ...] | None = None  # relative, per winch
+    tension_offset: tuple[float, ...] | None = None  # N, per channel
+    tension_gain: tuple[float, ...] | None = None  # relative, per channel
+    pulley_radius: tuple[float, ...] | None = None  # m, per pulley
+    ahrs_mounting: tuple[float, float] | None = None  # roll, pitch, rad
+    com_offset: tuple[float, float, float] | None = None  # m, platform frame
+    mass_scale: float | None = None  # relative
+    pulley_position: tuple[tuple[float, float, float], ...] | None = None  # m, per pulley
+    cable_sag: float | None = None  # kg/m
+
+    def active(self) -> list[str]:
+        """Names of the effects that are on."""
+        return [f.name for f in dataclasses.fields(self) if getattr(self, f.name) is not None]
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A fault injected at simulated time ``t`` (s). ``target`` is the 0-based drive/channel/cable index."""
+
+    kind: str
+    t: float
+    target: int | None = None
+    duration: float = 0.0  # s (can_frames_lost)
+    fraction: float = 1.0  # share of frames lost (can_frames_lost)
+    n_bytes: int = 0  # ahrs_corrupt
+    length: float = 0.0  # m (cable_slack)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """A validated simulation configuration."""
+
+    effects: HiddenEffects = field(default_factory=HiddenEffects)
+    faults: tuple[Fault, ...] = ()
+    physics: PhysicsParams = field(default_factory=PhysicsParams)
+    initial_spread: float = 0.03  # m
+    source: str = "<nominal>"
+
+    def true_robot(self, robot: Robot) -> Robot:
+        """The robot as the simulated prototype really is: geometry, mass and centre of mass with effects."""
+        e = self.effects
+        changes: dict[str, Any] = {}
+        if e.pulley_radius is not None:
+            changes["r"] = robot.r + np.asarray(e.pulley_radius)
+        if e.pulley_position is not None:
+            changes["d"] = robot.d + np.asarray(e.pulley_position)
+        if e.com_offset is not None:
+            changes["com"] = robot.com + np.asarray(e.com_offset)
+        if e.mass_scale is not None:
+            changes["mass"] = robot.mass * (1.0 + e.mass_scale)
+        return robot.replace(**changes) if changes else robot
+
+    def true_transmission(self, robot: Robot) -> np.ndarray:
+        """(n,) true m of cable per rad of motor: the nominal ratio times (1 + length_scale)."""
+        k = transmission_of(robot)
+        if self.effects.length_scale is not None:
+            k = k * (1.0 + np.asarray(self.effects.length_scale))
+        return k
+
+    def physics_params(self) -> PhysicsParams:
+        """Physics parameters with the cable effects (EA, cable mass) applied."""
+        p = self.physics
+        if self.effects.cable_elasticity is not None:
+            p = dataclasses.replace(p, ea=self.effects.cable_elasticity)
+        if self.effects.cable_sag is not None:
+            p = dataclasses.replace(p, cable_density=self.effects.cable_sag)
+        return p
+
+    def tension_offset(self, n: int) -> np.ndarray:
+        return np.zeros(n) if self.effects.tension_offset is None else np.asarray(self.effects.tension_offset)
+
+    def tension_gain(self, n: int) -> np.ndarray:
+        """(n,) gain factors 1 + gain of the load-cell channels."""
+        g = np.zeros(n) if self.effects.tension_gain is None else np.asarray(self.effects.tension_gain)
+        return 1.0 + g
+
+    def ahrs_mounting(self) -> tuple[float, float]:
+        return (0.0, 0.0) if self.effects.ahrs_mounting is None else self.effects.ahrs_mounting
+
+
+class _Check:
+    def __init__(self, origin: str):
+        self.origin = origin
+
+    def fail(self, fld: str, value: Any, why: str) -> SimConfigError:
+        return SimConfigError(f"{self.origin}: field '{fld}' = {value!r} {why}.")
+
+    def mapping(self, value: Any, fld: str, allowed: tuple[str, ...]) -> dict:
+        if not isinstance(value, dict):
+            raise self.fail(fld, value, "must be a mapping")
+        for key in value:
+            if key not in allowed:
+                raise self.fail(f"{fld}.{key}" if fld else str(key), value[key], f"is not one of {', '.join(allowed)}")
+        return value
+
+    def number(self, value: Any, fld: str, lo: float | None = None, hi: float | None = None, strict=False) -> float:
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise self.fail(fld, value, "must be a finite number")
+        if lo is not None and (value < lo or (strict and value == lo)):
+            raise self.fail(fld, value, f"must be {'>' if strict else '>='} {lo}")
+        if hi is not None and value > hi:
+            raise self.fail(fld, value, f"must be <= {hi}")
+        return float(value)
+
+    def vector(self, value: Any, fld: str, size: int, lo: float | None = None, hi: float | None = None) -> tuple:
+        if not isinstance(value, list | tuple) or len(value) != size:
+            raise self.fail(fld, value, f"must be a list of {size} numbers")
+        return tuple(self.number(x, f"{fld}[{j}]", lo, hi) for j, x in enumerate(value))
+
+    def required(self, m: dict, key: str, fld: str) -> Any:
+        if key not in m:
+            raise SimConfigError(f"{self.origin}: required field '{fld}.{key}' is missing.")
+        return m[key]
+
+    def index(self, value: Any, fld: str, n: int) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= n:
+            raise self.fail(fld, value, f"must be an integer from 1 to {n}")
+        return value - 1
+
+
+def _effects(c: _Check, raw: Any, n: int) -> HiddenEffects:
+    m = c.mapping(raw, "effects", EFFECTS)
+    out: dict[str, Any] = {}
+    for name, val in m.items():
+        f = f"effects.{name}"
+        if name == "cable_elasticity":
+            v = c.mapping(val, f, ("EA",))
+            out[name] = c.number(c.required(v, "EA", f), f + ".EA", 1.0, strict=True)
+        elif name == "length_scale":
+            v = c.mapping(val, f, ("k",))
+            out[name] = c.vector(c.required(v, "k", f), f + ".k", n, -0.5, 0.5)
+        elif name == "tension_offset":
+            v = c.mapping(val, f, ("offset",))
+            out[name] = c.vector(c.required(v, "offset", f), f + ".offset", n)
+        elif name == "tension_gain":
+            v = c.mapping(val, f, ("gain",))
+            out[name] = c.vector(c.required(v, "gain", f), f + ".gain", n, -0.5, 0.5)
+        elif name == "pulley_radius":
+            v = c.mapping(val, f, ("delta",))
+            d = c.required(v, "delta", f)
+            out[name] = (c.number(d, f + ".delta"),) * n if not isinstance(d, list) else c.vector(d, f + ".delta", n)
+        elif name == "ahrs_mounting":
+            v = c.mapping(val, f, ("roll", "pitch"))
+            out[name] = (
+                c.number(v.get("roll", 0.0), f + ".roll", -0.5, 0.5),
+                c.number(v.get("pitch", 0.0), f + ".pitch", -0.5, 0.5),
+            )
+        elif name == "com_offset":
+            v = c.mapping(val, f, ("offset",))
+            out[name] = c.vector(c.required(v, "offset", f), f + ".offset", 3, -0.5, 0.5)
+        elif name == "mass_scale":
+            v = c.mapping(val, f, ("scale",))
+            out[name] = c.number(c.required(v, "scale", f), f + ".scale", -0.5, 0.5)
+        elif name == "pulley_position":
+            v = c.mapping(val, f, ("offset",))
+            rows = c.required(v, "offset", f)
+            if not isinstance(rows, list) or len(rows) != n:
+                raise c.fail(f + ".offset", rows, f"must be a list of {n} [dx, dy, dz] offsets")
+            out[name] = tuple(c.vector(r, f"{f}.offset[{i}]", 3, -0.5, 0.5) for i, r in enumerate(rows))
+        elif name == "cable_sag":
+            v = c.mapping(val, f, ("density",))
+            out[name] = c.number(c.required(v, "density", f), f + ".density", 0.0, 5.0, strict=True)
+    return HiddenEffects(**out)
+
+
+def _faults(c: _Check, raw: Any, n: int) -> tuple[Fault, ...]:
+    if not isinstance(raw, list):
+        raise c.fail("faults", raw, "must be a list of faults")
+    out = []
+    keys = {
+        "can_frames_lost": ("duration", "fraction"),
+        "drive_fault": ("drive",),
+        "loadcell_stuck": ("channel",),
+        "loadcell_disconnected": (),
+        "ahrs_corrupt": ("bytes",),
+        "cable_slack": ("cable", "length"),
+    }
+    for j, item in enumerate(raw):
+        f = f"faults[{j}]"
+        if not isinstance(item, dict):
+            raise c.fail(f, item, "must be a mapping with 'kind' and 't'")
+        kind = c.required(item, "kind", f)
+        if kind not in FAULTS:
+            raise c.fail(f + ".kind", kind, f"is not one of {', '.join(FAULTS)}")
+        c.mapping(item, f, ("kind", "t") + keys[kind])
+        t = c.number(c.required(item, "t", f), f + ".t", 0.0)
+        if kind == "can_frames_lost":
+            out.append(
+                Fault(
+                    kind,
+                    t,
+                    duration=c.number(item.get("duration", 1.0), f + ".duration", 0.0, strict=True),
+                    fraction=c.number(item.get("fraction", 1.0), f + ".fraction", 0.0, 1.0, strict=True),
+                )
+            )
+        elif kind == "drive_fault":
+            out.append(Fault(kind, t, target=c.index(c.required(item, "drive", f), f + ".drive", n)))
+        elif kind == "loadcell_stuck":
+            out.append(Fault(kind, t, target=c.index(c.required(item, "channel", f), f + ".channel", n)))
+        elif kind == "loadcell_disconnected":
+            out.append(Fault(kind, t))
+        elif kind == "ahrs_corrupt":
+            b = item.get("bytes", 8)
+            if isinstance(b, bool) or not isinstance(b, int) or b < 1:
+                raise c.fail(f + ".bytes", b, "must be a positive integer")
+            out.append(Fault(kind, t, n_bytes=b))
+        elif kind == "cable_slack":
+            out.append(
+                Fault(
+                    kind,
+                    t,
+                    target=c.index(c.required(item, "cable", f), f + ".cable", n),
+                    length=c.number(item.get("length", 0.05), f + ".length", 0.0, 1.0, strict=True),
+                )
+            )
+    return tuple(sorted(out, key=lambda x: x.t))
+
+
+def _physics(c: _Check, raw: Any) -> PhysicsParams:
+    names = tuple(f.name for f in dataclasses.fields(PhysicsParams) if f.name != "winch")
+    wnames = tuple(f.name for f in dataclasses.fields(WinchParams))
+    m = c.mapping(raw, "physics", names + ("winch",))
+    vals: dict[str, Any] = {}
+    for k, v in m.items():
+        if k == "winch":
+            w = c.mapping(v, "physics.winch", wnames)
+            vals["winch"] = WinchParams(**{a: c.number(b, f"physics.winch.{a}", 0.0) for a, b in w.items()})
+        elif k == "substeps":
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 100:
+                raise c.fail("physics.substeps", v, "must be an integer from 1 to 100")
+            vals[k] = v
+        elif k == "stiff_theta":
+            vals[k] = c.number(v, "physics.stiff_theta", 0.5, 1.0)
+        else:
+            vals[k] = c.number(v, f"physics.{k}", 0.0, strict=(k == "ea"))
+    if "winch" in vals and vals["winch"].inertia <= 0:
+        raise c.fail("physics.winch.inertia", vals["winch"].inertia, "must be > 0")
+    return PhysicsParams(**vals)
+
+
+def sim_config_from_dict(data: Any, n: int = 4, origin: str = "<sim config>") -> SimConfig:
+    """Validate a simulation configuration mapping for a robot with n cables."""
+    c = _Check(origin)
+    if data is None:
+        data = {}
+    m = c.mapping(data, "", ("effects", "faults", "physics", "initial"))
+    effects = _effects(c, m["effects"], n) if m.get("effects") is not None else HiddenEffects()
+    faults = _faults(c, m["faults"], n) if m.get("faults") is not None else ()
+    physics = _physics(c, m["physics"]) if m.get("physics") is not None else PhysicsParams()
+    spread = 0.03
+    if m.get("initial") is not None:
+        ini = c.mapping(m["initial"], "initial", ("spread",))
+        spread = c.number(ini.get("spread", spread), "initial.spread", 0.0, 0.2)
+    return SimConfig(effects, faults, physics, spread, origin)
+
+
+def load_sim_config(path: str | Path | None, n: int = 4) -> SimConfig:
+    """Read and validate a ``--sim-config`` YAML file (None: the nominal prototype)."""
+    if path is None:
+        return SimConfig()
+    p = Path(path)
+    if not p.is_file():
+        raise SimConfigError(f"{p}: simulation configuration file not found.")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise SimConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]}).") from exc
+    return sim_config_from_dict(data, n, str(p))
+
+
+def example_names() -> list[str]:
+    """Names of the example configurations shipped in sim_backend/examples."""
+    folder = resources.files("sim_backend") / "examples"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+
+
+def example_path(name: str) -> Path:
+    """Path of a shipped example configuration, e.g. ``example_path("mass_scale")``."""
+    p = Path(str(resources.files("sim_backend") / "examples" / f"{name}.yaml"))
+    if not p.is_file():
+        known = ", ".join(example_names())
+        raise SimConfigError(f"no example simulation configuration named '{name}' (known: {known}).")
+    return p
