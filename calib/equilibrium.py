@@ -157,7 +157,7 @@ def distribute_tensions(
 def _igsp_moment_residual(robot: Robot, p: np.ndarray, ang: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     poses = np.c_[p, ang]
     kin = inverse_kinematics(robot, poses)
-    st = generalised_statics(robot, kin, derivatives=False)
+    st = generalised_statics(robot, kin)
     g = np.array([0.0, 0.0, -robot.weight])
     bad = ~(np.isfinite(st.A).all(axis=(1, 2)) & np.isfinite(st.b).all(axis=1))
     A = np.where(bad[:, None, None], np.eye(6, robot.n), st.A)  # placeholder rows, reported as failed below

@@ -20,7 +20,6 @@ import numpy as np
 from calib.kinematics import (
     KinematicJacobians,
     Kinematics,
-    cable_direction_jacobian,
     cross,
     euler_axes_derivative,
     inverse_kinematics,
@@ -54,58 +53,82 @@ def wrench_residual(robot: Robot, poses: np.ndarray, tau: np.ndarray) -> np.ndar
 
 @dataclass(frozen=True)
 class GeneralisedStatics:
-    """Generalised equilibrium terms and their pose derivatives.
+    """Generalised equilibrium terms and their pose derivatives at fixed tensions.
 
-    A: (k, 6, n) generalised structure matrix; b: (k, 6) generalised gravity; dA: (k, 6, n, 6);
-    db: (k, 6, 6). The equilibrium is A tau = b.
+    A: (k, 6, n) generalised structure matrix (its columns are the pose gradients of the cable lengths);
+    b: (k, 6) generalised gravity; the equilibrium is A tau = b. With tensions given, G: (k, 6, 6) is
+    d(A tau)/d zeta at those fixed tensions and db: (k, 6, 6) is d b / d zeta.
     """
 
     A: np.ndarray
     b: np.ndarray
-    dA: np.ndarray
-    db: np.ndarray
+    G: np.ndarray | None = None
+    db: np.ndarray | None = None
 
 
 def generalised_statics(
-    robot: Robot, kin: Kinematics, jac: KinematicJacobians | None = None, derivatives: bool = True
+    robot: Robot, kin: Kinematics, jac: KinematicJacobians | None = None, tau: np.ndarray | None = None
 ) -> GeneralisedStatics:
-    """The equilibrium in Euler-axis coordinates: forces, then moments projected on H's columns."""
+    """The equilibrium in Euler-axis coordinates: forces, then moments projected on H's columns.
+
+    With ``tau`` (k, n) it also returns the pose derivatives, contracted with the tensions so that no
+    (k, 6, n, 6) array is formed: with c_i = tau_i / |rho_i| and e_i = c_i r_i (1 + cos psi_i),
+      sum tau_i dt_i         = sum c_i dq_i - sum c_i t_i dl_i^T - sum e_i w_i dsigma_i^T,
+      sum tau_i da'_i x t_i  = (S - tr(S) I) H        with S = sum tau_i a'_i t_i^T,
+      sum tau_i a'_i x dt_i  = [sum c_i a'_i]x | (sum c_i |a'_i|^2 I - sum c_i a'_i a'_i^T) H
+                               - sum c_i (a'_i x t_i) dl_i^T - sum e_i (a'_i x w_i) dsigma_i^T.
+    """
     k, n = kin.lengths.shape
     H = kin.H
-    m_cab = cross(kin.a_rel, kin.t)  # (k, n, 3)
+    a = kin.a_rel
+    m_cab = cross(a, kin.t)  # (k, n, 3)
     g = gravity_vector(robot)
     s = np.einsum("kab,b->ka", kin.R, robot.com)
     m_g = cross(s, g)  # (k, 3)
     A = np.empty((k, 6, n))
     A[:, :3] = kin.t.transpose(0, 2, 1)
-    A[:, 3:] = np.einsum("kaj,kna->kjn", H, m_cab)
+    A[:, 3:] = np.matmul(H.transpose(0, 2, 1), m_cab.transpose(0, 2, 1))
     b = np.empty((k, 6))
     b[:, :3] = g
     b[:, 3:] = np.einsum("kaj,ka->kj", H, m_g)
-    if not derivatives:
-        return GeneralisedStatics(A, b, np.empty(0), np.empty(0))
+    if tau is None:
+        return GeneralisedStatics(A, b)
     if jac is None:
         jac = kinematic_jacobians(robot, kin)
-    dt = cable_direction_jacobian(robot, kin, jac)  # (k, n, 3, 6)
-    hcols = np.swapaxes(H, 1, 2)  # (k, 3 axes, 3)
-    # d(a_rel)/d(angle_m) = h_m x a_rel ; d(s)/d(angle_m) = h_m x s
-    da = np.zeros((k, n, 3, 6))
-    da[..., 3:] = np.swapaxes(cross(hcols[:, None, :, :], kin.a_rel[:, :, None, :]), -1, -2)
-    dm_cab = np.swapaxes(
-        cross(np.swapaxes(da, 2, 3), kin.t[:, :, None, :]) + cross(kin.a_rel[:, :, None, :], np.swapaxes(dt, 2, 3)),
-        2,
-        3,
-    )  # (k, n, 3, 6)
+    tau = np.broadcast_to(np.atleast_2d(tau), (k, n))
+    c = tau / kin.rho_norm
+    e = c * robot.r[None, :] * (1.0 + np.cos(kin.psi))
+    eye = np.eye(3)
+    # forces: sum tau_i dt_i  (k, 3, 6)
+    G = np.zeros((k, 6, 6))
+    ca = np.einsum("kn,kna->ka", c, a)
+    G[:, :3, :3] = c.sum(1)[:, None, None] * eye
+    G[:, :3, 3:] = cross(H.transpose(0, 2, 1), ca[:, None, :]).transpose(0, 2, 1)
+    G[:, :3] -= np.einsum("kna,knj->kaj", c[..., None] * kin.t, jac.lengths)
+    G[:, :3] -= np.einsum("kna,knj->kaj", e[..., None] * kin.w, jac.swivel)
+    # moments about P: d(sum tau_i a'_i x t_i)  (k, 3, 6)
+    S = np.einsum("kn,kna,knb->kab", tau, a, kin.t)
+    dM = np.zeros((k, 3, 6))
+    dM[:, :, 3:] = np.matmul(S - np.trace(S, axis1=1, axis2=2)[:, None, None] * eye, H)
+    skew = np.zeros((k, 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -ca[:, 2], ca[:, 1], -ca[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = ca[:, 2], -ca[:, 1], ca[:, 0]
+    dM[:, :, :3] += skew
+    c2 = np.einsum("kn,kna,kna->k", c, a, a)
+    caa = np.einsum("kn,kna,knb->kab", c, a, a)
+    dM[:, :, 3:] += np.matmul(c2[:, None, None] * eye - caa, H)
+    dM -= np.einsum("kna,knj->kaj", c[..., None] * m_cab, jac.lengths)
+    dM -= np.einsum("kna,knj->kaj", e[..., None] * cross(a, kin.w), jac.swivel)
+    m_tau = np.einsum("kn,kna->ka", tau, m_cab)
     dH = euler_axes_derivative(kin.poses[:, 3:], robot.orientation)  # (k, 3 comp, 3 axes j, 3 angles m)
-    dA = np.zeros((k, 6, n, 6))
-    dA[:, :3] = dt.transpose(0, 2, 1, 3)
-    dA[:, 3:] = np.einsum("kaj,knam->kjnm", H, dm_cab)
-    dA[:, 3:, :, 3:] += np.einsum("kajm,kna->kjnm", dH, m_cab)
-    ds = np.swapaxes(cross(hcols, s[:, None, :]), 1, 2)  # (k, 3, 3 angles)
-    dm_g = np.swapaxes(cross(np.swapaxes(ds, 1, 2), g), 1, 2)  # (k, 3, 3)
+    G[:, 3:] = np.matmul(H.transpose(0, 2, 1), dM)
+    G[:, 3:, 3:] += np.einsum("kajm,ka->kjm", dH, m_tau)
+    # gravity: d(H^T (s x g)) with ds/d(angle_m) = h_m x s
+    ds = cross(H.transpose(0, 2, 1), s[:, None, :])  # (k, 3 angles, 3)
+    dm_g = cross(ds, g).transpose(0, 2, 1)  # (k, 3, 3 angles)
     db = np.zeros((k, 6, 6))
-    db[:, 3:, 3:] = np.einsum("kaj,kam->kjm", H, dm_g) + np.einsum("kajm,ka->kjm", dH, m_g)
-    return GeneralisedStatics(A, b, dA, db)
+    db[:, 3:, 3:] = np.matmul(H.transpose(0, 2, 1), dm_g) + np.einsum("kajm,ka->kjm", dH, m_g)
+    return GeneralisedStatics(A, b, G, db)
 
 
 @dataclass(frozen=True)
@@ -131,15 +154,14 @@ def tension_model(
         )
     if kin is None:
         kin = inverse_kinematics(robot, poses)
-    st = generalised_statics(robot, kin, jac, derivatives)
+    st = generalised_statics(robot, kin)
     c = list(robot.controlled)
     Ac = st.A[:, c, :]
-    bc = st.b[:, c]
-    tau = np.linalg.solve(Ac, bc[..., None])[..., 0]
+    tau = np.linalg.solve(Ac, st.b[:, c, None])[..., 0]
     if not derivatives:
         return TensionModel(tau, None)
-    rhs = st.db[:, c, :] - np.einsum("kanj,kn->kaj", st.dA[:, c], tau)
-    return TensionModel(tau, np.linalg.solve(Ac, rhs))
+    st = generalised_statics(robot, kin, jac, tau)
+    return TensionModel(tau, np.linalg.solve(Ac, st.db[:, c, :] - st.G[:, c, :]))
 
 
 def equilibrium_residual(
@@ -147,9 +169,9 @@ def equilibrium_residual(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Generalised residual A tau - b (k, 6) and its pose Jacobian (k, 6, 6); for the direct static problem."""
     kin = inverse_kinematics(robot, poses)
-    st = generalised_statics(robot, kin, None, derivatives)
     tau = np.broadcast_to(np.atleast_2d(tau), (kin.lengths.shape[0], robot.n))
+    st = generalised_statics(robot, kin, None, tau if derivatives else None)
     res = np.einsum("kan,kn->ka", st.A, tau) - st.b
     if not derivatives:
         return res, None
-    return res, np.einsum("kanj,kn->kaj", st.dA, tau) - st.db
+    return res, st.G - st.db
