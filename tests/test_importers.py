@@ -1,0 +1,208 @@
+"""IRMA importers on the authors' real recording sc_8_final (parsed .mat and raw controller log)."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+
+from acquisition.importers import (
+    IRMA_HOMING_LENGTHS,
+    IRMA_HOMING_SWIVELS,
+    IrmaImportError,
+    import_irma,
+    read_irma_log,
+    segment_targets,
+)
+from acquisition.runlog import read_run
+from calib.robot import load_robot
+
+
+@pytest.fixture(scope="module")
+def parsed_run(irma_data, tmp_path_factory):
+    return import_irma(irma_data / "sc_8_final_parsed.mat", tmp_path_factory.mktemp("imp") / "parsed")
+
+
+@pytest.fixture(scope="module")
+def log_run(irma_data, tmp_path_factory):
+    return import_irma(irma_data / "sc_8_final.log", tmp_path_factory.mktemp("imp") / "log")
+
+
+@pytest.fixture(scope="module")
+def authors(irma_data):
+    with warnings.catch_warnings():  # their workspace holds MATLAB objects saved under the name "None"
+        warnings.simplefilter("ignore", scipy.io.matlab.MatReadWarning)
+        return scipy.io.loadmat(irma_data / "ws_selfcalibration_8_final.mat", squeeze_me=True, struct_as_record=False)
+
+
+@pytest.fixture(scope="module")
+def plan(irma_data):
+    out = scipy.io.loadmat(irma_data / "sc_control_target_8_final.mat", squeeze_me=True, struct_as_record=False)["out"]
+    return out.static_tensions.T, out.opt_meas_config.T
+
+
+def test_parsed_import_basics(parsed_run, irma_data):
+    run = read_run(parsed_run.path)
+    assert len(run) == 1280 and run.n == 4 and run.robot.name == "irma4u"
+    assert run.source == "import:irma-parsed" and run.method == "equilibrium" and run.sample_period == 0.1
+    assert run.t[0] == 0.0 and np.allclose(np.diff(run.t), 0.1, atol=1e-9)
+    assert run.meta["time_origin"] == 257.854
+    assert run.meta["homing"]["lengths"] == list(IRMA_HOMING_LENGTHS)
+    assert run.meta["homing"]["swivels"] == list(IRMA_HOMING_SWIVELS)
+    st = scipy.io.loadmat(irma_data / "sc_8_final_parsed.mat", squeeze_me=True, struct_as_record=False)["st"]
+    np.testing.assert_array_equal(run.tau, st.tensions.T)
+    np.testing.assert_array_equal(run.tau_ref, st.target_tensions.T)
+    np.testing.assert_allclose(run.t + 257.854, st.t, atol=1e-9)
+
+
+def test_parsed_deltas_match_the_authors_measurements(parsed_run, authors):
+    """absolute = homing + delta at the authors' hand-picked samples meas_idx - 1."""
+    idx = authors["meas_idx"] - 1
+    run = parsed_run
+    hl, hs = np.array(IRMA_HOMING_LENGTHS), np.array(IRMA_HOMING_SWIVELS)
+    np.testing.assert_allclose(hl + run.dl[idx], authors["cable_length_meas"].T, atol=1e-12)
+    np.testing.assert_allclose(hs + run.dsigma[idx], authors["swivel_meas"].T, atol=1e-12)
+    np.testing.assert_allclose(run.roll[idx], authors["epsilon_meas"][0], atol=1e-15)
+    np.testing.assert_allclose(run.pitch[idx], authors["epsilon_meas"][1], atol=1e-15)
+    np.testing.assert_allclose(run.dyaw[idx], authors["epsilon_meas"][2], atol=1e-15)
+    np.testing.assert_allclose(run.tau[idx[1:]], authors["loadcell_meas"].T, atol=1e-12)
+    # their deltas are relative to the first picked sample
+    np.testing.assert_allclose(run.dl[idx[1:]] - run.dl[idx[0]], authors["delta_length_meas"].T, atol=1e-12)
+    np.testing.assert_allclose(run.dsigma[idx[1:]] - run.dsigma[idx[0]], authors["delta_swivel_meas"].T, atol=1e-12)
+    np.testing.assert_allclose(run.dyaw[idx[1:]] - run.dyaw[idx[0]], authors["delta_yaw_meas"], atol=1e-12)
+
+
+def test_raw_log_gives_the_same_signals_as_the_parsed_file(parsed_run, log_run):
+    p, r = parsed_run, log_run
+    assert r.source == "import:irma-log" and len(r) == len(p) == 1280
+    np.testing.assert_array_equal(r.t, p.t)
+    np.testing.assert_array_equal(r.tau, p.tau)
+    np.testing.assert_array_equal(r.tau_ref, p.tau_ref)
+    for name in ("dsigma", "roll", "pitch", "dyaw"):  # same to float rounding (unit conversions)
+        np.testing.assert_allclose(getattr(r, name), getattr(p, name), rtol=0, atol=1e-12, err_msg=name)
+    assert r.meta["homing"]["recording"]["samples"] == 65
+    assert r.meta["homing"]["recording"]["t"] == [184.922, 191.322]
+
+
+def test_raw_and_parsed_lengths_differ_by_the_transmission_ratio(parsed_run, log_run):
+    """The parser uses one m/rev for all winches, the controller each winch's own: dl ratio is constant."""
+    moving = np.abs(parsed_run.dl) > 0.05
+    ratios = []
+    for i in range(4):
+        q = log_run.dl[moving[:, i], i] / parsed_run.dl[moving[:, i], i]
+        assert np.ptp(q) < 1e-9
+        ratios.append(q.mean())
+    ratios = np.array(ratios)
+    np.testing.assert_allclose(ratios, [1.02645, 1.02092, 1.01367, 1.02055], atol=1e-5)
+    lpr = np.array(load_robot("irma4u").sensors.length_per_motor_rev)
+    common = lpr / ratios  # the parser's single ratio, the same for the four winches
+    np.testing.assert_allclose(common, -0.0280645, atol=1e-6)  # lpr has 5 digits
+    assert np.max(np.abs(log_run.dl - parsed_run.dl)) > 0.03  # the difference is real: tens of mm
+
+
+def test_raw_log_extra_columns_agree_with_the_lengths(log_run):
+    lpr = np.array(load_robot("irma4u").sensors.length_per_motor_rev)
+    counts = np.stack([log_run.extra[f"motor_position_{i}"] for i in range(1, 5)], axis=1)
+    assert counts.dtype.kind == "f" and np.all(counts == np.round(counts))
+    from_counts = (counts - counts[0]) * lpr / 2**20
+    np.testing.assert_allclose(log_run.dl - log_run.dl[0], from_counts, atol=2e-5)
+    assert {"motor_speed_1", "motor_torque_4", "aux_position_2", "state_3"} <= set(log_run.extra)
+
+
+def test_setpoints_found_in_the_target_tensions(parsed_run, plan):
+    planned, _ = plan
+    found = parsed_run.setpoints
+    # two of the eight poses were left before every target had settled: six steady setpoints remain
+    assert found.shape == (6, 4)
+    matches = [int(np.argmin(np.max(np.abs(planned - s), axis=1))) for s in found]
+    assert matches == [1, 2, 3, 5, 6, 7]
+    for s, m in zip(found, matches, strict=True):
+        np.testing.assert_allclose(s, planned[m], atol=1e-3)
+    hold = parsed_run.setpoint >= 0
+    np.testing.assert_array_equal(parsed_run.tau_ref[hold], found[parsed_run.setpoint[hold]])
+    assert set(parsed_run.phase[:79]) == {"pretension"} and set(parsed_run.phase[hold]) == {"hold"}
+
+
+def test_import_with_the_planned_targets(irma_data, plan, tmp_path):
+    run = import_irma(irma_data / "sc_8_final.log", tmp_path / "r", targets=irma_data / "sc_control_target_8_final.mat")
+    planned, poses = plan
+    np.testing.assert_allclose(run.setpoints, planned, atol=1e-12)
+    np.testing.assert_allclose(run.ideal_poses, poses, atol=1e-12)
+    assert sorted(set(run.setpoint) - {-1}) == [1, 2, 3, 5, 6, 7]
+    hold = run.setpoint >= 0
+    np.testing.assert_allclose(run.tau_ref[hold], planned[run.setpoint[hold]], atol=1e-3)
+
+
+def test_segment_targets_on_a_synthetic_sequence():
+    T = np.full((100, 2), 100.0)
+    T[20:30] = np.linspace([100, 100], [150, 60], 11)[1:]
+    T[30:50] = [150, 60]
+    T[50:60] = np.linspace([150, 60], [80, 90], 11)[1:]
+    T[60:75] = [80, 90]
+    T[75:] = np.linspace([80, 90], [100, 100], 26)[1:]
+    seg = segment_targets(T, 0.1)
+    np.testing.assert_array_equal(seg.setpoints, [[150, 60], [80, 90]])
+    assert seg.plateaus == [(29, 49), (59, 74)]
+    assert seg.phase[0] == "pretension" and seg.phase[40] == "hold" and seg.phase[55] == "transition"
+    assert seg.index[40] == 0 and seg.index[70] == 1 and seg.index[90] == -1
+
+
+def test_truncated_raw_log_drops_its_last_incomplete_cycle(irma_data, tmp_path):
+    data = (irma_data / "sc_8_final.log").read_bytes()
+    cut = tmp_path / "cut.log"
+    cut.write_bytes(data[:-20])  # the log stops inside the last AHRS line
+    with pytest.warns(UserWarning) as rec:
+        sig = read_irma_log(cut)
+    assert any("incomplete" in str(w.message) for w in rec)
+    assert sig.t.shape == (1279,) and sig.t[-1] == pytest.approx(385.654)
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,0.2\n", r"line 2 \(type 5\) has 4 fields, expected 5"),
+        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,abc,0.3\n", r"line 2 has the non-numeric value 'abc'"),
+        ("3,1.0,7,9,1,2,3,0.5,0,40,55,1,0,0.3\n", r"line 1 has actuator id '7'"),
+    ],
+)
+def test_bad_raw_logs(tmp_path, content, message):
+    f = tmp_path / "bad.log"
+    f.write_text(content)
+    with pytest.raises(IrmaImportError, match=message) as info:
+        import_irma(f, tmp_path / "run")
+    assert str(f) in str(info.value)
+
+
+def test_raw_log_without_homing_pause_is_refused(tmp_path):
+    lines = []
+    for k in range(5):
+        t = 10 + 0.1 * k
+        lines += [f"3,{t:.3f},{i},9,{i},0,0,0.5,0,40,55,0,0,0.3" for i in range(4)] + [f"5,{t:.3f},0.1,0.2,0.3"]
+    f = tmp_path / "nopause.log"
+    f.write_text("\n".join(lines) + "\n")
+    with pytest.raises(IrmaImportError, match="no pause longer than 1.0 s"):
+        import_irma(f, tmp_path / "run")
+
+
+def test_bad_parsed_files(tmp_path: Path):
+    f = tmp_path / "other.mat"
+    scipy.io.savemat(f, {"x": np.ones(3)})
+    with pytest.raises(IrmaImportError, match=r"variable 'st' is missing \(variables found: x\)"):
+        import_irma(f, tmp_path / "r1")
+    g = tmp_path / "short_parsed.mat"
+    st = {"t": np.arange(5.0), "epsilon": np.zeros((3, 5)), "cable_length": np.zeros((4, 5)),
+          "swivel": np.zeros((4, 5)), "tensions": np.zeros((4, 4))}
+    scipy.io.savemat(g, {"st": st})
+    with pytest.raises(IrmaImportError, match=r"field 'st\.target_tensions' is missing"):
+        import_irma(g, tmp_path / "r2")
+    st["target_tensions"] = np.zeros((4, 5))
+    scipy.io.savemat(g, {"st": st})
+    with pytest.raises(IrmaImportError, match=r"field 'st\.tensions' has 4 samples but 'st\.t' has 5"):
+        import_irma(g, tmp_path / "r3")
+    h = tmp_path / "notes.txt"
+    h.write_text("hello\n")
+    with pytest.raises(IrmaImportError, match="neither a MATLAB v5"):
+        import_irma(h, tmp_path / "r4")
