@@ -1,0 +1,349 @@
+"""From a run's signals to a :class:`Solution`: windows, measurement rows, noise, initial guess, LM solve."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from calib.equilibrium import default_guess, direct_statics
+from calib.robot import NoiseLevels, Robot
+from calib.selfcal.lm import levenberg_marquardt, solve_poses
+from calib.selfcal.model import CHANNELS, MeasurementModel
+from calib.selfcal.problem import Measurements, Problem
+from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, compare_pose
+from calib.selfcal.windows import Window, WindowOptions, find_windows
+
+METHODS = ("tlse", "lse", "hybrid")
+NOISE = ("paper", "estimate", "sensors")
+SIGNALS = ("t", "tau", "dl", "dsigma", "roll", "pitch", "dyaw")
+
+
+def sensor_noise(robot: Robot) -> dict[str, np.ndarray]:
+    """Standard deviation of one reading per channel from the sensors' specifications (N, m, rad)."""
+    s, n = robot.sensors, robot.n
+    per_rev = np.abs(np.asarray(s.length_per_motor_rev, float)) if s.length_per_motor_rev else np.full(n, 0.03)
+    length = s.motor_encoder_accuracy / (2 * math.pi) * np.broadcast_to(per_rev, (n,))
+    return {
+        "tension": np.full(n, s.load_cell_uncertainty),
+        "length": np.maximum(length, 1e-6),
+        "swivel": np.full(n, s.swivel_encoder_accuracy),
+        "orientation": np.array([s.ahrs_roll_pitch_accuracy, s.ahrs_roll_pitch_accuracy, s.ahrs_yaw_accuracy]),
+    }
+
+
+def paper_noise(robot: Robot, levels: NoiseLevels | None = None) -> dict[str, np.ndarray]:
+    """Eq. 18 noise levels (robot.noise) as per-channel arrays."""
+    lv, n = levels or robot.noise, robot.n
+    return {
+        "tension": np.full(n, lv.tension),
+        "length": np.full(n, lv.length),
+        "swivel": np.full(n, lv.swivel),
+        "orientation": np.full(3, lv.orientation),
+    }
+
+
+def estimated_noise(robot: Robot, sig: dict[str, np.ndarray], windows: list[Window]) -> dict[str, np.ndarray]:
+    """Per channel, the pooled scatter (standard deviation of one sample) inside the still windows, floored
+    at the sensors' specifications."""
+    floor = sensor_noise(robot)
+    still = [w for w in windows if not w.quasi] or windows
+    groups = {"tension": sig["tau"], "length": sig["dl"], "swivel": sig["dsigma"]}
+    out = {}
+    for c, x in groups.items():
+        dev = np.concatenate([x[w.slice] - x[w.slice].mean(0) for w in still])
+        dof = sum(w.size - 1 for w in still)
+        out[c] = np.maximum(np.full(robot.n, math.sqrt(float(np.sum(dev**2)) / max(dof * robot.n, 1))), floor[c])
+    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
+    dev = np.concatenate([ori[w.slice] - ori[w.slice].mean(0) for w in still])
+    dof = max(sum(w.size - 1 for w in still), 1)
+    rp = math.sqrt(float(np.sum(dev[:, :2] ** 2)) / (2 * dof))
+    yaw = math.sqrt(float(np.sum(dev[:, 2] ** 2)) / dof)
+    out["orientation"] = np.maximum(np.array([rp, rp, yaw]), floor["orientation"])
+    return out
+
+
+def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
+    """The run's arrays, checked: present, right shapes, finite."""
+    n = robot.n
+    sig: dict[str, np.ndarray] = {}
+    for name in SIGNALS:
+        if getattr(run, name, None) is None:
+            raise SelfCalInputError(f"run: signal '{name}' is missing.")
+        a = np.asarray(getattr(run, name), dtype=float)
+        want = (n,) if name in ("tau", "dl", "dsigma") else ()
+        if a.ndim != 1 + len(want) or a.shape[1:] != want:
+            raise SelfCalInputError(f"run: signal '{name}' has shape {a.shape}, expected (N{', ' + str(n) if want else ''}).")
+        sig[name] = a
+    N = sig["t"].shape[0]
+    for name, a in sig.items():
+        if a.shape[0] != N:
+            raise SelfCalInputError(f"run: signal '{name}' has {a.shape[0]} samples, 't' has {N}.")
+        bad = ~np.isfinite(a.reshape(N, -1)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise SelfCalInputError(f"run: signal '{name}' is not a finite number at sample {i} (value {a[i]}).")
+    if N < 3:
+        raise SelfCalInputError(f"run: {N} samples, at least 3 are needed.")
+    ref = getattr(run, "tau_ref", None)
+    sig["tau_ref"] = None if ref is None else np.asarray(ref, dtype=float)
+    if sig["tau_ref"] is not None and (sig["tau_ref"].shape != sig["tau"].shape or not np.isfinite(sig["tau_ref"]).all()):
+        sig["tau_ref"] = None
+    return sig
+
+
+def _rows(
+    sig: dict[str, np.ndarray], windows: list[Window], method: str, stride: int, ref_sample: int | None
+) -> tuple[Measurements, int, Window | None, dict[str, np.ndarray], list[int]]:
+    """Measurement rows for a method; returns the rows, the reference sample, its window, the reference
+    readings and, per row, the window index (or -1)."""
+    N = sig["t"].shape[0]
+    ref_win = None
+    if ref_sample is None:
+        if windows:
+            ref_win = windows[0]
+            ref_sample = ref_win.middle
+        else:
+            ref_sample = 0
+    else:
+        if not 0 <= ref_sample < N:
+            raise SelfCalInputError(f"reference sample {ref_sample} is outside the run (0..{N - 1}).")
+        ref_win = next((w for w in windows if w.first <= ref_sample <= w.last), None)
+    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
+
+    def mean(x, w):
+        return x[w.slice].mean(axis=0)
+
+    if ref_win is not None:
+        ref = {k: mean(sig[k], ref_win) for k in ("tau", "dl", "dsigma")} | {"ori": mean(ori, ref_win)}
+    else:
+        ref = {k: sig[k][ref_sample] for k in ("tau", "dl", "dsigma")} | {"ori": ori[ref_sample]}
+    rows_tau, rows_dl, rows_ds, rows_ori, samples, spans, win_of = [], [], [], [], [], [], []
+    if method in ("tlse", "hybrid"):
+        for j, w in enumerate(windows):
+            if w is ref_win:
+                continue
+            rows_tau.append(mean(sig["tau"], w))
+            rows_dl.append(mean(sig["dl"], w))
+            rows_ds.append(mean(sig["dsigma"], w))
+            rows_ori.append(mean(ori, w))
+            samples.append(w.middle)
+            spans.append((w.first, w.last))
+            win_of.append(j)
+    if method in ("lse", "hybrid"):
+        taken = np.zeros(N, bool)
+        if ref_win is not None:
+            taken[ref_win.slice] = True
+        taken[ref_sample] = True
+        if method == "hybrid":
+            for w in windows:
+                taken[w.slice] = True
+        idx = np.arange(0, N, max(1, stride))
+        idx = idx[~taken[idx]]
+        n = sig["tau"].shape[1]
+        rows_tau.extend(np.full((idx.size, n), np.nan))
+        rows_dl.extend(sig["dl"][idx])
+        rows_ds.extend(sig["dsigma"][idx])
+        rows_ori.extend(ori[idx])
+        samples.extend(idx.tolist())
+        spans.extend([(-1, -1)] * idx.size)
+        win_of.extend([-1] * idx.size)
+    if not samples:
+        raise SelfCalFailure("no measurement rows besides the reference: the run holds a single pose.")
+    o = np.array(rows_ori)
+    o[:, 2] -= ref["ori"][2]
+    static_ref = ref_win is not None and method != "lse"
+    meas = Measurements(
+        tau=np.array(rows_tau),
+        dl=np.array(rows_dl) - ref["dl"],
+        dsigma=np.array(rows_ds) - ref["dsigma"],
+        orientation=o,
+        ref_tau=ref["tau"] if static_ref else np.full(sig["tau"].shape[1], np.nan),
+        ref_orientation=ref["ori"][:2],
+        samples=np.array(samples),
+        windows=np.array(spans),
+    )
+    return meas, int(ref_sample), ref_win, ref, win_of
+
+
+def _guess(
+    robot: Robot, problem: Problem, meas: Measurements, ref_tau: np.ndarray, ref_win: Window | None,
+    windows: list[Window], win_of: list[int], ideal: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Section 3.3: zeta_0 from the ideal pose of its setpoint or direct statics; window poses from ideal
+    poses or direct statics; other rows by pose estimation from the readings, chained from zeta_0's guess."""
+
+    def ideal_of(w: Window | None) -> np.ndarray | None:
+        if ideal is None or w is None or w.setpoint < 0 or w.setpoint >= len(ideal):
+            return None
+        return np.asarray(ideal[w.setpoint], float)
+
+    z0 = ideal_of(ref_win)
+    if z0 is None and not np.all(np.isfinite(ref_tau)):
+        z0 = default_guess(robot, 1)[0]
+    if z0 is None:
+        ds = direct_statics(robot, ref_tau[None], default_guess(robot, 1))
+        z0 = ds.poses[0] if ds.converged[0] else default_guess(robot, 1)[0]
+    theta0 = problem.model.initial_params(z0)
+    k = meas.k
+    Z = np.tile(z0, (k, 1))
+    fixed = np.zeros(k, bool)
+    need_ds = []
+    for i, j in enumerate(win_of):
+        if j < 0:
+            continue
+        zi = ideal_of(windows[j])
+        if zi is not None:
+            Z[i], fixed[i] = zi, True
+        else:
+            need_ds.append(i)
+    if need_ds:
+        ds = direct_statics(robot, meas.tau[need_ds], np.tile(z0, (len(need_ds), 1)))
+        ok = ds.converged
+        Z[np.array(need_ds)[ok]] = ds.poses[ok]
+    # kinematic rows (and windows without a planned pose): start from the preceding row, then estimate
+    free = ~fixed
+    if free.any():
+        order = np.argsort(meas.samples, kind="stable")
+        last = z0
+        for i in order:
+            if fixed[i] or win_of[i] >= 0:
+                last = Z[i]
+            else:
+                Z[i] = last
+        kin = Problem(problem.model, _kinematic_only(meas), problem.sigma)
+        Zf, _ = solve_poses(kin, theta0, Z)
+        Z[free] = Zf[free]
+    return theta0, Z
+
+
+def _kinematic_only(meas: Measurements) -> Measurements:
+    return Measurements(
+        np.full_like(meas.tau, np.nan), meas.dl, meas.dsigma, meas.orientation,
+        np.full_like(meas.ref_tau, np.nan), meas.ref_orientation, meas.samples, meas.windows,
+    )
+
+
+def noise_levels(
+    robot: Robot, noise: str | NoiseLevels | dict, sig: dict[str, np.ndarray] | None, windows: list[Window]
+) -> tuple[dict[str, np.ndarray], str]:
+    """Per-channel sigmas for a noise choice: 'paper' (eq. 18), 'sensors' (specifications), 'estimate'."""
+    if isinstance(noise, NoiseLevels):
+        return paper_noise(robot, noise), "given"
+    if isinstance(noise, dict):
+        missing = [c for c in CHANNELS if c not in noise]
+        if missing:
+            raise SelfCalInputError(f"noise: channel '{missing[0]}' is missing.")
+        return {c: np.asarray(noise[c], float) for c in CHANNELS}, "given"
+    if noise == "paper":
+        return paper_noise(robot), noise
+    if noise == "sensors":
+        return sensor_noise(robot), noise
+    if noise == "estimate":
+        if sig is None or not windows:
+            raise SelfCalInputError("noise 'estimate' needs equilibrium windows in the run; none were found.")
+        return estimated_noise(robot, sig, windows), noise
+    raise SelfCalInputError(f"noise '{noise}' is not one of {', '.join(NOISE)}.")
+
+
+def solve_run(
+    robot: Robot,
+    run: Any,
+    method: str = "tlse",
+    noise: str | NoiseLevels | dict = "paper",
+    stride: int = 1,
+    reference_sample: int | None = None,
+    windows: list[Window] | None = None,
+    window_options: WindowOptions | None = None,
+    model: MeasurementModel | None = None,
+    guess: tuple[np.ndarray, np.ndarray] | None = None,
+    reference_pose: np.ndarray | None = None,
+    max_iter: int = 200,
+) -> Solution:
+    """See :func:`calib.selfcal.solve`."""
+    if method not in METHODS:
+        raise SelfCalInputError(f"method '{method}' is not one of {', '.join(METHODS)}.")
+    if int(stride) < 1:
+        raise SelfCalInputError(f"stride {stride} must be a positive integer.")
+    model = model or MeasurementModel(robot)
+    t_start = time.perf_counter()
+    if isinstance(run, Measurements):
+        meas, sig, wins, ref_sample, ref_win, win_of = run, None, list(windows or []), -1, None, [-1] * run.k
+        ref = None
+    else:
+        sig = _signals(robot, run)
+        if windows is None:
+            wins = find_windows(
+                robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
+                sig["tau_ref"], getattr(run, "setpoints", None), window_options,
+            )
+        else:
+            wins = list(windows)
+        if method in ("tlse", "hybrid") and len(wins) < 2:
+            raise SelfCalFailure(
+                f"{len(wins)} equilibrium window(s) found in the run; method '{method}' needs at least 2 "
+                "(try --method lse)."
+            )
+        meas, ref_sample, ref_win, ref, win_of = _rows(sig, wins, method, int(stride), reference_sample)
+    t_rows = time.perf_counter()
+    sigma, source = noise_levels(robot, noise, sig, wins)
+    problem = Problem(model, meas, sigma)
+    if guess is None:
+        ref_tau = ref["tau"] if ref is not None else meas.ref_tau
+        theta0, Z0 = _guess(robot, problem, meas, ref_tau, ref_win, wins, win_of, getattr(run, "ideal_poses", None))
+    else:
+        theta0 = np.asarray(guess[0], float)
+        if theta0.shape[0] < model.n_params:
+            theta0 = model.initial_params(theta0)
+        Z0 = np.asarray(guess[1], float).reshape(-1, 6)
+    t_guess = time.perf_counter()
+    res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
+    t_end = time.perf_counter()
+    if not np.isfinite(res.cost) or not res.converged:
+        raise SelfCalFailure(f"the solve did not converge after {res.iterations} iterations ({res.message}).")
+    dof = problem.n_residuals - (model.n_params + 6 * meas.k)
+    resid = {}
+    for c, (si, nz) in problem.channel_residuals(res.theta, res.poses).items():
+        if si.size:
+            resid[c] = {"rms": float(np.sqrt(np.mean(si**2))), "rms_normalized": float(np.sqrt(np.mean(nz**2)))}
+    absolute = model.absolute_readings(res.theta)
+    if ref is None:
+        offsets = absolute
+    else:
+        offsets = {
+            "length": absolute["length"] - ref["dl"],
+            "swivel": absolute["swivel"] - ref["dsigma"],
+            "yaw": float(absolute["yaw"] - ref["ori"][2]),
+        }
+    comparison = None if reference_pose is None else compare_pose(res.theta[:6], reference_pose, robot.orientation)
+    return Solution(
+        method=method,
+        initial_pose=res.theta[:6].copy(),
+        initial_pose_sigma=np.sqrt(np.clip(np.diag(res.cov_theta)[:6], 0, None)),
+        reference_sample=ref_sample,
+        sensor_offsets=offsets,
+        poses=res.poses,
+        poses_sigma=np.sqrt(np.clip(np.diagonal(res.cov_poses, axis1=1, axis2=2), 0, None)),
+        samples=meas.samples if meas.samples is not None else np.full(meas.k, -1),
+        windows=wins,
+        theta=res.theta,
+        param_names=model.param_names,
+        covariance=res.cov_theta,
+        chi2=2.0 * res.cost,
+        dof=int(dof),
+        residuals=resid,
+        noise={c: [float(v) for v in s] for c, s in problem.sigma.items()},
+        noise_source=source,
+        iterations=res.iterations,
+        converged=res.converged,
+        message=res.message,
+        timing={
+            "solve_s": t_end - t_start,
+            "rows_s": t_rows - t_start,
+            "guess_s": t_guess - t_rows,
+            "lm_s": t_end - t_guess,
+        },
+        reference=comparison,
+    )

@@ -1,0 +1,111 @@
+"""The measurement model: what each sensor channel should read at a pose, given the global parameters.
+
+Channels (widths for n cables): ``tension`` (n, N, absolute), ``length`` (n, m) and ``swivel`` (n, rad),
+both relative to the reference sample, ``orientation`` (3: roll and pitch absolute, yaw relative to the
+reference sample, rad). The global parameter vector ``theta`` starts with the initial pose zeta_0
+(x, y, z, roll, pitch, yaw) at the reference sample; models that add physical effects append their own
+parameters after it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.kinematics import inverse_kinematics, kinematic_jacobians
+from calib.robot import Robot
+from calib.statics import tension_model
+
+CHANNELS = ("tension", "length", "swivel", "orientation")
+
+
+def channel_width(name: str, n: int) -> int:
+    """Number of scalar readings of a channel for n cables."""
+    if name not in CHANNELS:
+        raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
+    return 3 if name == "orientation" else n
+
+
+@dataclass
+class ChannelPrediction:
+    """Predicted readings of one channel at k poses and their derivatives.
+
+    value: (k, c); d_pose: (k, c, 6) with respect to each pose; d_theta: (k, c, p) with respect to the
+    global parameters (zeta_0 first).
+    """
+
+    value: np.ndarray
+    d_pose: np.ndarray
+    d_theta: np.ndarray
+
+
+class MeasurementModel:
+    """Rigid-body model of Zoffoli eq. 8-13: inverse kinematics, the tension model and the AHRS.
+
+    ``predict(poses, theta, channels)`` is the one place where a channel's prediction is computed; physical
+    effects (issue 7) wrap a model, append parameters to ``param_names`` and change values and derivatives.
+    """
+
+    def __init__(self, robot: Robot):
+        self.robot = robot
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """Names of the global parameters, zeta_0's six coordinates first."""
+        return ("x0", "y0", "z0", "roll0", "pitch0", "yaw0")
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def initial_params(self, zeta0: np.ndarray) -> np.ndarray:
+        """The starting global vector for a guess of zeta_0 (effects append their neutral values)."""
+        return np.asarray(zeta0, dtype=float).copy()
+
+    def predict(
+        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str]
+    ) -> dict[str, ChannelPrediction]:
+        """Predicted readings of ``channels`` at poses (k, 6) for global parameters theta (p,)."""
+        robot = self.robot
+        z = np.asarray(poses, dtype=float)
+        k, n, p = z.shape[0], robot.n, theta.shape[0]
+        kin = inverse_kinematics(robot, z)
+        jac = kinematic_jacobians(robot, kin)
+        out: dict[str, ChannelPrediction] = {}
+        kin0 = jac0 = None
+        if "length" in channels or "swivel" in channels:
+            kin0 = inverse_kinematics(robot, theta[None, :6])
+            jac0 = kinematic_jacobians(robot, kin0)
+        for name in channels:
+            if name == "tension":
+                tm = tension_model(robot, kin=kin, jac=jac)
+                out[name] = ChannelPrediction(tm.tau, tm.jacobian, np.zeros((k, n, p)))
+            elif name in ("length", "swivel"):
+                cur = kin.lengths if name == "length" else kin.swivel
+                ref = kin0.lengths if name == "length" else kin0.swivel
+                dcur = jac.lengths if name == "length" else jac.swivel
+                dref = jac0.lengths if name == "length" else jac0.swivel
+                val = cur - ref
+                if name == "swivel":
+                    val = np.angle(np.exp(1j * val))
+                dth = np.zeros((k, n, p))
+                dth[:, :, :6] = -dref
+                out[name] = ChannelPrediction(val, dcur, dth)
+            elif name == "orientation":
+                val = z[:, 3:].copy()
+                val[:, 2] -= theta[5]
+                dp = np.zeros((k, 3, 6))
+                dp[:, 0, 3] = dp[:, 1, 4] = dp[:, 2, 5] = 1.0
+                dth = np.zeros((k, 3, p))
+                dth[:, 2, 5] = -1.0
+                out[name] = ChannelPrediction(val, dp, dth)
+            else:
+                raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
+        return out
+
+    def absolute_readings(self, theta: np.ndarray) -> dict[str, np.ndarray]:
+        """Absolute values of the relative sensors at the reference pose: lengths (n,), swivels (n,), yaw."""
+        kin0 = inverse_kinematics(self.robot, theta[None, :6])
+        return {"length": kin0.lengths[0], "swivel": kin0.swivel[0], "yaw": float(theta[5])}

@@ -1,0 +1,175 @@
+"""The NWLS problem of Zoffoli eq. 13-17 as global parameters plus per-pose blocks (a block-arrow Jacobian).
+
+Unknowns: theta (p,) = [zeta_0, extra effect parameters] and one pose zeta_i (6,) per measurement row.
+Residual of row i: w * (prediction(zeta_i, theta) - reading_i), with w = 1/sigma per channel (eq. 17).
+The rows whose tensions are given are static (tension channel included), the others kinematic. The reference
+row (the reading at zeta_0 itself) contributes, where given, its absolute tensions and roll/pitch; its
+relative readings are zero by construction and carry no information.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.selfcal.model import CHANNELS, MeasurementModel, channel_width
+
+
+@dataclass
+class Measurements:
+    """Readings at k measurement rows, relative sensors taken relative to the reference sample.
+
+    tau (k, n) N, NaN rows where tensions are not used (kinematic rows); dl (k, n) m; dsigma (k, n) rad;
+    orientation (k, 3): roll, pitch (absolute) and yaw minus the reference yaw, rad.
+    ref_tau (n,) and ref_orientation (2,) are the absolute readings at the reference sample (NaN: unused).
+    samples (k,) and windows (k, 2) say where each row comes from in the run (-1 when not applicable).
+    """
+
+    tau: np.ndarray
+    dl: np.ndarray
+    dsigma: np.ndarray
+    orientation: np.ndarray
+    ref_tau: np.ndarray
+    ref_orientation: np.ndarray
+    samples: np.ndarray | None = None
+    windows: np.ndarray | None = None
+
+    @property
+    def k(self) -> int:
+        return int(self.dl.shape[0])
+
+    @property
+    def static(self) -> np.ndarray:
+        return np.all(np.isfinite(self.tau), axis=1)
+
+    def channel(self, name: str) -> np.ndarray:
+        return {"tension": self.tau, "length": self.dl, "swivel": self.dsigma, "orientation": self.orientation}[
+            name
+        ]
+
+
+@dataclass
+class Group:
+    """Rows sharing one set of channels: indices into the pose array, readings and weights (kg, m)."""
+
+    idx: np.ndarray
+    channels: tuple[str, ...]
+    reading: np.ndarray
+    weight: np.ndarray
+    slices: dict[str, slice] = field(default_factory=dict)
+
+
+@dataclass
+class Evaluation:
+    """Weighted residuals and their derivatives: per group r (kg, m), J (kg, m, 6), G (kg, m, p); reference
+    row r0 (m0,), G0 (m0, p)."""
+
+    groups: list[tuple[Group, np.ndarray, np.ndarray | None, np.ndarray | None]]
+    r0: np.ndarray
+    g0: np.ndarray | None
+
+    @property
+    def cost(self) -> float:
+        return 0.5 * (sum(float(np.sum(r * r)) for _, r, _, _ in self.groups) + float(self.r0 @ self.r0))
+
+
+class Problem:
+    """Residuals of eq. 13 weighted as eq. 17 for a measurement model and readings.
+
+    sigma: per channel, the standard deviation (c,) of one reading (N, m, rad).
+    """
+
+    def __init__(self, model: MeasurementModel, meas: Measurements, sigma: dict[str, np.ndarray]):
+        self.model = model
+        self.meas = meas
+        n = model.robot.n
+        self.sigma = {c: np.broadcast_to(np.asarray(sigma[c], float), (channel_width(c, n),)) for c in CHANNELS}
+        static = meas.static
+        self.groups: list[Group] = []
+        for mask, chans in ((static, CHANNELS), (~static, CHANNELS[1:])):
+            idx = np.flatnonzero(mask)
+            if idx.size:
+                self.groups.append(self._group(idx, chans))
+        ref_chans = []
+        ref_read, ref_w = [], []
+        if np.all(np.isfinite(meas.ref_tau)):
+            ref_chans.append("tension")
+            ref_read.append(meas.ref_tau)
+            ref_w.append(1.0 / self.sigma["tension"])
+        ro = np.asarray(meas.ref_orientation, float)
+        ref_chans.append("orientation")
+        ref_read.append(np.r_[np.nan_to_num(ro), 0.0])
+        ref_w.append(np.r_[np.where(np.isfinite(ro), 1.0 / self.sigma["orientation"][:2], 0.0), 0.0])
+        self.ref_channels = tuple(ref_chans)
+        self.ref_reading = np.concatenate(ref_read)
+        self.ref_weight = np.concatenate(ref_w)
+
+    def _group(self, idx: np.ndarray, chans: tuple[str, ...]) -> Group:
+        n = self.model.robot.n
+        reads, ws, slices, start = [], [], {}, 0
+        for c in chans:
+            v = self.meas.channel(c)[idx]
+            w = np.where(np.isfinite(v), 1.0 / self.sigma[c][None, :], 0.0)
+            reads.append(np.nan_to_num(v))
+            ws.append(w)
+            slices[c] = slice(start, start + channel_width(c, n))
+            start += channel_width(c, n)
+        return Group(idx, chans, np.concatenate(reads, 1), np.concatenate(ws, 1), slices)
+
+    @property
+    def k(self) -> int:
+        return self.meas.k
+
+    @property
+    def n_residuals(self) -> int:
+        """Number of residuals with a non-zero weight."""
+        return int(sum(np.count_nonzero(g.weight) for g in self.groups) + np.count_nonzero(self.ref_weight))
+
+    def evaluate(self, theta: np.ndarray, poses: np.ndarray, derivatives: bool = True) -> Evaluation:
+        """Weighted residuals (and Jacobian blocks) at theta (p,) and poses (k, 6)."""
+        out = []
+        for g in self.groups:
+            pred = self.model.predict(poses[g.idx], theta, g.channels)
+            val = np.concatenate([pred[c].value for c in g.channels], 1)
+            r = g.weight * (val - g.reading)
+            if derivatives:
+                J = g.weight[..., None] * np.concatenate([pred[c].d_pose for c in g.channels], 1)
+                G = g.weight[..., None] * np.concatenate([pred[c].d_theta for c in g.channels], 1)
+            else:
+                J = G = None
+            out.append((g, r, J, G))
+        pred0 = self.model.predict(theta[None, :6], theta, self.ref_channels)
+        val0 = np.concatenate([pred0[c].value[0] for c in self.ref_channels])
+        r0 = self.ref_weight * (val0 - self.ref_reading)
+        g0 = None
+        if derivatives:
+            g0 = np.concatenate([pred0[c].d_theta[0] for c in self.ref_channels], 0)
+            g0[:, :6] += np.concatenate([pred0[c].d_pose[0] for c in self.ref_channels], 0)
+            g0 = self.ref_weight[:, None] * g0
+        return Evaluation(out, r0, g0)
+
+    def channel_residuals(self, theta: np.ndarray, poses: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Per channel, the unweighted residuals (SI) and the normalised ones (divided by sigma), observed
+        entries only (flattened)."""
+        ev = self.evaluate(theta, poses, derivatives=False)
+        si: dict[str, list[np.ndarray]] = {c: [] for c in CHANNELS}
+        nz: dict[str, list[np.ndarray]] = {c: [] for c in CHANNELS}
+        for g, r, _, _ in ev.groups:
+            for c in g.channels:
+                w = g.weight[:, g.slices[c]]
+                rr = r[:, g.slices[c]]
+                ok = w > 0
+                nz[c].append(rr[ok])
+                si[c].append(rr[ok] / w[ok])
+        start = 0
+        n = self.model.robot.n
+        for c in self.ref_channels:
+            sl = slice(start, start + channel_width(c, n))
+            start = sl.stop
+            w, rr = self.ref_weight[sl], ev.r0[sl]
+            ok = w > 0
+            nz[c].append(rr[ok])
+            si[c].append(rr[ok] / w[ok])
+        empty = np.zeros(0)
+        return {c: (np.concatenate(si[c] or [empty]), np.concatenate(nz[c] or [empty])) for c in CHANNELS}
