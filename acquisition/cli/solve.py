@@ -1,0 +1,110 @@
+"""`cdpr solve RUN`: initial-pose self-calibration of a run (spec/cli.md); writes RUN/solution.json."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from acquisition.cli.errors import OperationError, UsageError
+from acquisition.runlog import RunFormatError, read_run
+from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, solve
+
+SOLUTION_FILE = "solution.json"
+
+
+def register(sub) -> None:
+    p = sub.add_parser("solve", help="initial-pose self-calibration of a run")
+    p.add_argument("run", type=Path, metavar="RUN", help="run folder")
+    p.add_argument("--method", choices=METHODS, default="tlse", help="tlse (default), lse or hybrid")
+    p.add_argument(
+        "--noise", choices=("paper", "estimate", "sensors"), default="paper",
+        help="weights: paper (eq. 18), estimate (scatter in the equilibrium windows), sensors (specifications)",
+    )
+    p.add_argument("--stride", type=int, default=1, help="lse/hybrid: use every S-th sample (default 1)")
+    p.add_argument("--reference-sample", type=int, default=None, help="sample whose pose is the initial pose")
+    p.add_argument(
+        "--reference", default=None, metavar="x,y,z,r,p,y",
+        help="a known initial pose (m, rad) to compare with: eps_p, eps_r (eq. 20) and the geodesic angle",
+    )
+    p.add_argument("--json", action="store_true", help="print the solution as JSON")
+    p.set_defaults(func=_solve)
+
+
+def _parse_reference(text: str | None) -> np.ndarray | None:
+    if text is None:
+        return None
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
+        raise UsageError(f"--reference '{text}' must be six numbers x,y,z,roll,pitch,yaw (m, rad).")
+    return np.array(vals)
+
+
+def _solve(args) -> int:
+    reference = _parse_reference(args.reference)
+    if args.stride < 1:
+        raise UsageError(f"--stride {args.stride} must be a positive integer.")
+    try:
+        run = read_run(args.run)
+    except RunFormatError as exc:
+        raise UsageError(str(exc)) from exc
+    kwargs = {}
+    effects = getattr(args, "effects", None)  # added by the effects library (issue 7) when present
+    if effects:
+        raise UsageError(f"--effects {effects}: no effect library is installed in this version.")
+    try:
+        sol = solve(
+            run.robot, run, method=args.method, noise=args.noise, stride=args.stride,
+            reference_sample=args.reference_sample, reference_pose=reference, **kwargs,
+        )
+    except SelfCalInputError as exc:
+        raise UsageError(f"{args.run}: {exc}") from exc
+    except SelfCalFailure as exc:
+        raise OperationError(f"{args.run}: {exc}") from exc
+    doc = sol.to_json()
+    try:
+        (Path(args.run) / SOLUTION_FILE).write_text(json.dumps(doc, indent=2) + "\n")
+    except OSError as exc:
+        raise OperationError(f"{args.run / SOLUTION_FILE}: cannot write the solution ({exc.strerror}).") from exc
+    if args.json:
+        sys.stdout.write(json.dumps(doc) + "\n")
+    else:
+        sys.stdout.write(format_solution(sol))
+    return 0
+
+
+def format_solution(sol: Solution) -> str:
+    """A readable table of a solution."""
+    z, s = sol.initial_pose, sol.initial_pose_sigma
+    lines = [
+        f"method {sol.method}, {len(sol.poses) + 1} poses, reference sample {sol.reference_sample}, "
+        f"noise {sol.noise_source}, {sol.iterations} iterations, {sol.timing['solve_s'] * 1000:.1f} ms",
+        "initial pose       value        1-sigma",
+    ]
+    for j, name in enumerate(("x [m]", "y [m]", "z [m]")):
+        lines.append(f"  {name:<14} {z[j]:>10.4f}  {s[j]:>10.4f}")
+    for j, name in enumerate(("roll [deg]", "pitch [deg]", "yaw [deg]")):
+        lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f}  {math.degrees(s[3 + j]):>10.3f}")
+    off = sol.sensor_offsets
+    lines.append("sensor offsets (absolute = offset + reading)")
+    lines.append("  length [m]     " + "  ".join(f"{v:.4f}" for v in off["length"]))
+    lines.append("  swivel [deg]   " + "  ".join(f"{math.degrees(v):.3f}" for v in off["swivel"]))
+    lines.append(f"  yaw [deg]      {math.degrees(off['yaw']):.3f}")
+    lines.append(f"windows {' '.join(f'[{w.first},{w.last}]' for w in sol.windows)}")
+    lines.append(f"chi2 {sol.chi2:.1f} on {sol.dof} dof")
+    lines.append("residuals          rms (SI)   rms/sigma")
+    for c, d in sol.residuals.items():
+        lines.append(f"  {c:<14} {d['rms']:>10.4g}  {d['rms_normalized']:>10.3f}")
+    if sol.reference is not None:
+        r = sol.reference
+        lines.append(
+            f"vs reference: eps_p {r.eps_p * 1000:.1f} mm, eps_r {math.degrees(r.eps_r):.2f} deg, "
+            f"geodesic {math.degrees(r.geodesic):.2f} deg"
+        )
+    return "\n".join(lines) + "\n"
