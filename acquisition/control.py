@@ -16,6 +16,7 @@ the tension command is never below ``min_command``.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,3 +103,218 @@ class TensionController:
     def torque_for(self, tension: np.ndarray) -> np.ndarray:
         """Feed-forward torque (n,) N m for tensions (n,) N."""
         return self.radius * np.asarray(tension, dtype=float)
+
+
+# ---- the device set the loop drives ---------------------------------------------------------------------
+
+
+@dataclass
+class Snapshot:
+    """What the loop saw at one tick. Lengths and swivels are deltas since the devices' power-on (m, rad)."""
+
+    tick: int  # clock tick index
+    t: float  # s, tick time on the loop's clock
+    sync: int  # SYNC counter sent at this tick (0 when the rig sends none)
+    tau: np.ndarray  # (n,) N, load cells
+    dl: np.ndarray  # (n,) m, cable-length change (winch encoders times the transmission)
+    dsigma: np.ndarray  # (n,) rad, swivel-angle change
+    roll: float  # rad
+    pitch: float  # rad
+    yaw: float  # rad, relative to the AHRS start-up heading
+    ahrs_time: int = -1  # AHRS SampleTimeFine of the reading used (1e-4 s), -1 if unknown
+    missing: tuple[str, ...] = ()  # devices that gave no new reading at this tick
+
+
+class Rig:
+    """The robot's devices as the control loop sees them: one SYNC per tick, the readings of the tick, the
+    torque commands. ``lockstep`` waits for the readings answering each SYNC (simulated prototype, with a wall
+    ``timeout`` per device); otherwise the latest readings are taken (real robot).
+
+    drives, encoders: per cable, in cable order (drivers.interfaces.WinchDrive / SwivelEncoder); loadcells,
+    ahrs: the serial devices; ``send_sync()`` returns the SYNC counter it sent (drivers.can_bus.SyncProducer).
+    ``ahrs_period``: the AHRS output period (s); in lockstep the AHRS sample due at a tick is awaited.
+    """
+
+    def __init__(self, drives, encoders, loadcells, ahrs, send_sync, period: float, lockstep: bool,
+                 ahrs_period: float = 0.01, timeout: float = 0.5):
+        self.drives = list(drives)
+        self.encoders = list(encoders)
+        self.loadcells = loadcells
+        self.ahrs = ahrs
+        self.send_sync = send_sync
+        self.period = float(period)
+        self.lockstep = lockstep
+        self.ahrs_period = float(ahrs_period)
+        self.timeout = float(timeout)
+        self.n = len(self.drives)
+        self.dead: set[str] = set()  # devices no longer awaited (declared stale)
+        self._last: Snapshot | None = None
+        self._lc_seq = -1
+        self._seq: dict[str, int] = {}
+        self._last_fresh: dict[str, float] = {}
+        self._link_errors0: dict[str, int] = {}
+        self.closer = None  # set by whoever opened the devices
+
+    def close(self) -> None:
+        """Release every device (safe to call twice)."""
+        closer, self.closer = self.closer, None
+        if closer is not None:
+            closer()
+
+    # names used in messages and in the supervisor's books
+    def drive_name(self, i: int) -> str:
+        return f"winch drive {i + 1}"
+
+    def encoder_name(self, i: int) -> str:
+        return f"swivel encoder {i + 1}"
+
+    @property
+    def devices(self) -> list[tuple[str, object]]:
+        out = [(self.drive_name(i), d) for i, d in enumerate(self.drives)]
+        out += [(self.encoder_name(i), e) for i, e in enumerate(self.encoders)]
+        out += [("load cells", self.loadcells), ("AHRS", self.ahrs)]
+        return out
+
+    def periods(self) -> dict[str, float]:
+        """Nominal period of each device's readings, s."""
+        p = {name: self.period for name, _ in self.devices}
+        p["AHRS"] = max(self.ahrs_period, self.period)
+        return p
+
+    def statuses(self) -> list[str]:
+        return [f"{name}: {dev.status()}" for name, dev in self.devices]
+
+    def faults(self) -> dict[str, str | None]:
+        """Pending fault of every device (None when fine)."""
+        out = {}
+        for name, dev in self.devices:
+            try:
+                out[name] = dev.fault()
+            except Exception as exc:  # a driver that cannot even say: that is a fault too
+                out[name] = f"fault query failed ({exc})"
+        return out
+
+    def link_errors(self) -> dict[str, int]:
+        """Corrupted frames seen on each serial link since :meth:`mark_links` (checksum errors, resyncs)."""
+        out = {}
+        for name, dev in (("load cells", self.loadcells), ("AHRS", self.ahrs)):
+            s = dev.stats
+            out[name] = s.checksum_errors + s.resyncs - self._link_errors0.get(name, 0)
+        return out
+
+    def mark_links(self) -> None:
+        """Count link errors from now on."""
+        for name, dev in (("load cells", self.loadcells), ("AHRS", self.ahrs)):
+            s = dev.stats
+            self._link_errors0[name] = s.checksum_errors + s.resyncs
+
+    def ages(self, t: float) -> dict[str, tuple[float, float]]:
+        """Seconds of loop time since each device's last new reading, with its nominal period."""
+        per = self.periods()
+        return {name: (t - self._last_fresh.get(name, t), per[name]) for name, _ in self.devices}
+
+    def command(self, torques: np.ndarray) -> None:
+        """Cyclic torque targets (n,) N m, sent before the next SYNC (errors ignored during a safe stop)."""
+        for d, tq in zip(self.drives, torques, strict=True):
+            try:
+                d.set_torque(float(tq))
+            except Exception:  # DeviceError: a drive that cannot take it; the supervisor sees its fault
+                if not self.dead:
+                    raise
+
+    def _wait_sync(self, name: str, dev, count: int, timeout: float):
+        """The reading of ``dev`` answering SYNC ``count`` (lockstep), or its latest (None if too late)."""
+        r = dev.latest()
+        if not self.lockstep or name in self.dead or (r is not None and r.sync_count >= count):
+            return r
+        waiter = getattr(dev, "wait_for_sync", None)
+        if waiter is not None:
+            try:
+                return waiter(count, timeout)
+            except Exception:  # DeviceError: too late; the staleness rule decides
+                return dev.latest()
+        deadline = _now() + timeout
+        while _now() < deadline:
+            r = dev.latest()
+            if r is not None and r.sync_count >= count:
+                return r
+            _sleep(2e-5)
+        return dev.latest()
+
+    def tick(self, tick_index: int, t: float, timeout: float | None = None) -> Snapshot:
+        """Send SYNC, gather the readings of this tick; missing ones keep their previous value."""
+        timeout = self.timeout if timeout is None else timeout
+        count = int(self.send_sync() or 0)
+        prev = self._last
+        n = self.n
+        missing = []
+        dl = np.full(n, np.nan) if prev is None else prev.dl.copy()
+        dsigma = np.full(n, np.nan) if prev is None else prev.dsigma.copy()
+        for i, d in enumerate(self.drives):
+            name = self.drive_name(i)
+            r = self._wait_sync(name, d, count, timeout)
+            if r is not None and (not self.lockstep or r.sync_count >= count) and (
+                    prev is None or r.seq != self._seq.get(name)):
+                dl[i] = r.delta_length
+                self._seq[name] = r.seq
+                self._last_fresh[name] = t
+            else:
+                missing.append(name)
+        for i, e in enumerate(self.encoders):
+            name = self.encoder_name(i)
+            r = self._wait_sync(name, e, count, timeout)
+            if r is not None and (not self.lockstep or r.sync_count >= count) and (
+                    prev is None or r.seq != self._seq.get(name)):
+                dsigma[i] = r.delta_angle
+                self._seq[name] = r.seq
+                self._last_fresh[name] = t
+            else:
+                missing.append(name)
+        tau = np.full(n, np.nan) if prev is None else prev.tau.copy()
+        r = self.loadcells.latest()
+        if self.lockstep and "load cells" not in self.dead:
+            try:
+                r = self.loadcells.wait_for(self._lc_seq + 1, timeout)
+            except Exception:
+                r = self.loadcells.latest()
+        if r is not None and r.device_seq != self._lc_seq:
+            tau = np.asarray(r.tau, dtype=float).copy()
+            self._lc_seq = r.device_seq
+            self._last_fresh["load cells"] = t
+        else:
+            missing.append("load cells")
+        roll, pitch, yaw, stf = (np.nan, np.nan, np.nan, -1) if prev is None else (
+            prev.roll, prev.pitch, prev.yaw, prev.ahrs_time)
+        a = self.ahrs.latest()
+        if self.lockstep and "AHRS" not in self.dead:
+            due = int(round(math.floor(t / self.ahrs_period + 1e-9) * self.ahrs_period * 1e4))
+            if a is None or a.sample_time_fine < due:
+                a = _wait_ahrs(self.ahrs, due, timeout)
+        if a is not None and a.sample_time_fine != stf:
+            roll, pitch, yaw, stf = a.roll, a.pitch, a.yaw, a.sample_time_fine
+            self._last_fresh["AHRS"] = t
+        elif a is not None and (not self.lockstep or prev is None):
+            roll, pitch, yaw, stf = a.roll, a.pitch, a.yaw, a.sample_time_fine
+        snap = Snapshot(tick_index, t, count, tau, dl, dsigma, float(roll), float(pitch), float(yaw), int(stf),
+                        tuple(missing))
+        self._last = snap
+        return snap
+
+
+def _wait_ahrs(ahrs, stf: int, timeout: float):
+    """The AHRS reading with SampleTimeFine >= stf, waiting up to ``timeout`` s; the latest one if none came."""
+    deadline = _now() + timeout
+    r = ahrs.latest()
+    while r is None or r.sample_time_fine < stf:
+        left = deadline - _now()
+        if left <= 0:
+            return ahrs.latest()
+        try:
+            r = ahrs.wait_for((r.seq if r is not None else -1) + 1, left)
+        except Exception:
+            return ahrs.latest()
+    return r
+
+
+_now = time.monotonic
+_sleep = time.sleep

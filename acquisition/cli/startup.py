@@ -1,0 +1,203 @@
+"""`cdpr startup`: the operator's startup routine on the simulated prototype or on the robot.
+
+    cdpr startup --backend sim [--grid N] [--method equilibrium|kinematic] [--out RUN] [--sim-config FILE]
+                 [--truth FILE] [--seed S] [--rate HZ] [--realtime] [--json]
+    cdpr startup --backend hw --config DEVICES.yaml [...]
+
+Pose planning, force-controlled acquisition into the run folder, solve, report (text on stdout or JSON with
+``--json``; RUN/report.html; the new sensor offsets in RUN/offsets.yaml and, with ``--offsets FILE``, there
+too). A safe stop exits with status 1 and one sentence; the run folder keeps every sample and the event.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from acquisition.cli.errors import OperationError, UsageError
+from acquisition.clock import RealClock, SimClock
+from acquisition.report import ProgressBar, StartupSummary, render_text, write_html, write_offsets
+from acquisition.startup import Plan, StartupConfig, StartupRoutine, StartupStopped, connect
+
+
+def register(sub) -> None:
+    p = sub.add_parser("startup", help="run the startup self-calibration routine (simulated or real robot)")
+    p.add_argument("--backend", choices=("sim", "hw"), required=True, help="simulated prototype or real robot")
+    p.add_argument("--config", help="device configuration YAML (drivers/config.py), required with --backend hw")
+    p.add_argument("--robot", default="irma4u", help="robot description: built-in name or YAML file")
+    p.add_argument("--grid", type=int, default=2, help="calibration grid points per axis (default 2)")
+    p.add_argument("--method", choices=("equilibrium", "kinematic"), default="equilibrium")
+    p.add_argument("--out", help="run folder to write (default: run-<UTC time>)")
+    p.add_argument("--sim-config", help="simulation configuration YAML (hidden effects, faults)")
+    p.add_argument("--truth", help="write the simulator's true initial pose here (JSON)")
+    p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
+    p.add_argument("--rate", type=float, default=500.0, help="control rate, Hz, 200..500 (default 500)")
+    p.add_argument("--realtime", action="store_true", help="pace the simulated prototype in real time")
+    p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file")
+    p.add_argument("--max-rate", type=float, default=40.0, help="tension rate limit of the trajectories, N/s")
+    p.add_argument("--hold", type=float, default=2.0, help="logged seconds of each equilibrium window")
+    p.add_argument("--no-html", action="store_true", help="skip the HTML report")
+    p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.set_defaults(func=run)
+
+
+def _config(args) -> StartupConfig:
+    if args.grid < 2 or args.grid > 6:
+        raise UsageError(f"--grid {args.grid} is out of range: give 2 to 6 grid points per axis.")
+    try:
+        return StartupConfig(method=args.method, rate=args.rate, max_tension_rate=args.max_rate,
+                             hold_time=args.hold)
+    except ValueError as exc:
+        raise UsageError(f"invalid option: {exc}") from exc
+
+
+def run(args) -> int:
+    from calib.planning import PlanningError
+    from calib.robot import RobotDescriptionError, load_robot
+
+    cfg = _config(args)
+    if args.max_rate <= 0 or args.hold <= 0:
+        raise UsageError(f"--max-rate {args.max_rate} and --hold {args.hold} must be positive.")
+    try:
+        robot = load_robot(args.robot)
+    except RobotDescriptionError as exc:
+        raise UsageError(str(exc)) from exc
+    try:
+        plan = Plan.for_robot(robot, args.grid, args.method, cfg.kinematic_speed, cfg.kinematic_spacing)
+    except PlanningError as exc:
+        raise UsageError(str(exc)) from exc
+    out = Path(args.out or f"run-{_dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a folder.")
+    if args.backend == "hw":
+        if not args.config:
+            raise UsageError("--backend hw needs --config FILE (the device configuration YAML).")
+        if args.sim_config or args.truth:
+            raise UsageError("--sim-config and --truth apply to --backend sim only.")
+        return _run_hw(args, robot, plan, cfg, out)
+    if args.config:
+        raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
+    return _run_sim(args, robot, plan, cfg, out)
+
+
+def _progress(args) -> ProgressBar:
+    return ProgressBar(1.0, stream=sys.stderr)
+
+
+def _run_sim(args, robot, plan, cfg, out: Path) -> int:
+    from sim_backend.backend import SimBackend
+
+    from sim_backend.config import SimConfigError, load_sim_config
+
+    try:
+        sim_config = load_sim_config(args.sim_config, robot.n)
+    except SimConfigError as exc:
+        raise UsageError(str(exc)) from exc
+    period = 1.0 / cfg.rate
+    clock = RealClock(period, lockstep=True) if args.realtime else SimClock(period)
+    truth_at: dict[int, list[float]] = {}
+    with SimBackend(robot, sim_config, args.seed, period) as sim:
+        rig = connect(sim.device_config, robot, clock, lockstep=True, period=period)
+
+        def record(snap) -> None:
+            if snap.tick % int(round(cfg.log_period * cfg.rate)) == 0:
+                truth_at[snap.sync] = [float(v) for v in sim.truth().pose]
+
+        routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
+                                 on_tick=record)
+        try:
+            result = _acquire(routine, rig)
+        finally:
+            rig.close()
+    summary = _solve_and_report(args, robot, cfg, result, out)
+    if args.truth and summary.solution:
+        sample = int(summary.solution["reference_sample"])
+        tick = int(result.ticks[sample])
+        Path(args.truth).write_text(json.dumps({"initial_pose": truth_at[tick], "reference_sample": sample,
+                                                "sync": tick}) + "\n")
+        summary.files["truth"] = str(args.truth)
+    return _print(args, summary)
+
+
+def _run_hw(args, robot, plan, cfg, out: Path) -> int:
+    from drivers.config import DeviceConfigError, load_device_config
+
+    try:
+        devices = load_device_config(args.config)
+        devices.check_robot(robot.n)
+    except DeviceConfigError as exc:
+        raise UsageError(str(exc)) from exc
+    period = 1.0 / cfg.rate
+    clock = RealClock(period, lockstep=False)
+    rig = connect(devices, robot, clock, lockstep=False, period=period)
+    routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args))
+    try:
+        result = _acquire(routine, rig)
+    finally:
+        rig.close()
+    return _print(args, _solve_and_report(args, robot, cfg, result, out))
+
+
+def _acquire(routine: StartupRoutine, rig):
+    from drivers.interfaces import DeviceError
+
+    routine.supervisor.install_signals()
+    try:
+        return routine.run()
+    except StartupStopped as stop:
+        where = f" (run log: {stop.run})" if stop.run else ""
+        raise OperationError(f"safe stop: {stop.message.rstrip('.')}{where}.") from stop
+    except DeviceError as exc:
+        raise OperationError(f"device error: {str(exc).rstrip('.')}.") from exc
+    finally:
+        routine.supervisor.restore_signals()
+
+
+def _solve_and_report(args, robot, cfg, result, out: Path) -> StartupSummary:
+    import time
+
+    from acquisition.runlog import read_run, write_solution
+    from calib.selfcal import SelfCalFailure, SelfCalInputError, solve
+
+    run = read_run(out)
+    method = "tlse" if cfg.method == "equilibrium" else "lse"
+    t0 = time.perf_counter()
+    try:
+        sol = solve(robot, run, method=method)
+    except (SelfCalFailure, SelfCalInputError) as exc:
+        raise OperationError(f"the acquisition finished but the solve failed: {exc}") from exc
+    solve_s = time.perf_counter() - t0
+    data = sol.to_json()
+    write_solution(out, data)
+    summary = StartupSummary(
+        status="ok", run=str(out), method=cfg.method, setpoints=len(run.setpoints) if run.setpoints is not None else 0,
+        solution=data, windows=result.windows, events=list(run.events),
+        timing={"acquisition_s": result.robot_time, "wall_s": result.wall_time, "solve_s": solve_s,
+                "control_p99_ms": 1000 * result.control["compute_p99_s"]},
+    )
+    summary.files["offsets"] = str(write_offsets(out / "offsets.yaml", data, robot.name, str(out)))
+    if args.offsets:
+        summary.files["offsets_copy"] = str(write_offsets(args.offsets, data, robot.name, str(out)))
+    if not args.no_html:
+        summary.files["report"] = str(write_html(out / "report.html", summary, run.t, run.tau, run.tau_ref))
+    return summary
+
+
+def _print(args, summary: StartupSummary) -> int:
+    if args.json:
+        sys.stdout.write(json.dumps(summary.to_dict(), default=_plain) + "\n")
+    else:
+        sys.stdout.write(render_text(summary))
+    return 0
+
+
+def _plain(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -1,0 +1,471 @@
+"""The operator's startup routine (Zoffoli Section 3.2, Fig. 3) on the robot or on the simulated prototype.
+
+connect and check every device -> zero the relative sensors (the power-on readings are stored; the run logs
+deltas since then) -> record the initial tensions -> smooth transition to tau0 -> wait for equilibrium ->
+start the run log -> for each planned setpoint: quintic tension trajectory, wait until the ripple falls below
+the sensors' uncertainty (online detector with a timeout), hold and log the window (phase ``hold``) -> for the
+kinematic method, a constant-speed path through the workspace logged throughout -> back to tau0 -> solve ->
+report. The safety supervisor watches every tick; any stop ends in a safe stop (hold, then ramp down to a safe
+pretension), an event in run.yaml and a :class:`StartupStopped` with one sentence.
+
+Setpoint 0 of the run is tau0 itself (ideal pose: the home pose), so the solver's reference sample lies in
+the tau0 window where the paper takes zeta0; the planned setpoints follow as 1..k.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from acquisition.clock import Clock
+from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
+from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
+from acquisition.report import ProgressBar
+from acquisition.runlog import RunWriter
+from acquisition.safety import SafeStop, SafetyLimits, SafetySupervisor
+from acquisition.trajectory import TensionTrajectory
+from calib.robot import Robot
+
+METHODS = ("equilibrium", "kinematic")
+
+
+class StartupStopped(RuntimeError):
+    """The routine ended in a safe stop; the message is one sentence, ``kind`` the event's kind."""
+
+    def __init__(self, kind: str, message: str, run: Path | None):
+        super().__init__(message)
+        self.kind = kind
+        self.message = message
+        self.run = run
+
+
+@dataclass(frozen=True)
+class StartupConfig:
+    """Settings of the procedure (SI units)."""
+
+    method: str = "equilibrium"
+    rate: float = 500.0  # Hz, control rate
+    log_period: float = 0.1  # s, logging period (the paper's 100 ms)
+    max_tension_rate: float = 40.0  # N/s, trajectory rate limit
+    min_transition: float = 1.0  # s, shortest transition
+    initial_rate: float = 20.0  # N/s, rate of the first transition from the power-on tensions to tau0
+    hold_time: float = 2.0  # s logged in each equilibrium window after detection
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    controller: ControllerConfig | None = None
+    safety: SafetyLimits | None = None
+    kinematic_speed: float = 0.05  # m/s along the kinematic path
+    kinematic_spacing: float = 0.05  # m between path waypoints
+    device_timeout: float = 0.5  # s (wall) to wait for a tick's readings in lockstep
+    expected_settle: float = 8.0  # s, for the time-left estimate
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}.")
+        if not 200.0 <= self.rate <= 500.0:
+            raise ValueError(f"control rate must be within 200..500 Hz, got {self.rate!r}.")
+        every = self.log_period * self.rate
+        if abs(every - round(every)) > 1e-6 or round(every) < 1:
+            raise ValueError(f"log period {self.log_period} s must be a whole number of control periods "
+                             f"(1/{self.rate:g} s).")
+
+
+@dataclass
+class Plan:
+    """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path."""
+
+    setpoints: np.ndarray
+    ideal_poses: np.ndarray
+    tau0: np.ndarray
+    path_tensions: np.ndarray | None = None  # (m, n) N, kinematic method
+    path_times: np.ndarray | None = None  # (m,) s
+
+    @classmethod
+    def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05) -> Plan:
+        from calib.planning import kinematic_path, plan_poses
+
+        plan = plan_poses(robot, grid)
+        if method == "kinematic":
+            path = kinematic_path(robot, grid, speed=speed, spacing=spacing)
+            return cls(plan.tau0[None], plan.home_pose[None], plan.tau0, path.tensions, path.times)
+        return cls(np.vstack([plan.tau0, plan.setpoints]), np.vstack([plan.home_pose, plan.poses]), plan.tau0)
+
+
+@dataclass
+class StartupResult:
+    run: Path
+    windows: list[tuple[int, int]]  # [first, last] sample of each held window, in setpoint order
+    ticks: np.ndarray  # (N,) SYNC counter of each logged sample
+    robot_time: float  # s of loop time from zeroing to the end
+    wall_time: float  # s
+    tau_init: np.ndarray  # (n,) N, tensions at power-on
+    zero: dict[str, Any]  # the power-on readings the deltas are taken from
+    control: dict[str, float]  # loop statistics
+
+
+class StartupRoutine:
+    """Runs the procedure on a :class:`Rig` with a :class:`Clock`; writes the run to ``out``."""
+
+    def __init__(self, robot: Robot, rig: Rig, clock: Clock, plan: Plan, out: Path, config: StartupConfig,
+                 source: str = "sim", progress: ProgressBar | None = None,
+                 supervisor: SafetySupervisor | None = None,
+                 on_tick: Callable[[Snapshot], None] | None = None):
+        self.robot = robot
+        self.rig = rig
+        self.clock = clock
+        self.plan = plan
+        self.out = Path(out)
+        self.cfg = config
+        self.source = source
+        self.progress = progress
+        self.n = robot.n
+        ctl_cfg = config.controller or ControllerConfig(rate=config.rate)
+        self.controller = TensionController(transmission_radius(robot), ctl_cfg)
+        self.supervisor = supervisor or SafetySupervisor(config.safety or SafetyLimits.for_robot(robot), robot.n)
+        self.on_tick = on_tick
+        self.period = 1.0 / config.rate
+        self.log_every = int(round(config.log_period * config.rate))
+        self.writer: RunWriter | None = None
+        self._prerun: list[tuple] = []  # samples logged before the run log starts (written on a stop)
+        self._t_run0: float | None = None
+        self._ticks: list[int] = []
+        self._windows: list[tuple[int, int]] = []
+        self._zero: dict[str, np.ndarray] = {}
+        self._tau_init = np.zeros(self.n)
+        self._last: Snapshot | None = None
+        self._ref = np.zeros(self.n)
+        self._armed = False
+        self._phase = "pretension"
+        self._setpoint = -1
+        self._compute: list[float] = []
+        self._total_estimate = 1.0
+
+    # ---- the loop -------------------------------------------------------------------------------------
+    def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
+        """One control period: clock, SYNC and readings, safety, control, command, log."""
+        tk = self.clock.advance()
+        snap = self.rig.tick(tk.index, tk.t, self.cfg.device_timeout)
+        c0 = time.perf_counter()
+        self._last = snap
+        self._ref = np.asarray(tau_ref, dtype=float)
+        self._supervise(snap)
+        torque = self.controller.update(self._ref, np.nan_to_num(snap.tau, nan=0.0), self.period)
+        self.rig.command(torque)
+        self._compute.append(time.perf_counter() - c0)
+        state = None
+        if tk.index % self.log_every == 0:
+            if log:
+                self._log(snap)
+            if detector is not None:
+                state = detector.push(tk.t, tau=snap.tau, dl=snap.dl)
+            if self.progress is not None:
+                self.progress.update(tk.t, self._phase, self._setpoint, len(self.plan.setpoints))
+        if self.on_tick is not None:
+            self.on_tick(snap)
+        return snap, state
+
+    def _supervise(self, snap: Snapshot) -> None:
+        ages = self.rig.ages(snap.t)
+        for name in list(ages):
+            if name in self.rig.dead:
+                ages.pop(name)
+        self.supervisor.check(snap.tau, self._ref, ages, self.rig.faults(), armed=self._armed)
+        bad = {k: v for k, v in self.rig.link_errors().items() if v > 0}
+        if bad:
+            name, count = next(iter(bad.items()))
+            raise SafeStop("corrupted_stream", f"the {name} stream is corrupted: {count} bad frames since the start.")
+        if not np.all(np.isfinite(snap.tau)):
+            i = int(np.flatnonzero(~np.isfinite(snap.tau))[0])
+            raise SafeStop("sensor_fault", f"load cell {i + 1} gives no value (disconnected).", (i,))
+
+    def _row(self, snap: Snapshot) -> tuple:
+        z = self._zero
+        return (snap.t, snap.tau.copy(), self._ref.copy(), snap.dl - z["dl"], snap.dsigma - z["dsigma"],
+                snap.roll, snap.pitch, snap.yaw - z["yaw"], self._phase, self._setpoint, snap.sync)
+
+    def _log(self, snap: Snapshot) -> None:
+        row = self._row(snap)
+        if self.writer is None:
+            self._prerun.append(row)
+            return
+        self._write(row)
+
+    def _write(self, row: tuple) -> None:
+        t, tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, sync = row
+        t0 = self._t_run0 or 0.0
+        self.writer.append(round(t - t0, 9), tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, tick=sync)
+        self._ticks.append(sync)
+
+    def _follow(self, traj: TensionTrajectory, phase: str, setpoint: int = -1) -> None:
+        self._phase, self._setpoint = phase, setpoint
+        steps = int(math.ceil(traj.duration / self.period))
+        for k in range(1, steps + 1):
+            self._tick(traj.at(k * self.period))
+
+    def _settle(self, tau: np.ndarray, phase: str, setpoint: int = -1) -> bool:
+        """Hold ``tau`` until the detector says the platform rests; False on its timeout."""
+        self._phase, self._setpoint = phase, setpoint
+        det = EquilibriumDetector(self.cfg.log_period, self.cfg.detector)
+        det.start(self.clock.now())
+        while True:
+            _, state = self._tick(tau, detector=det)
+            if state is not None and (state.settled or state.timed_out):
+                return state.settled
+
+    def _hold(self, tau: np.ndarray, setpoint: int) -> tuple[int, int]:
+        """Log the equilibrium window (phase hold); returns its [first, last] sample index."""
+        self._phase, self._setpoint = "hold", setpoint
+        first = self.writer.count if self.writer else 0
+        steps = int(round(self.cfg.hold_time / self.period))
+        for _ in range(steps):
+            self._tick(tau)
+        last = self.writer.count - 1
+        self.writer.sync()
+        return first, last
+
+    def _move_to(self, a: np.ndarray, b: np.ndarray, rate: float, phase: str, setpoint: int = -1) -> None:
+        traj = TensionTrajectory(np.stack([a, b]), np.array([max(
+            TensionTrajectory.through(np.stack([a, b]), rate).duration, self.cfg.min_transition)]))
+        self._follow(traj, phase, setpoint)
+
+    # ---- the procedure ---------------------------------------------------------------------------------
+    def _estimate_total(self) -> float:
+        sp = self.plan.setpoints
+        moves = np.abs(np.diff(np.vstack([sp, sp[:1]]), axis=0)).max(axis=1)
+        tr = np.maximum(1.875 * moves / self.cfg.max_tension_rate, self.cfg.min_transition).sum()
+        per = self.cfg.expected_settle + self.cfg.hold_time
+        total = tr + per * (len(sp) + 1) + 10.0
+        if self.plan.path_times is not None:
+            total += float(self.plan.path_times[-1])
+        return float(total)
+
+    def zero(self) -> Snapshot:
+        """First ticks with the drives off: store the power-on readings and the initial tensions."""
+        for _ in range(3):
+            tk = self.clock.advance()
+            snap = self.rig.tick(tk.index, tk.t, self.cfg.device_timeout)
+        if not (np.all(np.isfinite(snap.tau)) and np.all(np.isfinite(snap.dl)) and np.all(np.isfinite(snap.dsigma))
+                and math.isfinite(snap.yaw)):
+            raise SafeStop("sensor_fault", f"the sensors did not all answer at power-on (missing: "
+                           f"{', '.join(snap.missing) or 'values'}).")
+        self._zero = {"dl": snap.dl.copy(), "dsigma": snap.dsigma.copy(), "yaw": snap.yaw}
+        self._tau_init = snap.tau.copy()
+        self._last = snap
+        return snap
+
+    def enable(self) -> None:
+        """Feed-forward of the initial tensions, then the drives' power stages on (brakes released)."""
+        self.controller.reset(self._tau_init)
+        self._ref = self._tau_init.copy()
+        self.rig.command(self.controller.torque_for(self._tau_init))
+        for d in self.rig.drives:
+            d.enable()
+
+    def start_log(self) -> None:
+        plan = self.plan
+        meta = {
+            "zeroing": {"dl": self._zero["dl"].tolist(), "dsigma": self._zero["dsigma"].tolist(),
+                        "yaw": float(self._zero["yaw"]), "tensions": self._tau_init.tolist(),
+                        "note": "power-on readings of the relative sensors; the run logs deltas since then"},
+            "control": {"rate": self.cfg.rate, "max_tension_rate": self.cfg.max_tension_rate,
+                        "hold_time": self.cfg.hold_time},
+        }
+        self.writer = RunWriter(self.out, self.robot.name, self.cfg.method, self.cfg.log_period, self.source,
+                                setpoints=plan.setpoints, ideal_poses=plan.ideal_poses, extra_columns=("tick",),
+                                meta_extra=meta, overwrite=True)
+        self._t_run0 = self.clock.now()
+
+    def run(self) -> StartupResult:
+        """The whole procedure; raises :class:`StartupStopped` after a safe stop."""
+        wall0 = time.perf_counter()
+        self._total_estimate = self._estimate_total()
+        if self.progress is not None:
+            self.progress.total = self._total_estimate
+        try:
+            self.zero()
+            self.rig.mark_links()
+            self.enable()
+            tau0 = self.plan.tau0
+            self._move_to(self._tau_init, tau0, self.cfg.initial_rate, "pretension")
+            self._armed = True
+            if not self._settle(tau0, "pretension"):
+                raise SafeStop("no_equilibrium", f"the platform did not come to rest under tau0 within "
+                               f"{self.cfg.detector.timeout:g} s.")
+            self.start_log()
+            self._windows.append(self._hold(tau0, 0))
+            if self.cfg.method == "kinematic":
+                self._kinematic()
+            else:
+                prev = tau0
+                for j in range(1, len(self.plan.setpoints)):
+                    sp = self.plan.setpoints[j]
+                    self._move_to(prev, sp, self.cfg.max_tension_rate, "transition", -1)
+                    self._settle(sp, "settle", -1)  # a timeout still gives a (quasi-static) window
+                    self._windows.append(self._hold(sp, j))
+                    prev = sp
+                self._move_to(prev, tau0, self.cfg.max_tension_rate, "return", -1)
+            self.writer.sync()
+        except SafeStop as stop:
+            self._safe_stop(stop)
+            raise StartupStopped(stop.kind, stop.message, self.out if self.writer else None) from None
+        finally:
+            if self.progress is not None:
+                self.progress.close()
+        self._finish_unlogged()
+        comp = np.array(self._compute) if self._compute else np.zeros(1)
+        return StartupResult(
+            run=self.out, windows=list(self._windows), ticks=np.array(self._ticks), robot_time=self.clock.now(),
+            wall_time=time.perf_counter() - wall0, tau_init=self._tau_init,
+            zero={k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self._zero.items()},
+            control={"ticks": float(len(comp)), "compute_mean_s": float(comp.mean()),
+                     "compute_p99_s": float(np.percentile(comp, 99)), "compute_max_s": float(comp.max())},
+        )
+
+    def _kinematic(self) -> None:
+        """Follow the path's tensions linearly in time (quintic blends in and out), logging throughout."""
+        tens, times = self.plan.path_tensions, self.plan.path_times
+        tau0 = self.plan.tau0
+        self._move_to(tau0, tens[0], self.cfg.max_tension_rate, "motion")
+        self._phase, self._setpoint = "motion", -1
+        steps = int(math.ceil(times[-1] / self.period))
+        for k in range(1, steps + 1):
+            t = k * self.period
+            ref = np.array([np.interp(t, times, tens[:, i]) for i in range(self.n)])
+            self._tick(ref)
+        self._move_to(tens[-1], tau0, self.cfg.max_tension_rate, "return")
+
+    def _finish_unlogged(self) -> None:
+        """After the run log ends: let the platform come to rest under tau0, then the drives off (brakes)."""
+        self.writer.close()
+        try:
+            self._settle(self.plan.tau0, "rest")
+        except SafeStop as stop:
+            self._safe_stop(stop, log=False)
+            raise StartupStopped(stop.kind, stop.message, self.out) from None
+        self._disable()
+
+    # ---- the safe stop ---------------------------------------------------------------------------------
+    def _safe_stop(self, stop: SafeStop, log: bool = True) -> None:
+        """Hold, ramp down to the safe pretension, drives off; the event and every sample in the run log."""
+        t_now = self.clock.now()
+        if log and self.writer is None:  # stopped before the run log started: keep what was seen
+            self.start_log()
+            self._t_run0 = self._prerun[0][0] if self._prerun else t_now
+            for row in self._prerun:
+                self._write(row)
+        if log and self.writer is not None and self.writer._fh is not None:
+            self.writer.add_event(t_now - (self._t_run0 or 0.0), stop.kind, stop.message)
+        self._mark_dead(stop)
+        if stop.channels:
+            self.controller.open_loop(np.array(stop.channels))
+        plan = self.supervisor.plan(self._ref.copy(), power_on=self._tau_init)
+        self._phase, self._setpoint = "safe_stop", -1
+        steps = int(math.ceil(plan.duration / self.period))
+        logging = log and self.writer is not None and self.writer._fh is not None
+        for k in range(1, steps + 1):
+            try:
+                tk = self.clock.advance()
+                snap = self.rig.tick(tk.index, tk.t, min(self.cfg.device_timeout, 0.05))
+                self._last = snap
+                self._ref = plan.reference(k * self.period)
+                meas = np.where(np.isfinite(snap.tau), snap.tau, self._ref)
+                self.rig.command(self.controller.update(self._ref, meas, self.period))
+                if logging and tk.index % self.log_every == 0:
+                    self._log(snap)
+            except Exception:  # the stop goes on with what still answers
+                continue
+        self._disable()
+        if logging:
+            self.writer.sync()
+            self.writer.close()
+
+    def _mark_dead(self, stop: SafeStop) -> None:
+        faults = self.rig.faults()
+        for name, f in faults.items():
+            if f:
+                self.rig.dead.add(name)
+        ages = self.rig.ages(self.clock.now())
+        for name, (age, per) in ages.items():
+            if age > self.supervisor.limits.stale_periods * per:
+                self.rig.dead.add(name)
+
+    def _disable(self) -> None:
+        for d in self.rig.drives:
+            try:
+                d.disable()
+            except Exception:  # a dead drive: nothing more to do for it
+                pass
+
+
+# ---- connecting the devices -----------------------------------------------------------------------------
+
+
+def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, timeout: float = 0.5) -> Rig:
+    """Open and check every device of a :class:`drivers.config.DeviceConfig`; a :class:`Rig` over them.
+
+    The CAN drivers take their time stamps (heartbeat supervision) from the loop's clock; in lockstep the
+    serial drivers' own wall-time staleness rule is switched off (the supervisor judges staleness on the
+    loop's clock). Raises ``drivers.interfaces.DeviceError`` (one sentence) when a device does not answer.
+    """
+    from drivers.can_bus import SyncProducer, open_bus_from_config, open_network
+    from drivers.canopen_drive import CanopenWinchDrive
+    from drivers.interfaces import DeviceError
+    from drivers.loadcell import LoadCellConfig, LoadCellDriver
+    from drivers.swivel_encoder import CanopenSwivelEncoder
+    from drivers.xsens import XsensConfig, XsensMti
+
+    devices.check_robot(robot.n)
+    if devices.loadcells is None or devices.ahrs is None:
+        raise DeviceError(f"{devices.source}: the device configuration needs 'loadcells' and 'ahrs'.")
+    lpr = robot.sensors.length_per_motor_rev
+    stale = 1e9 if lockstep else 3.0
+    now = clock.now
+    opened: list = []
+    bus = open_bus_from_config(devices.can)
+    network = None
+    try:
+        network = open_network(bus)
+        sync = SyncProducer(network, devices.can.sync_overflow)
+        hb = devices.can.heartbeat_period
+        drives = [CanopenWinchDrive(network, nc.node_id, sync, lpr[i], name=nc.name, clock=now, heartbeat_period=hb)
+                  for i, nc in enumerate(devices.drives)]
+        encoders = [CanopenSwivelEncoder(network, nc.node_id, sync, name=nc.name, clock=now, heartbeat_period=hb,
+                                         counts_per_rev=robot.sensors.swivel_counts_per_rev)
+                    for nc in devices.encoders]
+        loadcells = LoadCellDriver(LoadCellConfig(devices.loadcells.port, devices.loadcells.baud, channels=robot.n,
+                                                  rate_hz=1.0 / period, stale_periods=stale))
+        ahrs = XsensMti(XsensConfig(devices.ahrs.port, devices.ahrs.baud, rate_hz=int(devices.ahrs.rate),
+                                    stale_periods=stale))
+        for dev in [*drives, *encoders, loadcells, ahrs]:
+            dev.open()
+            opened.append(dev)
+    except BaseException:
+        for dev in reversed(opened):
+            _quiet(dev.close)
+        if network is not None:
+            _quiet(network.disconnect)
+        _quiet(bus.shutdown)
+        raise
+    rig = Rig(drives, encoders, loadcells, ahrs, sync.send_sync, period, lockstep,
+              ahrs_period=1.0 / float(devices.ahrs.rate), timeout=timeout)
+
+    def close() -> None:
+        for dev in reversed(opened):
+            _quiet(dev.close)
+        _quiet(network.disconnect)
+        _quiet(bus.shutdown)
+
+    rig.closer = close
+    return rig
+
+
+def _quiet(fn) -> None:
+    try:
+        fn()
+    except Exception:  # closing what may already be gone
+        pass
