@@ -1,0 +1,73 @@
+"""The startup report from arrays: text summary, offsets file, self-contained HTML, progress line."""
+
+import base64
+import datetime as dt
+import io
+import math
+import re
+
+import numpy as np
+import yaml
+
+from acquisition.report import ProgressBar, StartupSummary, offsets_document, render_html, render_text, write_offsets
+
+SOLUTION = {
+    "method": "tlse",
+    "initial_pose": [0.0012, -0.0021, 1.0651, 0.0011, -0.0007, 0.0031],
+    "initial_pose_sigma": [0.0004, 0.0005, 0.0002, 0.0001, 0.0001, 0.0003],
+    "reference_sample": 10,
+    "sensor_offsets": {"length": [2.0, 2.01, 2.02, 2.03], "swivel": [0.5, -0.5, 0.5, -0.5], "yaw": 0.0031},
+    "chi2": 12.5, "dof": 40,
+    "residuals": {"tension": {"rms": 0.31, "rms_normalized": 0.031}, "length": {"rms": 1e-4, "rms_normalized": 0.01}},
+}
+
+
+def summary():
+    return StartupSummary("ok", "RUN", "equilibrium", 9, solution=SOLUTION, windows=[(0, 19), (60, 79)],
+                          timing={"acquisition_s": 120.0, "solve_s": 0.02})
+
+
+def test_text_summary_shows_pose_in_mm_and_degrees_with_sigma():
+    text = render_text(summary())
+    assert "z       1065.100 +- 0.200 mm" in text
+    assert f"yaw   {math.degrees(0.0031):10.3f} +- {math.degrees(0.0003):.3f} deg" in text
+    assert "tension            0.31       0.031 N" in text
+    assert "[0, 19], [60, 79]" in text
+
+
+def test_offsets_file_reads_back_with_every_field(tmp_path):
+    when = dt.datetime(2026, 11, 22, 3, 0, 0, tzinfo=dt.UTC)
+    p = write_offsets(tmp_path / "offsets.yaml", SOLUTION, "irma4u", "RUN", when)
+    doc = yaml.safe_load(p.read_text())
+    assert doc == offsets_document(SOLUTION, "irma4u", "RUN", when)
+    assert doc["lengths"] == [2.0, 2.01, 2.02, 2.03] and doc["yaw"] == 0.0031
+    assert doc["pose"][2] == 1.0651 and doc["created"] == "2026-11-22T03:00:00Z"
+    assert not (tmp_path / "offsets.yaml.tmp").exists()
+
+
+def test_html_is_self_contained_with_png_plots():
+    t = np.arange(100) * 0.1
+    tau = 100 + np.sin(t)[:, None] * np.arange(1, 5)
+    page = render_html(summary(), t, tau, np.full_like(tau, 100.0))
+    imgs = re.findall(r"data:image/png;base64,([A-Za-z0-9+/=]+)", page)
+    assert len(imgs) == 2  # residuals and tensions
+    assert all(base64.b64decode(i)[:8] == b"\x89PNG\r\n\x1a\n" for i in imgs)
+    assert "src='http" not in page and "<script" not in page
+    assert "<td>1065.100</td><td>0.200</td>" in page
+
+
+def test_progress_bar_draws_on_a_tty_only():
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    s = Tty()
+    bar = ProgressBar(200.0, stream=s, min_interval=0.0)
+    bar.update(50.0, "hold", 2, 9)
+    bar.close()
+    assert "25.0%" in s.getvalue() and "setpoint 3/9" in s.getvalue() and "~  150 s left" in s.getvalue()
+    plain = io.StringIO()
+    quiet = ProgressBar(200.0, stream=plain, min_interval=0.0)
+    quiet.update(50.0, "hold", 2, 9)
+    quiet.close()
+    assert plain.getvalue() == ""
