@@ -222,9 +222,10 @@ def to_plain(obj: Any) -> Any:
 def _robot_spec(robot_spec: str | Mapping[str, Any] | Robot) -> tuple[Any, Robot]:
     """(what run.yaml stores under 'robot', the Robot)."""
     if isinstance(robot_spec, Robot):
-        if robot_spec.name in builtin_robot_names():
-            return robot_spec.name, robot_spec
-        return robot_spec.to_dict(), robot_spec
+        spec = to_plain(robot_spec.to_dict())
+        if robot_spec.name in builtin_robot_names() and spec == to_plain(load_robot(robot_spec.name).to_dict()):
+            return robot_spec.name, robot_spec  # unchanged built-in robot: its name is enough
+        return spec, robot_spec
     if isinstance(robot_spec, str):
         if robot_spec not in builtin_robot_names():
             raise ValueError(

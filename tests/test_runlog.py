@@ -105,6 +105,17 @@ def test_reelax8_run_with_full_robot_mapping(tmp_path: Path):
     np.testing.assert_array_equal(back.robot.d, load_robot("reelax8").d)
 
 
+def test_a_modified_builtin_robot_is_stored_in_full(tmp_path: Path):
+    heavier = load_robot("irma4u").replace(mass=13.5)
+    with RunWriter(tmp_path / "m", heavier, "kinematic", 0.01, "sim") as w:
+        w.append(0.0, [100.0] * 4, [100.0] * 4, [0.0] * 4, [0.0] * 4, 0.01, -0.02, 0.0)
+    back = read_run(tmp_path / "m")
+    assert isinstance(back.meta["robot"], dict) and back.robot.mass == 13.5
+    with RunWriter(tmp_path / "p", load_robot("irma4u"), "kinematic", 0.01, "sim") as w:
+        pass
+    assert read_run(tmp_path / "p").meta["robot"] == "irma4u" and len(read_run(tmp_path / "p")) == 0
+
+
 def test_streaming_writer_events_and_reading_while_open(tmp_path: Path):
     src = make_run(N=12)
     w = RunWriter(
