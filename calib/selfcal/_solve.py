@@ -75,7 +75,8 @@ def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
         a = np.asarray(getattr(run, name), dtype=float)
         want = (n,) if name in ("tau", "dl", "dsigma") else ()
         if a.ndim != 1 + len(want) or a.shape[1:] != want:
-            raise SelfCalInputError(f"run: signal '{name}' has shape {a.shape}, expected (N{', ' + str(n) if want else ''}).")
+            shape = f"(N, {n})" if want else "(N,)"
+            raise SelfCalInputError(f"run: signal '{name}' has shape {a.shape}, expected {shape}.")
         sig[name] = a
     N = sig["t"].shape[0]
     for name, a in sig.items():
@@ -89,7 +90,8 @@ def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
         raise SelfCalInputError(f"run: {N} samples, at least 3 are needed.")
     ref = getattr(run, "tau_ref", None)
     sig["tau_ref"] = None if ref is None else np.asarray(ref, dtype=float)
-    if sig["tau_ref"] is not None and (sig["tau_ref"].shape != sig["tau"].shape or not np.isfinite(sig["tau_ref"]).all()):
+    tr = sig["tau_ref"]
+    if tr is not None and (tr.shape != sig["tau"].shape or not np.isfinite(tr).all()):
         sig["tau_ref"] = None
     return sig
 
@@ -292,7 +294,8 @@ def solve_run(
     problem = Problem(model, meas, sigma)
     if guess is None:
         ref_tau = ref["tau"] if ref is not None else meas.ref_tau
-        theta0, Z0 = _guess(robot, problem, meas, ref_tau, ref_win, wins, win_of, getattr(run, "ideal_poses", None))
+        ideal = getattr(run, "ideal_poses", None)
+        theta0, Z0 = _guess(robot, problem, meas, ref_tau, ref_win, wins, win_of, ideal)
     else:
         theta0 = np.asarray(guess[0], float)
         if theta0.shape[0] < model.n_params:

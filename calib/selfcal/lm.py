@@ -80,7 +80,7 @@ def levenberg_marquardt(
     dt_scale = np.maximum(np.diagonal(V), 1e-12)
     lam, nu = 1e-4, 2.0
     converged, message, it = False, "maximum number of iterations reached", 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (reported)
         grad_max = max(np.abs(bz).max(initial=0.0), np.abs(bt).max(initial=0.0))
         if grad_max <= gtol:
             converged, message = True, "gradient below tolerance"
