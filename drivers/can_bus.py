@@ -40,6 +40,7 @@ def open_bus_from_config(can_config) -> can.BusABC:
 def open_network(bus: can.BusABC) -> canopen.Network:
     """A connected :class:`canopen.Network` on ``bus`` (its notifier thread receives for every node)."""
     network = canopen.Network(bus)
+    network.NOTIFIER_CYCLE = 0.1  # s, how long closing waits for the receive thread at most
     network.connect()
     return network
 

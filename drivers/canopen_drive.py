@@ -1,0 +1,471 @@
+"""CiA 402 winch servo drive driver over CANopen (canopen.RemoteNode, EDS drivers/od/cia402_winch.eds).
+
+Setup by SDO (outside the cyclic loop): NMT pre-operational, device type check, heartbeat producer time
+0x1017, PDO mapping (TPDO1 = position actual 0x6064 + velocity actual 0x606C, TPDO2 = torque actual 0x6077
++ statusword 0x6041, both transmission type 1 = every SYNC; RPDO1 = controlword 0x6040 + target torque
+0x6071 + target velocity 0x60FF, synchronous), mode of operation 0x6060 = 10 (cyclic synchronous torque),
+NMT start. The CiA 402 state machine is driven by SDO writes of the controlword (and the RPDO carries the
+same controlword so that a later RPDO never undoes it). Feedback: the TPDOs answering one SYNC are assembled
+into one :class:`WinchReading` stamped with that SYNC's counter (from the shared :class:`SyncProducer`).
+Faults: EMCY messages, the statusword fault bit, a lost heartbeat.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import canopen
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
+from drivers.can_bus import NMT_STATE_NAMES, HeartbeatMonitor, SyncProducer
+from drivers.config import eds_path
+from drivers.interfaces import DeviceError, WinchDrive, WinchReading
+
+MODE_CSV = 9
+MODE_CST = 10
+MODE_NAMES = {MODE_CSV: "cyclic synchronous velocity", MODE_CST: "cyclic synchronous torque"}
+
+CW_SHUTDOWN = 0x06
+CW_SWITCH_ON = 0x07
+CW_ENABLE = 0x0F
+CW_DISABLE_VOLTAGE = 0x00
+CW_QUICK_STOP = 0x02
+CW_FAULT_RESET = 0x80
+
+
+def cia402_state(statusword: int) -> str:
+    """Name of the CiA 402 state encoded in a statusword."""
+    sw = statusword & 0x6F
+    if statusword & 0x4F == 0x00:
+        return "not ready to switch on"
+    if statusword & 0x4F == 0x40:
+        return "switch on disabled"
+    if sw == 0x21:
+        return "ready to switch on"
+    if sw == 0x23:
+        return "switched on"
+    if sw == 0x27:
+        return "operation enabled"
+    if sw == 0x07:
+        return "quick stop active"
+    if statusword & 0x4F == 0x0F:
+        return "fault reaction active"
+    if statusword & 0x4F == 0x08:
+        return "fault"
+    return f"unknown (statusword 0x{statusword:04X})"
+
+
+def wrap_delta(new: int, old: int, bits: int) -> int:
+    """Signed difference new - old of two counters that wrap at 2**bits."""
+    half = 1 << (bits - 1)
+    return (new - old + half) % (1 << bits) - half
+
+
+class CanopenNodeDriver:
+    """What the CANopen drivers share: the RemoteNode, SDO helpers, heartbeat monitor, EMCY log, NMT start,
+    TPDO mapping by SDO and assembly of the TPDOs of one SYNC into one reading."""
+
+    profile = 0
+    eds_name = ""
+
+    def __init__(self, network: canopen.Network, node_id: int, sync: SyncProducer, name: str,
+                 clock: Callable[[], float] = time.monotonic, heartbeat_period: float = 0.1,
+                 heartbeat_factor: float = 2.5, eds: str | Path | None = None):
+        self.network = network
+        self.node_id = int(node_id)
+        self.sync = sync
+        self.name = name
+        self.clock = clock
+        self.heartbeat_period = float(heartbeat_period)
+        self.heartbeat_factor = float(heartbeat_factor)
+        self.eds = str(eds or eds_path(self.eds_name))
+        self.node: canopen.RemoteNode | None = None
+        self.heartbeat: HeartbeatMonitor | None = None
+        self.emcy_faults: list[str] = []
+        self._cond = threading.Condition()
+        self._parts: dict[int, tuple[int, bytes]] = {}  # cob_id -> (sync count, data) of the pending SYNC
+        self._decoders: dict[int, tuple[struct.Struct, list[int]]] = {}  # cob_id -> struct, OD indices
+        self._latest = None
+        self._seq = 0
+        self.frames = 0
+        self.incomplete = 0  # SYNCs for which some TPDO never came
+        self.operational = False
+
+    # -- life cycle ----------------------------------------------------------------------------------
+    def _sdo_fail(self, what: str, exc: Exception) -> DeviceError:
+        return DeviceError(f"{self.name} (CAN node {self.node_id}): {what} failed: {exc}")
+
+    def sdo_read(self, index: int, subindex: int = 0) -> int:
+        try:
+            var = self.node.sdo[index] if subindex == 0 else self.node.sdo[index][subindex]
+            return var.raw
+        except (SdoCommunicationError, SdoAbortedError) as exc:
+            raise self._sdo_fail(f"SDO read of 0x{index:04X}:{subindex:02X}", exc) from exc
+
+    def sdo_write(self, index: int, value: int, subindex: int = 0) -> None:
+        try:
+            var = self.node.sdo[index] if subindex == 0 else self.node.sdo[index][subindex]
+            var.raw = value
+        except (SdoCommunicationError, SdoAbortedError) as exc:
+            raise self._sdo_fail(f"SDO write of 0x{index:04X}:{subindex:02X} = {value}", exc) from exc
+
+    def _open_node(self) -> None:
+        """Add the RemoteNode, pre-operational, device type check, heartbeat; the PDOs are configured next."""
+        if self.node is not None:
+            return
+        node = canopen.RemoteNode(self.node_id, self.eds)
+        self.network.add_node(node)
+        self.node = node
+        node.nmt.state = "PRE-OPERATIONAL"
+        device_type = self.sdo_read(0x1000)
+        if device_type & 0xFFFF != self.profile:
+            raise DeviceError(f"{self.name} (CAN node {self.node_id}) reports device type 0x{device_type:08X}, "
+                              f"not a CiA {self.profile} device")
+        node.emcy.add_callback(self._on_emcy)
+        self.heartbeat = HeartbeatMonitor(node, self.heartbeat_period, self.clock, self.heartbeat_factor)
+        self.sdo_write(0x1017, int(round(self.heartbeat_period * 1000)))
+
+    def _map_tpdo(self, number: int, entries: list[tuple[int, int]]) -> None:
+        """TPDO ``number`` (1-based) carries ``entries`` [(index, bits)], sent at every SYNC."""
+        pdo = self.node.tpdo[number]
+        pdo.clear()
+        for index, bits in entries:
+            pdo.add_variable(index, 0, bits)
+        pdo.cob_id = 0x180 + 0x100 * (number - 1) + self.node_id
+        pdo.trans_type = 1
+        pdo.enabled = True
+        try:
+            pdo.save()
+        except (SdoCommunicationError, SdoAbortedError) as exc:
+            raise self._sdo_fail(f"mapping TPDO{number}", exc) from exc
+        fmt = "<" + "".join(_code(self.node.object_dictionary[i].data_type) for i, _ in entries)
+        self._decoders[pdo.cob_id] = (struct.Struct(fmt), [i for i, _ in entries])
+        pdo.add_callback(self._on_tpdo)
+
+    def _disable_pdo(self, com_index: int, cob_base: int, number: int) -> None:
+        if com_index in self.node.object_dictionary:
+            self.sdo_write(com_index, 0x80000000 | (cob_base + 0x100 * (number - 1) + self.node_id), 1)
+
+    def _start(self) -> None:
+        self.node.nmt.state = "OPERATIONAL"
+        self.heartbeat.state = None  # a heartbeat already in flight may still say pre-operational
+        self.heartbeat.start()
+        self.operational = True
+
+    def close(self) -> None:
+        """Stop the node (NMT pre-operational) and detach it from the network; safe to call twice."""
+        node, self.node = self.node, None
+        self.operational = False
+        if node is None:
+            return
+        try:
+            node.nmt.state = "PRE-OPERATIONAL"
+        except Exception:  # the bus may already be gone
+            pass
+        if node.id in self.network:
+            del self.network[node.id]
+
+    # -- reception ------------------------------------------------------------------------------------
+    def _on_emcy(self, entry) -> None:
+        if entry.code & 0xFF00:
+            self.emcy_faults.append(f"{self.name} (CAN node {self.node_id}) emergency 0x{entry.code:04X} "
+                                    f"({entry.get_desc() or 'device specific'}), error register "
+                                    f"0x{entry.register:02X}")
+        else:
+            self.emcy_faults.clear()
+
+    def _on_tpdo(self, pdo_map) -> None:
+        count = self.sync.count
+        cob_id = pdo_map.cob_id
+        with self._cond:
+            self.frames += 1
+            if self._parts and next(iter(self._parts.values()))[0] != count:
+                self.incomplete += 1
+                self._parts.clear()
+            self._parts[cob_id] = (count, bytes(pdo_map.data))
+            if len(self._parts) < len(self._decoders):
+                return
+            values: dict[int, int] = {}
+            for cid, (_, data) in self._parts.items():
+                st, indices = self._decoders[cid]
+                values.update(zip(indices, st.unpack_from(data), strict=True))
+            self._parts.clear()
+            self._seq += 1
+            self._latest = self._make_reading(self.clock(), self._seq, count, values)
+            self._cond.notify_all()
+
+    def _make_reading(self, t: float, seq: int, sync_count: int, values: dict[int, int]):
+        raise NotImplementedError
+
+    def latest(self):
+        """The last complete reading (all TPDOs of one SYNC), or None."""
+        return self._latest
+
+    def wait_for_sync(self, count: int, timeout: float = 1.0):
+        """Block (wall time) until the reading answering SYNC ``count`` (or a later one) has arrived."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._latest is None or self._latest.sync_count < count:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    have = -1 if self._latest is None else self._latest.sync_count
+                    raise DeviceError(f"{self.name} (CAN node {self.node_id}) sent no PDOs for SYNC {count} "
+                                      f"within {timeout:.3f} s (last complete SYNC {have})")
+                self._cond.wait(left)
+            return self._latest
+
+    # -- state -------------------------------------------------------------------------------------------
+    def nmt_state(self) -> str:
+        if self.heartbeat is None:
+            return "CLOSED"
+        if self.heartbeat.state is not None:
+            return NMT_STATE_NAMES.get(self.heartbeat.state, f"state {self.heartbeat.state}")
+        return self.node.nmt.state if self.node is not None else "CLOSED"
+
+    def _link_fault(self) -> str | None:
+        if self.emcy_faults:
+            return self.emcy_faults[-1]
+        if self.heartbeat is not None and self.node is not None:
+            loss = self.heartbeat.describe_loss(self.name)
+            if loss:
+                return loss
+            if self.heartbeat.state is not None and self.heartbeat.state not in (5,):
+                return (f"{self.name} (CAN node {self.node_id}) left the operational state: its heartbeat "
+                        f"reports {NMT_STATE_NAMES.get(self.heartbeat.state, self.heartbeat.state)}")
+        return None
+
+
+def _code(data_type: int) -> str:
+    from canopen.objectdictionary import datatypes
+
+    codes = {datatypes.UNSIGNED8: "B", datatypes.INTEGER8: "b", datatypes.UNSIGNED16: "H",
+             datatypes.INTEGER16: "h", datatypes.UNSIGNED32: "I", datatypes.INTEGER32: "i"}
+    return codes[data_type]
+
+
+class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
+    """One CiA 402 winch drive in cyclic synchronous torque mode.
+
+    ``length_per_motor_rev`` (m of cable per motor revolution, the robot description's
+    ``sensors.length_per_motor_rev[i]``) turns motor counts into cable-length change; the motor encoder
+    has ``counts_per_rev`` increments per revolution (20 bits).
+    """
+
+    profile = 402
+    eds_name = "cia402_winch.eds"
+
+    def __init__(self, network: canopen.Network, node_id: int, sync: SyncProducer, length_per_motor_rev: float,
+                 name: str | None = None, clock: Callable[[], float] = time.monotonic,
+                 heartbeat_period: float = 0.1, counts_per_rev: int = 1 << 20, mode: int = MODE_CST,
+                 state_timeout: float = 1.0, eds: str | Path | None = None):
+        super().__init__(network, node_id, sync, name or f"winch drive {node_id}", clock, heartbeat_period,
+                         eds=eds)
+        self.length_per_motor_rev = float(length_per_motor_rev)
+        self.counts_per_rev = int(counts_per_rev)
+        self.mode = mode
+        self.state_timeout = state_timeout
+        self.rated_torque = 0.0  # N m, from 0x6076 at open
+        self.max_torque = 0.0  # N m, from 0x6072
+        self.controlword = CW_DISABLE_VOLTAGE
+        self.target_torque = 0  # per mille of rated torque
+        self.target_velocity = 0  # increments/s
+        self._rpdo_cob = 0x200 + self.node_id
+        self._rpdo = struct.Struct("<Hhi")
+        self._last_raw: int | None = None
+        self._unwrapped = 0
+
+    # -- open / close ---------------------------------------------------------------------------------
+    def open(self) -> None:
+        """Configure the drive by SDO and start it (NMT operational); the power stage stays disabled."""
+        try:
+            self._open_node()
+            self.rated_torque = self.sdo_read(0x6076) / 1000.0
+            if self.rated_torque <= 0:
+                raise DeviceError(f"{self.name} (CAN node {self.node_id}) reports a rated torque 0x6076 of 0")
+            self.max_torque = self.sdo_read(0x6072) / 1000.0 * self.rated_torque
+            incr = self.sdo_read(0x608F, 1) if 0x608F in self.node.object_dictionary else self.counts_per_rev
+            revs = self.sdo_read(0x608F, 2) if 0x608F in self.node.object_dictionary else 1
+            if revs and incr // revs != self.counts_per_rev:
+                raise DeviceError(f"{self.name} (CAN node {self.node_id}) reports {incr // revs} encoder "
+                                  f"increments per revolution (0x608F), expected {self.counts_per_rev}")
+            self._map_tpdo(1, [(0x6064, 32), (0x606C, 32)])
+            self._map_tpdo(2, [(0x6077, 16), (0x6041, 16)])
+            for k in (3, 4):
+                self._disable_pdo(0x1800 + k - 1, 0x180, k)
+            rpdo = self.node.rpdo[1]
+            rpdo.clear()
+            rpdo.add_variable(0x6040, 0, 16)
+            rpdo.add_variable(0x6071, 0, 16)
+            rpdo.add_variable(0x60FF, 0, 32)
+            rpdo.cob_id = self._rpdo_cob
+            rpdo.trans_type = 1
+            rpdo.enabled = True
+            try:
+                rpdo.save()
+            except (SdoCommunicationError, SdoAbortedError) as exc:
+                raise self._sdo_fail("mapping RPDO1", exc) from exc
+            for k in (2, 3, 4):
+                self._disable_pdo(0x1400 + k - 1, 0x200, k)
+            self.set_mode(self.mode)
+            self.controlword = self.sdo_read(0x6040)
+            self._start()
+        except Exception:
+            self.close()
+            raise
+
+    def set_mode(self, mode: int) -> None:
+        """Mode of operation 0x6060 (10 CST, 9 CSV), by SDO, checked on 0x6061."""
+        if mode not in MODE_NAMES:
+            raise ValueError(f"mode of operation {mode} is not supported (9 CSV, 10 CST)")
+        self.sdo_write(0x6060, mode)
+        shown = self.sdo_read(0x6061)
+        if shown != mode:
+            raise DeviceError(f"{self.name} (CAN node {self.node_id}) stays in mode {shown} after mode {mode} "
+                              f"was requested")
+        self.mode = mode
+
+    # -- state machine (outside the cyclic loop) -----------------------------------------------------------
+    def statusword(self) -> int:
+        """Statusword read now by SDO."""
+        return self.sdo_read(0x6041)
+
+    def state(self) -> str:
+        return cia402_state(self.statusword())
+
+    def _command(self, cw: int) -> None:
+        self.controlword = cw
+        self._send_rpdo()
+        self.sdo_write(0x6040, cw)
+
+    def _expect(self, *states: str) -> str:
+        deadline = time.monotonic() + self.state_timeout
+        while True:
+            s = self.state()
+            if s in states:
+                return s
+            if time.monotonic() > deadline:
+                raise DeviceError(f"{self.name} (CAN node {self.node_id}) is in state '{s}', expected "
+                                  f"'{' or '.join(states)}' within {self.state_timeout} s")
+            time.sleep(0.002)
+
+    def enable(self) -> None:
+        """Shutdown -> switch on -> operation enabled (fault reset first if needed); the RPDO target
+        (last :meth:`set_torque`) applies from the next SYNC."""
+        s = self.state()
+        if s in ("fault", "fault reaction active"):
+            self.fault_reset()
+        elif s == "quick stop active":
+            self._command(CW_DISABLE_VOLTAGE)
+            self._expect("switch on disabled")
+        if self.state() != "operation enabled":
+            self._command(CW_SHUTDOWN)
+            self._expect("ready to switch on")
+            self._command(CW_SWITCH_ON)
+            self._expect("switched on")
+            self._command(CW_ENABLE)
+            self._expect("operation enabled")
+
+    def disable(self) -> None:
+        """Disable voltage: switch on disabled, torque off."""
+        self._command(CW_DISABLE_VOLTAGE)
+        self._expect("switch on disabled", "fault")
+
+    def quick_stop(self) -> None:
+        """CiA 402 quick stop (the drive stops and holds, option code 0x605A)."""
+        self._command(CW_QUICK_STOP)
+        self._expect("quick stop active", "switch on disabled", "fault")
+
+    def fault_reset(self) -> None:
+        """Rising edge of controlword bit 7; the drive goes to switch on disabled."""
+        if self.controlword & CW_FAULT_RESET:
+            self._command(CW_DISABLE_VOLTAGE)
+        self.emcy_faults.clear()
+        self._command(CW_FAULT_RESET)
+        self._expect("switch on disabled")
+        self._command(CW_DISABLE_VOLTAGE)
+        if self.node is not None:
+            self.node.emcy.reset()
+
+    # -- cyclic -----------------------------------------------------------------------------------------
+    def torque_to_permille(self, torque: float) -> int:
+        limit = self.max_torque if self.max_torque > 0 else 32.767 * self.rated_torque
+        tq = min(max(float(torque), -limit), limit)
+        return max(-32768, min(32767, int(round(tq / self.rated_torque * 1000.0))))
+
+    def set_torque(self, torque: float) -> None:
+        """Torque target, N m at the motor (saturated at 0x6072), sent now in RPDO1 (effective at SYNC)."""
+        if not math.isfinite(torque):
+            raise ValueError(f"{self.name}: torque target must be finite, got {torque}")
+        self.target_torque = self.torque_to_permille(torque)
+        self._send_rpdo()
+
+    def set_velocity(self, velocity: float) -> None:
+        """Velocity target, rad/s at the motor (cyclic synchronous velocity mode), sent now in RPDO1."""
+        if not math.isfinite(velocity):
+            raise ValueError(f"{self.name}: velocity target must be finite, got {velocity}")
+        v = int(round(velocity * self.counts_per_rev / (2 * math.pi)))
+        self.target_velocity = max(-(1 << 31), min((1 << 31) - 1, v))
+        self._send_rpdo()
+
+    def _send_rpdo(self) -> None:
+        if self.node is None:
+            raise DeviceError(f"{self.name} (CAN node {self.node_id}) is not open")
+        if self.operational:
+            data = self._rpdo.pack(self.controlword, self.target_torque, self.target_velocity)
+            self.network.send_message(self._rpdo_cob, data)
+
+    def _make_reading(self, t, seq, sync_count, values):
+        raw = values[0x6064]
+        if self._last_raw is None:
+            self._unwrapped = raw
+        else:
+            self._unwrapped += wrap_delta(raw, self._last_raw, 32)
+        self._last_raw = raw
+        counts = self._unwrapped
+        return WinchReading(
+            t=t, seq=seq, position_counts=counts,
+            velocity=values[0x606C] * 2 * math.pi / self.counts_per_rev,
+            torque=values[0x6077] / 1000.0 * self.rated_torque,
+            statusword=values[0x6041],
+            delta_length=counts / self.counts_per_rev * self.length_per_motor_rev,
+            sync_count=sync_count,
+        )
+
+    # -- state ------------------------------------------------------------------------------------------
+    @property
+    def enabled(self) -> bool:
+        r = self._latest
+        return r is not None and cia402_state(r.statusword) == "operation enabled" and self.fault() is None
+
+    def fault(self) -> str | None:
+        """EMCY, statusword fault bit or lost heartbeat, as one sentence; None when healthy."""
+        link = self._link_fault()
+        if link:
+            return link
+        r = self._latest
+        if r is not None and r.statusword & 0x08:
+            return (f"{self.name} (CAN node {self.node_id}) reports a fault in its statusword "
+                    f"0x{r.statusword:04X}")
+        return None
+
+    def status(self) -> str:
+        if self.node is None:
+            return f"{self.name}: CAN node {self.node_id}, closed"
+        r = self._latest
+        if r is None:
+            try:
+                drive = self.state()
+            except DeviceError:
+                drive = "no SDO answer"
+            feedback = "no PDO yet"
+        else:
+            drive = cia402_state(r.statusword)
+            feedback = f"position {r.position_counts} counts, torque {r.torque:.3f} N m, SYNC {r.sync_count}"
+        fault = self.fault()
+        return (f"{self.name}: CAN node {self.node_id}, NMT {self.nmt_state()}, {drive}, "
+                f"{MODE_NAMES.get(self.mode, self.mode)}, {feedback}" + (f"; FAULT: {fault}" if fault else ""))

@@ -1,0 +1,510 @@
+"""Emulated CiA 402 winch servo drives on a canopen LocalNode (object dictionary drivers/od/cia402_winch.eds).
+
+The nodes act on SYNC, never on wall time (see the simulator backend): for each SYNC the backend calls
+:meth:`CanDriveEmulator.apply_targets` (the RPDO received since the last SYNC takes effect, CiA 301
+synchronous RPDO) for every drive, steps the physics, then :meth:`on_sync` for every node, which reads the
+plant and transmits the TPDOs whose transmission type is due; heartbeats follow the simulated time
+(every 0x1017 ms of ``plant.time``). SDO requests are answered at once by the canopen SDO server, with live
+values for the process objects (statusword, position, velocity, torque).
+
+Holding brake: when the plant has one (``set_brake(i, engaged)``, as ``sim_backend.physics`` does), the
+drive releases it on entering operation enabled and engages it on leaving (disable, fault, quick stop), as
+servo drives do; without one, quick stop holds the latched torque with velocity damping.
+
+Units on the wire: 0x6064 position in motor encoder increments (20 bits per revolution, relative to
+power-on), 0x606C velocity in increments/s, 0x6071/0x6077 torque in per mille of 0x6076 (mN m), 0x60FF
+target velocity in increments/s.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import canopen
+import numpy as np
+from canopen.objectdictionary import datatypes
+
+from drivers.config import eds_path
+from sim_backend.plant import Plant
+
+# CiA 402 states
+NOT_READY = "not ready to switch on"
+SWITCH_ON_DISABLED = "switch on disabled"
+READY_TO_SWITCH_ON = "ready to switch on"
+SWITCHED_ON = "switched on"
+OPERATION_ENABLED = "operation enabled"
+QUICK_STOP_ACTIVE = "quick stop active"
+FAULT_REACTION_ACTIVE = "fault reaction active"
+FAULT = "fault"
+
+STATUSWORD_BITS = {
+    NOT_READY: 0x0000,
+    SWITCH_ON_DISABLED: 0x0040,
+    READY_TO_SWITCH_ON: 0x0031,
+    SWITCHED_ON: 0x0033,
+    OPERATION_ENABLED: 0x0037,
+    QUICK_STOP_ACTIVE: 0x0017,
+    FAULT_REACTION_ACTIVE: 0x000F,
+    FAULT: 0x0008,
+}
+SW_REMOTE = 0x0200
+SW_FOLLOWS_COMMAND = 0x1000
+MODE_CSV = 9
+MODE_CST = 10
+
+_STRUCT_CODES = {
+    datatypes.BOOLEAN: "B", datatypes.UNSIGNED8: "B", datatypes.INTEGER8: "b",
+    datatypes.UNSIGNED16: "H", datatypes.INTEGER16: "h", datatypes.UNSIGNED32: "I", datatypes.INTEGER32: "i",
+}
+_RANGES = {"B": (0, 0xFF), "b": (-0x80, 0x7F), "H": (0, 0xFFFF), "h": (-0x8000, 0x7FFF),
+           "I": (0, 0xFFFFFFFF), "i": (-0x80000000, 0x7FFFFFFF)}
+
+
+def pdo_struct(pdo_map) -> tuple[struct.Struct, list[tuple[int, int]]] | None:
+    """A little-endian struct for a byte-aligned PDO map and its (index, subindex) list; None otherwise."""
+    fmt, keys = "<", []
+    for var in pdo_map.map:
+        code = _STRUCT_CODES.get(var.od.data_type)
+        if code is None or var.length != len(var.od) or var.offset % 8:
+            return None
+        fmt += code
+        keys.append((var.index, var.subindex))
+    return struct.Struct(fmt), keys
+
+
+def clamp_int(code: str, value: float) -> int:
+    """Round and saturate ``value`` to the range of the struct code (wrap 32-bit signed)."""
+    lo, hi = _RANGES[code]
+    v = int(round(value))
+    if code == "i":
+        return (v + 0x80000000) % 0x100000000 - 0x80000000  # a 32-bit position counter wraps
+    return min(max(v, lo), hi)
+
+
+@dataclass
+class FrameLoss:
+    """Outgoing frames of a node are lost with probability ``fraction`` while start <= plant.time < stop."""
+
+    fraction: float
+    start: float = 0.0
+    stop: float = math.inf
+    kinds: tuple[str, ...] = ("tpdo", "heartbeat", "emcy")
+
+
+class SimulatedNode:
+    """What every emulated CANopen node shares: the LocalNode, NMT, SYNC-driven TPDOs, sim-time heartbeat,
+    frame loss. Subclasses provide :meth:`process_value` (live values of the mapped objects)."""
+
+    eds_name = ""
+
+    def __init__(self, network: canopen.Network, node_id: int, plant: Plant, index: int,
+                 rng: np.random.Generator | None = None, eds: str | Path | None = None):
+        self.network = network
+        self.plant = plant
+        self.index = index
+        self.rng = rng if rng is not None else np.random.default_rng(node_id)
+        self.node = canopen.LocalNode(node_id, str(eds or eds_path(self.eds_name)))
+        self.node.nmt.start_heartbeat = self._set_heartbeat_ms  # sim-time heartbeat instead of a wall timer
+        network.add_node(self.node)
+        network.subscribe(0, self._on_nmt)
+        self.lock = threading.RLock()
+        self.heartbeat_period = 0.0
+        self._next_heartbeat = math.inf
+        self._tpdos: list[tuple[int, int, struct.Struct, list]] = []  # (cob_id, every_n, struct, getters)
+        self._sync_seen = 0
+        self.losses: list[FrameLoss] = []
+        self.frames_sent = 0
+        self.frames_lost = 0
+        self.last_sync_count = -1
+        self.node.add_read_callback(self._on_read)
+        self.node.add_write_callback(self._on_write)
+        self.boot()
+
+    # -- NMT -----------------------------------------------------------------------------------------
+    @property
+    def node_id(self) -> int:
+        return self.node.id
+
+    @property
+    def nmt_state(self) -> str:
+        return self.node.nmt.state
+
+    def boot(self) -> None:
+        """Power-on: boot-up frame, then pre-operational (heartbeat from 0x1017)."""
+        self.node.nmt.state = "INITIALISING"  # sends the boot-up frame
+        self.node.nmt.state = "PRE-OPERATIONAL"
+
+    def _set_heartbeat_ms(self, ms: int) -> None:
+        with self.lock:
+            self.heartbeat_period = ms / 1000.0
+            self._next_heartbeat = self.plant.time + self.heartbeat_period if ms > 0 else math.inf
+
+    def _on_nmt(self, can_id, data, timestamp) -> None:
+        if len(data) >= 2 and data[1] in (0, self.node.id):
+            if data[0] == 1:  # start remote node: the PDO configuration written by SDO takes effect
+                self.load_pdo_config()
+            elif data[0] in (129, 130):  # reset node / communication
+                self.reset()
+
+    def reset(self) -> None:
+        with self.lock:
+            self._tpdos = []
+        self.boot()
+
+    def load_pdo_config(self) -> None:
+        """Read the PDO communication and mapping objects of the local OD (as written by the master)."""
+        with self.lock:
+            self._tpdos = []
+            self.node.tpdo.read()
+            for pdo_map in self.node.tpdo.map.values():
+                if not pdo_map.enabled or not pdo_map.map or not 1 <= (pdo_map.trans_type or 0) <= 240:
+                    continue
+                packed = pdo_struct(pdo_map)
+                if packed is None:
+                    continue
+                st, keys = packed
+                getters = [(k, code) for k, code in zip(keys, st.format[1:], strict=True)]
+                self._tpdos.append((pdo_map.cob_id, pdo_map.trans_type, st, getters))
+            self.on_rpdo_config()
+
+    def on_rpdo_config(self) -> None:
+        """Drives read their RPDO maps here."""
+
+    # -- SDO live values ---------------------------------------------------------------------------
+    def _on_read(self, index, subindex, od):
+        return self.process_value(index, subindex)
+
+    def _on_write(self, index, subindex, od, data):
+        self.on_object_written(index, subindex, od.decode_raw(bytes(data)))
+
+    def process_value(self, index: int, subindex: int):
+        """Live value of a process object, or None to use the stored one."""
+        return None
+
+    def on_object_written(self, index: int, subindex: int, value) -> None:
+        """Called for every SDO write (before the value is stored)."""
+
+    # -- SYNC ---------------------------------------------------------------------------------------
+    def on_sync(self, sync_count: int) -> None:
+        """After the physics step: transmit the TPDOs due at this SYNC, then the heartbeat if due."""
+        with self.lock:
+            self.last_sync_count = sync_count
+            self.before_tpdo()
+            if self.node.nmt.state == "OPERATIONAL":
+                self._sync_seen += 1
+                for cob_id, every, st, getters in self._tpdos:
+                    if self._sync_seen % every:
+                        continue
+                    values = [clamp_int(code, self.process_value(i, s)) for (i, s), code in getters]
+                    self.send(cob_id, st.pack(*values), "tpdo")
+            now = self.plant.time
+            if now >= self._next_heartbeat - 1e-9:
+                state = {"OPERATIONAL": 5, "STOPPED": 4, "PRE-OPERATIONAL": 127}.get(self.node.nmt.state, 0)
+                self.send(0x700 + self.node.id, bytes([state]), "heartbeat")
+                while self._next_heartbeat <= now + 1e-9:
+                    self._next_heartbeat += self.heartbeat_period
+
+    def before_tpdo(self) -> None:
+        """Hook run at each SYNC before the TPDOs are built."""
+
+    # -- transmission with loss --------------------------------------------------------------------
+    def lose_frames(self, fraction: float = 1.0, start: float | None = None, duration: float = math.inf,
+                    kinds: tuple[str, ...] = ("tpdo", "heartbeat", "emcy")) -> FrameLoss:
+        """Lose a fraction of this node's outgoing frames from ``start`` (sim time, s; default now) for
+        ``duration`` s; ``kinds`` restricts it to TPDOs, heartbeats and/or EMCYs."""
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"frame loss fraction must be in [0, 1], got {fraction}")
+        t0 = self.plant.time if start is None else float(start)
+        loss = FrameLoss(float(fraction), t0, t0 + duration, tuple(kinds))
+        with self.lock:
+            self.losses.append(loss)
+        return loss
+
+    def clear_frame_loss(self) -> None:
+        with self.lock:
+            self.losses = []
+
+    def send(self, cob_id: int, data: bytes, kind: str) -> bool:
+        """Send a frame unless an active loss window drops it; returns whether it was sent."""
+        if self.losses:
+            now = self.plant.time
+            for loss in self.losses:
+                if kind in loss.kinds and loss.start <= now < loss.stop:
+                    if loss.fraction >= 1.0 or self.rng.random() < loss.fraction:
+                        self.frames_lost += 1
+                        return False
+        self.network.send_message(cob_id, data)
+        self.frames_sent += 1
+        return True
+
+    def close(self) -> None:
+        """Detach the node from the network."""
+        self.network.unsubscribe(0, self._on_nmt)
+        if self.node.id in self.network:
+            del self.network[self.node.id]
+
+
+@dataclass(frozen=True)
+class DriveEmulatorConfig:
+    """Servo behaviour outside plain torque following (CSV velocity loop, quick-stop hold) and sensor noise."""
+
+    velocity_kp: float = 0.05  # N m per rad/s, CSV velocity loop
+    velocity_ki: float = 0.5  # N m per rad
+    hold_kd: float = 0.02  # N m s/rad, quick-stop velocity damping on a plant without brake
+    stop_velocity: float = 0.05  # rad/s, below this a quick stop with option code 1/2 ends
+    torque_noise: float = 0.0  # N m, standard deviation of the reported torque
+    encoder_bits: int = 20
+
+
+class CanDriveEmulator(SimulatedNode):
+    """One winch drive: CiA 402 state machine, CST/CSV modes, fault and quick stop, driving ``plant``'s
+    motor ``index``."""
+
+    eds_name = "cia402_winch.eds"
+
+    def __init__(self, network: canopen.Network, node_id: int, plant: Plant, index: int,
+                 config: DriveEmulatorConfig | None = None, rng: np.random.Generator | None = None,
+                 eds: str | Path | None = None, control_period: float = 0.005):
+        self.config = config or DriveEmulatorConfig()
+        self.counts_per_rev = 1 << self.config.encoder_bits
+        self.control_period = control_period
+        self._state = NOT_READY
+        self.controlword = 0
+        self.target_torque = 0  # per mille
+        self.target_velocity = 0  # increments/s
+        self.mode = MODE_CST
+        self.error_code = 0
+        self.error_register = 0
+        self.torque_command = 0.0  # N m sent to the plant
+        self._rpdos: list[tuple[object, struct.Struct, list]] = []
+        self._v_integral = 0.0
+        self._hold: float | None = None  # torque at quick stop (plant without brake)
+        self._scheduled: list[tuple[float, int]] = []
+        self.faults: list[tuple[float, int]] = []
+        super().__init__(network, node_id, plant, index, rng, eds)
+        self.rated_torque = self.node.object_dictionary[0x6076].default / 1000.0  # N m
+        self.max_torque = self.node.object_dictionary[0x6072].default  # per mille
+        self.quick_stop_option = self.node.object_dictionary[0x605A].default
+        self.state = SWITCH_ON_DISABLED  # after initialisation
+
+    # -- object values ------------------------------------------------------------------------------
+    @property
+    def statusword(self) -> int:
+        sw = STATUSWORD_BITS[self.state] | SW_REMOTE
+        if self.state == OPERATION_ENABLED and self.mode in (MODE_CST, MODE_CSV):
+            sw |= SW_FOLLOWS_COMMAND
+        return sw
+
+    def process_value(self, index: int, subindex: int):
+        if index == 0x6041:
+            return self.statusword
+        if index == 0x6064:
+            return clamp_int("i", self.plant.motor_position()[self.index] * self.counts_per_rev / (2 * math.pi))
+        if index == 0x606C:
+            return clamp_int("i", self.plant.motor_velocity()[self.index] * self.counts_per_rev / (2 * math.pi))
+        if index == 0x6077:
+            tq = float(self.plant.motor_torque()[self.index])
+            if self.config.torque_noise:
+                tq += self.config.torque_noise * self.rng.standard_normal()
+            return clamp_int("h", tq / self.rated_torque * 1000.0)
+        if index == 0x6040:
+            return self.controlword
+        if index == 0x6071:
+            return self.target_torque
+        if index == 0x60FF:
+            return self.target_velocity
+        if index == 0x6060:
+            return self.mode
+        if index == 0x6061:
+            return self.mode
+        if index == 0x603F:
+            return self.error_code
+        if index == 0x1001:
+            return self.error_register
+        if index == 0x6076:
+            return int(round(self.rated_torque * 1000))
+        if index == 0x6072:
+            return self.max_torque
+        if index == 0x605A:
+            return self.quick_stop_option
+        return None
+
+    def on_object_written(self, index: int, subindex: int, value) -> None:
+        with self.lock:
+            if index == 0x6040:
+                self.command(int(value))
+            elif index == 0x6071:
+                self.target_torque = int(value)
+            elif index == 0x60FF:
+                self.target_velocity = int(value)
+            elif index == 0x6060:
+                self.mode = int(value)
+            elif index == 0x6076:
+                self.rated_torque = int(value) / 1000.0
+            elif index == 0x6072:
+                self.max_torque = int(value)
+            elif index == 0x605A:
+                self.quick_stop_option = int(value)
+
+    def on_rpdo_config(self) -> None:
+        self._rpdos = []
+        self.node.rpdo.read()  # subscribes the enabled RPDOs on the network
+        for pdo_map in self.node.rpdo.map.values():
+            if not pdo_map.enabled or not pdo_map.map:
+                continue
+            packed = pdo_struct(pdo_map)
+            if packed is not None:
+                pdo_map.is_received = False
+                self._rpdos.append((pdo_map, packed[0], packed[1]))
+
+    # -- state machine -------------------------------------------------------------------------------
+    @property
+    def state(self) -> str:
+        return self._state
+
+    @state.setter
+    def state(self, new: str) -> None:
+        """Enter a CiA 402 state; the holding brake is released only in operation enabled."""
+        self._state = new
+        set_brake = getattr(self.plant, "set_brake", None)
+        if set_brake is not None and new != NOT_READY:
+            set_brake(self.index, new != OPERATION_ENABLED)
+
+    def command(self, cw: int) -> None:
+        """Apply a controlword (from SDO or the RPDO) to the CiA 402 state machine."""
+        rising_reset = bool(cw & 0x80) and not (self.controlword & 0x80)
+        self.controlword = cw
+        s = self.state
+        if s == FAULT:
+            if rising_reset:
+                self.state = SWITCH_ON_DISABLED
+                self.error_code = 0
+                self.error_register = 0
+                self.send(0x80 + self.node.id, struct.pack("<HB5s", 0, 0, b""), "emcy")
+            return
+        if s in (FAULT_REACTION_ACTIVE, NOT_READY) or cw & 0x80:
+            return
+        disable_voltage = (cw & 0x02) == 0
+        quick_stop = (cw & 0x06) == 0x02
+        shutdown = (cw & 0x07) == 0x06
+        switch_on = (cw & 0x0F) == 0x07
+        enable = (cw & 0x0F) == 0x0F
+        if s == SWITCH_ON_DISABLED:
+            if shutdown:
+                self.state = READY_TO_SWITCH_ON
+        elif s == READY_TO_SWITCH_ON:
+            if disable_voltage or quick_stop:
+                self.state = SWITCH_ON_DISABLED
+            elif switch_on:
+                self.state = SWITCHED_ON
+            elif enable:
+                self.state = OPERATION_ENABLED
+                self._v_integral = 0.0
+        elif s == SWITCHED_ON:
+            if disable_voltage or quick_stop:
+                self.state = SWITCH_ON_DISABLED
+            elif shutdown:
+                self.state = READY_TO_SWITCH_ON
+            elif enable:
+                self.state = OPERATION_ENABLED
+                self._v_integral = 0.0
+        elif s == OPERATION_ENABLED:
+            if disable_voltage:
+                self.state = SWITCH_ON_DISABLED
+            elif quick_stop:
+                self.state = QUICK_STOP_ACTIVE
+                self._hold = None
+                if self.quick_stop_option == 0:
+                    self.state = SWITCH_ON_DISABLED
+            elif shutdown:
+                self.state = READY_TO_SWITCH_ON
+            elif switch_on:
+                self.state = SWITCHED_ON
+        elif s == QUICK_STOP_ACTIVE:
+            if disable_voltage:
+                self.state = SWITCH_ON_DISABLED
+            elif enable and self.quick_stop_option in (5, 6, 7, 8):
+                self.state = OPERATION_ENABLED
+                self._v_integral = 0.0
+
+    def trigger_fault(self, code: int = 0x2310, register: int = 0x03) -> None:
+        """A drive fault now: torque off, statusword fault bit, EMCY ``code`` (default 0x2310 over-current)."""
+        with self.lock:
+            self.state = FAULT
+            self.error_code = code
+            self.error_register = register | 0x01
+            self.torque_command = 0.0
+            self.plant.set_motor_torque(self.index, 0.0)
+            self.faults.append((self.plant.time, code))
+            self.send(0x80 + self.node.id, struct.pack("<HB5s", code, self.error_register, b""), "emcy")
+
+    def schedule_fault(self, at_time: float, code: int = 0x2310) -> None:
+        """A drive fault when the simulated time reaches ``at_time`` (s)."""
+        with self.lock:
+            self._scheduled.append((float(at_time), int(code)))
+            self._scheduled.sort()
+
+    def _check_scheduled(self) -> None:
+        while self._scheduled and self.plant.time >= self._scheduled[0][0] - 1e-12:
+            _, code = self._scheduled.pop(0)
+            self.trigger_fault(code)
+
+    # -- SYNC ---------------------------------------------------------------------------------------
+    def apply_targets(self) -> None:
+        """At SYNC, before the physics step: the last RPDO takes effect, the torque command goes to the plant."""
+        with self.lock:
+            self._check_scheduled()
+            if self.node.nmt.state == "OPERATIONAL":
+                for pdo_map, st, keys in self._rpdos:
+                    if not pdo_map.is_received:
+                        continue
+                    pdo_map.is_received = False
+                    data = bytes(pdo_map.data)
+                    if len(data) < st.size:
+                        continue
+                    for (index, _), value in zip(keys, st.unpack_from(data), strict=True):
+                        if index == 0x6040:
+                            self.command(value)
+                        elif index == 0x6071:
+                            self.target_torque = value
+                        elif index == 0x60FF:
+                            self.target_velocity = value
+                        elif index == 0x6060:
+                            self.mode = value
+            self.torque_command = self._torque_law()
+            self.plant.set_motor_torque(self.index, self.torque_command)
+
+    def _torque_law(self) -> float:
+        limit = self.max_torque / 1000.0 * self.rated_torque
+        if self.state == OPERATION_ENABLED:
+            self._hold = None
+            if self.mode == MODE_CST:
+                tq = self.target_torque / 1000.0 * self.rated_torque
+            elif self.mode == MODE_CSV:
+                v_ref = self.target_velocity * 2 * math.pi / self.counts_per_rev
+                err = v_ref - float(self.plant.motor_velocity()[self.index])
+                tq = self.config.velocity_kp * err + self.config.velocity_ki * (
+                    self._v_integral + err * self.control_period)
+                if abs(tq) < limit:  # integrate only while unsaturated (anti-windup)
+                    self._v_integral += err * self.control_period
+            else:
+                tq = 0.0
+            return min(max(tq, -limit), limit)
+        if self.state == QUICK_STOP_ACTIVE:
+            vel = float(self.plant.motor_velocity()[self.index])
+            if self.quick_stop_option in (1, 2) and abs(vel) < self.config.stop_velocity:
+                self.state = SWITCH_ON_DISABLED
+                return 0.0
+            if getattr(self.plant, "set_brake", None) is not None:
+                return 0.0  # the brake holds
+            if self._hold is None:
+                self._hold = self.torque_command
+            return min(max(self._hold - self.config.hold_kd * vel, -limit), limit)
+        return 0.0
+
+    def before_tpdo(self) -> None:
+        self._check_scheduled()

@@ -1,0 +1,317 @@
+"""The CiA 402 winch-drive driver against the emulated drive over python-can's virtual bus.
+
+A small real plant (motor inertia on a torsion spring with viscous damping and a constant load torque,
+integrated semi-implicitly) stands in for the simulator's physics; :class:`CanRig` runs the lockstep the
+simulator backend runs (for each SYNC: apply the RPDO targets, step the physics, transmit the TPDOs).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import can
+import numpy as np
+import pytest
+
+from drivers.can_bus import SyncProducer, open_network
+from drivers.canopen_drive import (
+    MODE_CSV,
+    CanopenWinchDrive,
+    cia402_state,
+    wrap_delta,
+)
+from drivers.interfaces import DeviceError
+from sim_backend.can_drive_emulator import CanDriveEmulator
+from sim_backend.can_encoder_emulator import CanEncoderEmulator
+
+DT = 0.005  # s, control period
+LPR = -0.028807  # m of cable per motor revolution (IRMA4U winch 1)
+CPR = 1 << 20
+_channels = itertools.count()
+
+
+class WinchPlant:
+    """n motors, each J th'' = tau - k th - c th' - load, with a holding brake (engaged: shaft locked);
+    swivel angle = sigma0 + ratio * th (rad)."""
+
+    def __init__(self, n: int, J: float = 2e-4, k: float = 2.0, c: float = 0.02, load: float = 0.0,
+                 sigma0: float = 0.3, ratio: float = 0.5, substeps: int = 10):
+        self.n = n
+        self.J, self.k, self.c, self.load = J, k, c, load
+        self.sigma0, self.ratio, self.substeps = sigma0, ratio, substeps
+        self.th = np.zeros(n)
+        self.om = np.zeros(n)
+        self.tau = np.zeros(n)
+        self.brake = np.ones(n, bool)  # engaged at power-on
+        self._time = 0.0
+
+    @property
+    def time(self) -> float:
+        return self._time
+
+    def step(self, dt: float) -> None:
+        h = dt / self.substeps
+        for _ in range(self.substeps):
+            acc = (self.tau - self.k * self.th - self.c * self.om - self.load) / self.J
+            self.om = np.where(self.brake, 0.0, self.om + h * acc)
+            self.th = self.th + h * self.om
+        self._time += dt
+
+    def motor_position(self) -> np.ndarray:
+        return self.th.copy()
+
+    def motor_velocity(self) -> np.ndarray:
+        return self.om.copy()
+
+    def motor_torque(self) -> np.ndarray:
+        return self.tau.copy()
+
+    def set_motor_torque(self, i: int, torque: float) -> None:
+        self.tau[i] = torque
+
+    def set_brake(self, i: int, engaged: bool) -> None:
+        self.brake[i] = engaged
+        if engaged:
+            self.om[i] = 0.0
+
+    def cable_tension(self) -> np.ndarray:
+        return np.zeros(self.n)
+
+    def swivel_angle(self) -> np.ndarray:
+        return self.sigma0 + self.ratio * self.th
+
+    def orientation(self) -> np.ndarray:
+        return np.zeros(3)
+
+
+class CanRig:
+    """Master and emulated nodes on one virtual channel, stepped in lockstep by SYNC."""
+
+    def __init__(self, n_drives: int = 1, n_encoders: int = 0, plant: WinchPlant | None = None, **plant_kw):
+        channel = f"cdpr-test-{next(_channels)}-{id(self)}"
+        self.plant = plant or WinchPlant(max(n_drives, n_encoders, 1), **plant_kw)
+        self.slave = open_network(can.Bus(interface="virtual", channel=channel))
+        self.master = open_network(can.Bus(interface="virtual", channel=channel))
+        self.drives = [CanDriveEmulator(self.slave, 1 + i, self.plant, i, control_period=DT)
+                       for i in range(n_drives)]
+        self.encoders = [CanEncoderEmulator(self.slave, 11 + i, self.plant, i) for i in range(n_encoders)]
+        self.sync_counts: list[int] = []
+        self.slave.subscribe(0x80, self._on_sync)
+        self.sync = SyncProducer(self.master)
+        self.drivers: list = []
+
+    def clock(self) -> float:
+        return self.plant.time
+
+    def _on_sync(self, can_id, data, timestamp) -> None:
+        for d in self.drives:
+            d.apply_targets()
+        self.plant.step(DT)
+        count = data[0] if data else -1
+        self.sync_counts.append(count)
+        for node in self.drives + self.encoders:
+            node.on_sync(count)
+
+    def tick(self, wait: bool = True) -> int:
+        count = self.sync.send_sync()
+        if wait:
+            for drv in self.drivers:
+                drv.wait_for_sync(count, 2.0)
+        return count
+
+    def ticks(self, n: int) -> None:
+        for _ in range(n):
+            self.tick()
+
+    def winch(self, i: int = 0, **kw) -> CanopenWinchDrive:
+        drv = CanopenWinchDrive(self.master, 1 + i, self.sync, LPR, clock=self.clock, **kw)
+        drv.open()
+        self.drivers.append(drv)
+        return drv
+
+    def close(self) -> None:
+        for drv in self.drivers:
+            drv.close()
+        self.master.disconnect()
+        self.slave.disconnect()
+
+
+@pytest.fixture
+def rig():
+    r = CanRig(n_drives=1)
+    yield r
+    r.close()
+
+
+def test_statusword_decoding_and_counter_wrap():
+    assert cia402_state(0x0250) == "switch on disabled"
+    assert cia402_state(0x0231) == "ready to switch on"
+    assert cia402_state(0x0233) == "switched on"
+    assert cia402_state(0x1237) == "operation enabled"
+    assert cia402_state(0x0217) == "quick stop active"
+    assert cia402_state(0x0208) == "fault"
+    assert wrap_delta(5, 0xFFFFFFFB, 32) == 10
+    assert wrap_delta(0x7FFFFFFF, -0x80000000 & 0xFFFFFFFF, 32) == -1
+    assert wrap_delta(10, 65530, 16) == 16
+
+
+def test_configuration_by_sdo(rig):
+    emu = rig.drives[0]
+    assert emu.nmt_state == "PRE-OPERATIONAL"
+    drv = rig.winch()
+    rig.tick()  # the NMT start frame precedes this SYNC on the bus
+    # the mapping the driver wrote by SDO is what the emulated node now transmits
+    assert emu.nmt_state == "OPERATIONAL"
+    cobs = sorted(cob for cob, *_ in emu._tpdos)
+    assert cobs == [0x181, 0x281]
+    fmts = {cob: st.format for cob, _, st, _ in emu._tpdos}
+    assert fmts == {0x181: "<ii", 0x281: "<hH"}
+    assert [k for k, _ in [(i, s) for (i, s) in emu._rpdos[0][2]]] == [0x6040, 0x6071, 0x60FF]
+    assert emu.heartbeat_period == pytest.approx(0.1)
+    assert emu.mode == 10
+    assert drv.rated_torque == pytest.approx(0.64)
+    assert drv.max_torque == pytest.approx(1.92)
+    assert drv.state() == "switch on disabled"
+    assert "CAN node 1" in drv.status()
+
+
+def test_streaming_torque_control_and_counts(rig):
+    drv = rig.winch()
+    drv.enable()
+    assert drv.state() == "operation enabled"
+    torque = 0.5  # N m against a 2 N m/rad spring: settles at 0.25 rad
+    drv.set_torque(torque)
+    readings = []
+    for _ in range(400):
+        c = rig.tick()
+        r = drv.latest()
+        assert r.sync_count == c
+        readings.append(r)
+    seqs = [r.seq for r in readings]
+    assert seqs == list(range(seqs[0], seqs[0] + 400))
+    last = readings[-1]
+    th = rig.plant.th[0]
+    assert abs(last.position_counts - th * CPR / (2 * math.pi)) <= 0.5 + 1e-9
+    assert last.position_counts / CPR * 2 * math.pi == pytest.approx(torque / 2.0, abs=2e-3)
+    assert last.delta_length == pytest.approx(last.position_counts / CPR * LPR)
+    assert last.delta_length == pytest.approx(0.25 / (2 * math.pi) * LPR, rel=0.01)
+    # torque per mille of 0.64 N m: 781 -> 0.49984 N m
+    assert last.torque == pytest.approx(round(torque / 0.64 * 1000) / 1000 * 0.64)
+    assert rig.plant.tau[0] == pytest.approx(last.torque)
+    assert cia402_state(last.statusword) == "operation enabled"
+    assert drv.enabled and drv.fault() is None
+    # timestamps come from the simulated clock: one control period apart
+    assert np.allclose(np.diff([r.t for r in readings]), DT)
+    # saturation at the max torque 0x6072 (3000 per mille of 0.64 N m)
+    drv.set_torque(10.0)
+    rig.ticks(2)
+    assert rig.plant.tau[0] == pytest.approx(1.92)
+
+
+def test_drive_fault_detected_within_three_sync_periods_and_recovery(rig):
+    drv = rig.winch()
+    drv.set_torque(0.4)
+    drv.enable()
+    rig.ticks(50)
+    assert drv.fault() is None
+    rig.drives[0].schedule_fault(rig.plant.time + 0.5 * DT, code=0x2310)
+    t_fault = rig.plant.time
+    periods = 0
+    while drv.fault() is None:
+        rig.tick()
+        periods += 1
+        assert periods <= 3, "drive fault not detected within 3 SYNC periods"
+    assert "0x2310" in drv.fault()
+    assert rig.plant.time - t_fault <= 3 * DT
+    assert not drv.enabled
+    rig.ticks(3)
+    assert rig.plant.tau[0] == 0.0  # torque off until fault reset
+    assert drv.latest().statusword & 0x08
+    assert drv.state() == "fault"
+    # recovery: fault reset, then the state machine up to operation enabled again
+    drv.enable()
+    rig.ticks(3)
+    assert drv.fault() is None and drv.enabled
+    assert rig.plant.tau[0] == pytest.approx(round(0.4 / 0.64 * 1000) / 1000 * 0.64)
+
+
+def test_lost_heartbeat_detected_within_three_periods(rig):
+    drv = rig.winch()
+    period = drv.heartbeat_period
+    rig.ticks(int(1.0 / DT))  # 1 s of healthy traffic: no false alarm
+    assert drv.heartbeat.count >= 9
+    assert drv.fault() is None
+    last_hb = drv.heartbeat.last
+    rig.drives[0].lose_frames(1.0, kinds=("heartbeat",))
+    while drv.fault() is None:
+        rig.tick()
+        assert rig.plant.time - last_hb <= 3 * period + 1e-9, "lost heartbeat not detected within 3 periods"
+    assert "heartbeat" in drv.fault()
+    # the node's heartbeat comes back: the fault clears
+    rig.drives[0].clear_frame_loss()
+    rig.ticks(int(2 * period / DT))
+    assert drv.fault() is None
+
+
+def test_frame_loss_leaves_incomplete_syncs(rig):
+    drv = rig.winch()
+    rig.ticks(5)
+    rig.drives[0].lose_frames(1.0, duration=3.5 * DT, kinds=("tpdo",))  # the next 3 SYNCs
+    with pytest.raises(DeviceError, match=r"node 1\) sent no PDOs for SYNC"):
+        c = rig.sync.send_sync()
+        drv.wait_for_sync(c, 0.2)
+    rig.tick(wait=False)
+    rig.tick(wait=False)
+    rig.ticks(3)  # frames flow again
+    assert drv.latest().sync_count == rig.sync.count
+    assert rig.drives[0].frames_lost == 6
+
+
+def test_quick_stop_holds_and_reenable(rig):
+    drv = rig.winch()
+    drv.set_torque(0.6)
+    drv.enable()
+    rig.ticks(10)  # the motor is accelerating towards 0.3 rad
+    assert abs(drv.latest().velocity) > 0.5
+    drv.quick_stop()
+    assert drv.state() == "quick stop active"
+    held = drv.latest().position_counts
+    rig.ticks(100)
+    r = drv.latest()
+    assert r.velocity == 0.0 and r.torque == 0.0  # the brake holds the shaft
+    assert r.position_counts == held  # locked where the quick stop found it
+    assert cia402_state(r.statusword) == "quick stop active"
+    drv.enable()
+    rig.ticks(400)
+    assert drv.latest().position_counts / CPR * 2 * math.pi == pytest.approx(0.3, abs=5e-3)
+
+
+def test_cyclic_synchronous_velocity_mode():
+    rig = CanRig(n_drives=1, k=0.0)  # no spring: the motor can turn at constant speed
+    drv = rig.winch()
+    drv.set_mode(MODE_CSV)
+    drv.enable()
+    drv.set_velocity(2.0)  # rad/s
+    rig.ticks(400)
+    assert drv.latest().velocity == pytest.approx(2.0, abs=0.02)
+    drv.disable()
+    assert drv.state() == "switch on disabled"
+    rig.close()
+
+
+def test_missing_node_is_one_clear_error(rig):
+    drv = CanopenWinchDrive(rig.master, 7, rig.sync, LPR, name="winch7", clock=rig.clock)
+    with pytest.raises(DeviceError, match=r"winch7 \(CAN node 7\): SDO read of 0x1000:00 failed"):
+        drv.open()
+    assert 7 not in rig.master
+
+
+def test_wrong_device_type_is_rejected():
+    rig = CanRig(n_drives=0, n_encoders=1)
+    try:
+        drv = CanopenWinchDrive(rig.master, 11, rig.sync, LPR, clock=rig.clock)
+        with pytest.raises(DeviceError, match="not a CiA 402 device"):
+            drv.open()
+    finally:
+        rig.close()
