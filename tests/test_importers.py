@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.io
+from scipy.optimize import least_squares
 
 from acquisition.importers import (
     IRMA_HOMING_LENGTHS,
@@ -18,6 +19,7 @@ from acquisition.importers import (
     segment_targets,
 )
 from acquisition.runlog import read_run
+from calib.kinematics import inverse_kinematics
 from calib.robot import load_robot
 
 
@@ -101,6 +103,26 @@ def test_raw_and_parsed_lengths_differ_by_the_transmission_ratio(parsed_run, log
     common = lpr / ratios  # the parser's single ratio, the same for the four winches
     np.testing.assert_allclose(common, -0.0280645, atol=1e-6)  # lpr has 5 digits
     assert np.max(np.abs(log_run.dl - parsed_run.dl)) > 0.03  # the difference is real: tens of mm
+
+
+def test_the_parsers_lengths_fit_the_geometry_better(parsed_run, log_run, authors):
+    """Pose (x, y, z, yaw) fitted to 4 swivels + 4 lengths at the 8 picked samples, roll/pitch from the AHRS."""
+    robot = load_robot("irma4u")
+    hl, hs = np.array(IRMA_HOMING_LENGTHS), np.array(IRMA_HOMING_SWIVELS)
+    chi2 = {}
+    for name, run in (("parsed", parsed_run), ("log", log_run)):
+        total = 0.0
+        for j in authors["meas_idx"] - 1:
+            sw, lengths = hs + run.dsigma[j], hl + run.dl[j]
+
+            def res(x, j=j, sw=sw, lengths=lengths, run=run):
+                kin = inverse_kinematics(robot, np.r_[x[:3], run.roll[j], run.pitch[j], x[3]][None])
+                return np.r_[(kin.swivel[0] - sw) / np.radians(1.0), (kin.lengths[0] - lengths) / 0.01]
+
+            total += 2 * least_squares(res, [0.0, 0.0, 1.0, 0.0]).cost
+        chi2[name] = total
+    assert chi2["parsed"] < 8.0  # 5.4 measured
+    assert chi2["log"] > 5 * chi2["parsed"]  # 52 measured: the controller's ratios carry a scale error
 
 
 def test_raw_log_extra_columns_agree_with_the_lengths(log_run):
