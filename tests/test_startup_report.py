@@ -31,7 +31,7 @@ def test_text_summary_shows_pose_in_mm_and_degrees_with_sigma():
     text = render_text(summary())
     assert "z       1065.100 +- 0.200 mm" in text
     assert f"yaw   {math.degrees(0.0031):10.3f} +- {math.degrees(0.0003):.3f} deg" in text
-    assert "tension            0.31       0.031 N" in text
+    assert "  tension             0.31       0.031 N" in text
     assert "[0, 19], [60, 79]" in text
 
 
