@@ -1,0 +1,183 @@
+"""Contractor programme of the Sandretto paper on codac: FixP(QInter(q, hc4r(F_1), ..., hc4r(F_N))), then a
+paving where contraction alone stalls.
+
+One codac CtcInverse (forward-backward, HC4-revise) per measurement contracts a box of anchors onto the
+thick sphere |a - c_k|^2 in [r_lo_k, r_hi_k]^2. Careful: codac 2's CtcQInter / qinter take the number of
+contractors allowed to *fail*, not (as IBEX and the paper) the number that must hold; ``n_fail`` below is
+always that codac count.
+
+The paving bisects the contracted box and keeps the hull of the leaves. Two pruning rules keep it cheap
+without changing the hull: a box inside the hull of the leaves found so far cannot enlarge it, and each box
+first classifies the measurements by the exact range of |a - c_k| over the box (floating point with a
+margin far above rounding): spheres that contain the whole box or miss it entirely are counted, and only
+the undecided ones are contracted. A box where the undecided ones are fewer than the failures still
+allowed is a solution box as a whole (every point satisfies enough measurements).
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+
+import codac
+import numpy as np
+
+from calib.certify._bounds import Shells
+
+_CLASSIFY_MARGIN = 1e-9  # m, far above the rounding error of a distance of a few metres
+
+
+@dataclass(frozen=True)
+class CableSolution:
+    """The outcome of one cable: boxes as (3, 2) arrays [[lo, hi], ...] in m, or None when empty.
+
+    contracted: FixP(QInter) on the initial box alone (the paper's programme); box: the hull of the paving;
+    outliers: measurements whose thick sphere misses ``box`` (0-based); boxes: boxes the paving visited;
+    exhausted: the box budget ran out (the hull is still guaranteed, only less tight).
+    """
+
+    contracted: np.ndarray | None
+    box: np.ndarray | None
+    outliers: tuple[int, ...]
+    boxes: int
+    exhausted: bool
+
+
+def shell_contractors(shells: Shells) -> list:
+    """One codac CtcInverse per measurement: |a - c_k|^2 in [r_lo_k, r_hi_k]^2 (a in m)."""
+    a = codac.VectorVar(3)
+    out = []
+    for c, lo, hi in zip(shells.centres, shells.r_lo, shells.r_hi, strict=True):
+        f = codac.AnalyticFunction([a], codac.sqr(a[0] - float(c[0])) + codac.sqr(a[1] - float(c[1]))
+                                   + codac.sqr(a[2] - float(c[2])))
+        out.append(codac.CtcInverse(f, codac.sqr(codac.Interval(float(lo), float(hi))), False))
+    return out
+
+
+def _to_array(x: codac.IntervalVector) -> np.ndarray | None:
+    if x.is_empty():
+        return None
+    return np.array([[x[j].lb(), x[j].ub()] for j in range(3)])
+
+
+def fixpoint(step, x: codac.IntervalVector, ratio: float) -> codac.IntervalVector:
+    """Apply ``step`` until no dimension of the box shrinks by more than ``ratio`` (relative width)."""
+    while True:
+        before = np.array(x.diam())
+        x = step(x)
+        if x.is_empty():
+            return x
+        after = np.array(x.diam())
+        shrink = np.where(before > 0, (before - after) / np.where(before > 0, before, 1.0), 0.0)
+        if float(shrink.max()) <= ratio:
+            return x
+
+
+def _qinter_step(ctcs: list, n_fail: int):
+    def step(x: codac.IntervalVector) -> codac.IntervalVector:
+        boxes = [c.contract(codac.IntervalVector(x)) for c in ctcs]
+        return codac.qinter(n_fail, boxes) & x
+
+    return step
+
+
+def _distance_range(shells: Shells, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact min and max of |a - c_k| over the box [lo, hi] (k,), m."""
+    c = shells.centres
+    near = np.maximum(0.0, np.maximum(lo - c, c - hi))
+    far = np.maximum(np.abs(c - lo), np.abs(c - hi))
+    return np.linalg.norm(near, axis=1), np.linalg.norm(far, axis=1)
+
+
+def _node(shells: Shells, ctcs: list, n_fail: int, x: codac.IntervalVector, resolution: float,
+          ratio: float) -> tuple[str, codac.IntervalVector]:
+    """Contract one paving box: ('empty' | 'inner' | 'leaf' | 'split', contracted box)."""
+    b = _to_array(x)
+    dmin, dmax = _distance_range(shells, b[:, 0], b[:, 1])
+    failed = (dmax < shells.r_lo - _CLASSIFY_MARGIN) | (dmin > shells.r_hi + _CLASSIFY_MARGIN)
+    holds = (dmin >= shells.r_lo + _CLASSIFY_MARGIN) & (dmax <= shells.r_hi - _CLASSIFY_MARGIN)
+    allowed = n_fail - int(failed.sum())
+    if allowed < 0:
+        return "empty", x
+    undecided = np.flatnonzero(~failed & ~holds)
+    if len(undecided) <= allowed:
+        return "inner", x  # every point of the box satisfies enough measurements
+    x = fixpoint(_qinter_step([ctcs[k] for k in undecided], allowed), x, ratio)
+    if x.is_empty():
+        return "empty", x
+    return ("leaf" if x.max_diam() <= resolution else "split"), x
+
+
+def _extreme(shells: Shells, ctcs: list, n_fail: int, box: np.ndarray, j: int, side: int, resolution: float,
+             budget: int, ratio: float) -> tuple[float | None, int, bool]:
+    """Best-first search of the lowest (side 0) or highest (side 1) value of axis j over the solution set.
+
+    Every solution lies in some box of the queue, so the queue's best bound is always a valid outer bound;
+    the search stops at the first inner or resolution-sized box reaching the top of the queue. Returns
+    (bound or None when the set is empty, boxes contracted, budget exhausted).
+    """
+    sign = 1.0 if side == 0 else -1.0
+
+    def key(x: codac.IntervalVector) -> float:
+        return sign * (x[j].lb() if side == 0 else x[j].ub())
+
+    heap: list[tuple[float, int, codac.IntervalVector, bool]] = []
+    counter = 0
+    heapq.heappush(heap, (key(codac.IntervalVector([[float(lo), float(hi)] for lo, hi in box])), counter,
+                          codac.IntervalVector([[float(lo), float(hi)] for lo, hi in box]), False))
+    used = 0
+    while heap:
+        k, _, x, final = heapq.heappop(heap)
+        if final:
+            return sign * k, used, False
+        if used >= budget:
+            return sign * k, used, True
+        used += 1
+        status, x = _node(shells, ctcs, n_fail, x, resolution, ratio)
+        if status == "empty":
+            continue
+        if status in ("inner", "leaf"):
+            counter += 1
+            heapq.heappush(heap, (key(x), counter, x, True))
+            continue
+        width = np.array(x.diam())
+        for part in x.bisect(int(np.argmax(width)), 0.5):
+            counter += 1
+            heapq.heappush(heap, (key(part), counter, part, False))
+    return None, used, False
+
+
+def solve_cable(
+    shells: Shells,
+    box: np.ndarray,
+    n_fail: int,
+    *,
+    resolution: float = 2e-4,
+    max_boxes: int = 20000,
+    ratio: float = 0.01,
+) -> CableSolution:
+    """Enclose the anchors of ``box`` (3, 2) satisfying all but ``n_fail`` thick spheres (codac meaning)."""
+    n = len(shells.r_lo)
+    ctcs = shell_contractors(shells)
+    x0 = codac.IntervalVector([[float(lo), float(hi)] for lo, hi in box])
+    root = fixpoint(codac.CtcQInter(n_fail, ctcs).contract, x0, ratio)
+    contracted = _to_array(root)
+    if contracted is None:
+        return CableSolution(None, None, (), 1, False)
+
+    box_now = contracted.copy()
+    visited, exhausted = 0, False
+    for j in range(3):
+        for side in (0, 1):
+            bound, used, out_of_budget = _extreme(shells, ctcs, n_fail, box_now, j, side, resolution,
+                                                  max_boxes - visited, ratio)
+            visited += used
+            exhausted |= out_of_budget
+            if bound is None:
+                return CableSolution(contracted, None, (), visited, exhausted)
+            box_now[j, side] = bound
+    hull = box_now
+    final = codac.IntervalVector([[float(lo), float(hi)] for lo, hi in hull])
+    outliers = tuple(k for k in range(n) if ctcs[k].contract(codac.IntervalVector(final)).is_empty())
+    return CableSolution(contracted, hull, outliers, visited, exhausted)
+
