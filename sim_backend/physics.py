@@ -215,6 +215,13 @@ class CablePhysics:
         """Fault: cable i slips on its drum by ``length`` m (its unstretched length grows: it goes slack)."""
         self._l00[i] += float(length)
 
+    def rezero(self) -> None:
+        """Power-on here: the clock and the motor angles restart from 0 (the cables keep their lengths)."""
+        for i in range(self.n):
+            self._l00[i] += self._k[i] * self._th[i]
+        self._th = [0.0] * self.n
+        self._t = 0.0
+
     def rotation_matrix(self) -> np.ndarray:
         return np.array(_quat_to_matrix(self._q))
 

@@ -1,0 +1,329 @@
+"""The simulated prototype as a set of devices: physics + emulated CAN nodes + serial devices, in lockstep.
+
+:class:`SimBackend` creates the physics at a power-on equilibrium, a python-can ``virtual`` channel with a
+unique name carrying the emulated CiA 402 drives and CiA 406 encoders (canopen LocalNodes), pty pairs for
+the load-cell amplifier and the AHRS, and one SYNC subscriber that runs the lockstep. For each SYNC the
+master sends:
+
+1. every drive applies the last RPDO targets (``apply_targets``), the winch brakes follow the drive states
+   (released in operation enabled and quick stop, engaged otherwise, as a servo's holding brake);
+2. the faults due are injected, the physics advances by one control period;
+3. every node transmits its TPDOs (``on_sync``), the load-cell amplifier writes the tick's line and the AHRS
+   its sample.
+
+The simulated clock is the physics time: nothing here reads wall time, so a run costs far less wall time
+than robot time and the same seed gives the same frames and bytes. The drivers connect through
+:attr:`SimBackend.devices` (a ``drivers.config.DeviceConfig``); :meth:`SimBackend.truth` gives the true
+pose now or at an earlier tick.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import numpy as np
+
+from calib.equilibrium import direct_statics
+from calib.kinematics import rotation_to_euler
+from calib.robot import Robot
+from calib.statics import tension_model
+from drivers.can_bus import SYNC_COB_ID, open_network
+from drivers.config import AhrsConfig, CanConfig, DeviceConfig, NodeConfig, SerialConfig
+from sim_backend.can_drive_emulator import OPERATION_ENABLED, QUICK_STOP_ACTIVE, CanDriveEmulator
+from sim_backend.can_encoder_emulator import CanEncoderEmulator
+from sim_backend.config import SimConfig, SimConfigError, load_sim_config
+from sim_backend.loadcell_emulator import LoadCellEmulator
+from sim_backend.physics import CablePhysics, _quat_to_matrix
+from sim_backend.pty import open_pty_pair
+from sim_backend.xsens_emulator import XsensEmulator
+
+DRIVE_IDS = (1, 2, 3, 4, 5, 6, 7, 8)
+ENCODER_IDS = (11, 12, 13, 14, 15, 16, 17, 18)
+PRETENSION = 50.0  # N, the power-on pretension around which the resting tensions are drawn
+_channel_ids = itertools.count(1)
+
+
+@dataclass(frozen=True)
+class TruthSample:
+    """The true state at one SYNC tick: sync count, sim time s, pose (6,) m/rad, load-cell tensions (n,) N."""
+
+    sync_count: int
+    time: float
+    pose: np.ndarray
+    tensions: np.ndarray
+
+
+def power_on_state(robot: Robot, seed: int, spread: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """A plausible power-on equilibrium (pose (6,), tensions (n,)) of ``robot`` (the TRUE robot).
+
+    The platform rests under a low pretension: tensions PRETENSION * (1 + e) with e drawn from the seed, so
+    that the resting position falls within ``spread`` m (per axis) of the pose the equal pretension holds.
+    """
+    rng = np.random.default_rng([seed, 7])
+    base = np.full(robot.n, PRETENSION)
+    home = direct_statics(robot, base)
+    if not home.converged[0]:
+        raise SimConfigError(f"robot '{robot.name}': no equilibrium under a pretension of {PRETENSION} N.")
+    for scale in (0.06, 0.03, 0.015, 0.0):
+        tau = base * (1.0 + scale * rng.uniform(-1.0, 1.0, robot.n))
+        res = direct_statics(robot, tau, guess=home.poses)
+        if res.converged[0] and np.abs(res.poses[0, :3] - home.poses[0, :3]).max() <= max(spread, 1e-9):
+            return res.poses[0], tau
+    return home.poses[0], base
+
+
+class SimBackend:
+    """The simulated IRMA4U prototype behind real device protocols (use as a context manager).
+
+    robot: the robot description the controller uses (the model); sim_config: a :class:`SimConfig`, a YAML
+    path or None (nominal); seed: all randomness (power-on pose, sensor noise, frame loss); control_period:
+    s of simulated time per SYNC; initial_pose: (6,) to start from instead of the seeded power-on pose (the
+    platform is let settle there with the brakes on before power-on).
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        sim_config: SimConfig | str | Path | None = None,
+        seed: int = 0,
+        control_period: float = 0.005,
+        initial_pose: np.ndarray | None = None,
+        heartbeat_period: float = 0.1,
+    ):
+        if not 0.0 < control_period <= 0.1:
+            raise SimConfigError(f"SimBackend: control_period = {control_period!r} s must be in (0, 0.1].")
+        self.robot = robot
+        self.config = sim_config if isinstance(sim_config, SimConfig) else load_sim_config(sim_config, robot.n)
+        self.seed = int(seed)
+        self.control_period = float(control_period)
+        self.heartbeat_period = float(heartbeat_period)
+        self.true_robot = self.config.true_robot(robot)
+        self.initial_pose = None if initial_pose is None else np.asarray(initial_pose, float).reshape(6)
+        self.physics: CablePhysics | None = None
+        self.devices: DeviceConfig | None = None
+        self.drives: list[CanDriveEmulator] = []
+        self.encoders: list[CanEncoderEmulator] = []
+        self.loadcells: LoadCellEmulator | None = None
+        self.ahrs: XsensEmulator | None = None
+        self.sync_count = 0
+        self.errors: list[str] = []  # exceptions raised inside the lockstep (the notifier thread)
+        self._lock = threading.RLock()
+        self._history: list[tuple[int, float, tuple, tuple, tuple]] = []
+        self._pending = []
+        self._fds: list[int] = []
+        self._bus: can.BusABC | None = None
+        self._network = None
+        self._started = False
+
+    # -- life cycle ---------------------------------------------------------------------------------------
+    def __enter__(self) -> SimBackend:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def start(self) -> SimBackend:
+        """Power on: physics at rest, CAN nodes booted, serial devices listening."""
+        if self._started:
+            return self
+        n = self.robot.n
+        if n > len(DRIVE_IDS):
+            raise SimConfigError(f"robot '{self.robot.name}': the simulator handles at most {len(DRIVE_IDS)} cables.")
+        seeds = np.random.SeedSequence(self.seed).spawn(2 * n + 3)
+        rngs = [np.random.default_rng(s) for s in seeds]
+        self.physics = self._make_physics()
+        channel = f"cdpr-sim-{os.getpid()}-{next(_channel_ids)}-{id(self):x}"
+        self._bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        self._network = open_network(self._bus)
+        try:
+            for i in range(n):
+                self.drives.append(
+                    CanDriveEmulator(self._network, DRIVE_IDS[i], self.physics, i, rng=rngs[i],
+                                     control_period=self.control_period)
+                )
+            for i in range(n):
+                self.encoders.append(CanEncoderEmulator(self._network, ENCODER_IDS[i], self.physics, i,
+                                                        rng=rngs[n + i]))
+            lc_fd, lc_path = open_pty_pair()
+            self._fds.append(lc_fd)
+            self.loadcells = LoadCellEmulator(
+                lc_fd, rngs[2 * n], channels=n, offsets=self.config.tension_offset(n),
+                gains=self.config.tension_gain(n), rate_hz=1.0 / self.control_period,
+                full_scale=self.robot.sensors.load_cell_full_scale, accuracy=self.robot.sensors.load_cell_accuracy,
+            ).start()
+            ahrs_fd, ahrs_path = open_pty_pair()
+            self._fds.append(ahrs_fd)
+            roll, pitch = self.config.ahrs_mounting()
+            self.ahrs = XsensEmulator(ahrs_fd, rngs[2 * n + 1], mounting_roll=roll, mounting_pitch=pitch).start()
+            self._schedule_faults(rngs[2 * n + 2])
+            self.devices = DeviceConfig(
+                can=CanConfig(interface="virtual", channel=channel, bitrate=1_000_000,
+                              heartbeat_period=self.heartbeat_period),
+                drives=tuple(NodeConfig(f"winch {i + 1}", DRIVE_IDS[i]) for i in range(n)),
+                encoders=tuple(NodeConfig(f"swivel {i + 1}", ENCODER_IDS[i]) for i in range(n)),
+                loadcells=SerialConfig(lc_path, 115200),
+                ahrs=AhrsConfig(ahrs_path, 115200, 100.0),
+                source=f"<simulated prototype, seed {self.seed}>",
+            )
+            self._record()
+            self._network.subscribe(SYNC_COB_ID, self._on_sync)
+        except BaseException:
+            self.close()
+            raise
+        self._started = True
+        return self
+
+    def close(self) -> None:
+        """Stop the lockstep, detach the nodes, release the bus and the ptys (safe to call twice)."""
+        net = self._network
+        if net is not None:
+            try:
+                net.unsubscribe(SYNC_COB_ID, self._on_sync)
+            except (KeyError, ValueError):
+                pass
+        for emu in (self.loadcells, self.ahrs):
+            if emu is not None:
+                emu.close()
+        for node in self.drives + self.encoders:
+            node.close()
+        self.drives, self.encoders = [], []
+        if net is not None:
+            net.disconnect()
+            self._network = None
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+        for fd in self._fds:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self._fds = []
+        self._started = False
+
+    # -- setup helpers ------------------------------------------------------------------------------------
+    def _make_physics(self) -> CablePhysics:
+        robot = self.true_robot
+        params = self.config.physics_params()
+        k = self.config.true_transmission(self.robot)
+        if self.initial_pose is None:
+            pose, tau = power_on_state(robot, self.seed, self.config.initial_spread)
+            return CablePhysics(robot, params, k, pose, tau, brakes=True)
+        tau = tension_model(robot, self.initial_pose, derivatives=False).tau[0]
+        if not np.all(tau > 0):
+            raise SimConfigError(
+                f"SimBackend: initial_pose = {self.initial_pose.tolist()} needs a slack cable (model tensions "
+                f"{np.round(tau, 2).tolist()} N)."
+            )
+        ph = CablePhysics(robot, params, k, self.initial_pose, tau, brakes=True)
+        for _ in range(int(round(5.0 / self.control_period))):  # settle on the locked winches
+            ph.step(self.control_period)
+        ph.rezero()
+        return ph
+
+    def _schedule_faults(self, rng: np.random.Generator) -> None:
+        for f in self.config.faults:
+            if f.kind == "can_frames_lost":
+                for node in self.drives + self.encoders:
+                    node.lose_frames(f.fraction, start=f.t, duration=f.duration)
+            elif f.kind == "drive_fault":
+                self.drives[f.target].schedule_fault(f.t)
+            else:
+                self._pending.append(f)
+        self._pending.sort(key=lambda x: x.t)
+        del rng
+
+    def _inject_due_faults(self) -> None:
+        t = self.physics.time
+        while self._pending and self._pending[0].t <= t + 1e-12:
+            f = self._pending.pop(0)
+            if f.kind == "loadcell_stuck":
+                self.loadcells.stick(f.target)
+            elif f.kind == "loadcell_disconnected":
+                self.loadcells.disconnect()
+            elif f.kind == "ahrs_corrupt":
+                self.ahrs.corrupt(f.n_bytes)
+            elif f.kind == "cable_slack":
+                self.physics.slip_cable(f.target, f.length)
+
+    # -- the lockstep -------------------------------------------------------------------------------------
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        try:
+            self.tick()
+        except Exception as exc:  # the notifier thread must not die silently: keep it for the caller
+            self.errors.append(f"{type(exc).__name__}: {exc}")
+
+    def tick(self) -> int:
+        """One SYNC: targets -> brakes -> faults -> physics step -> TPDOs and serial samples. Returns the count."""
+        with self._lock:
+            ph = self.physics
+            self.sync_count += 1
+            for i, drive in enumerate(self.drives):
+                drive.apply_targets()
+                engaged = drive.state not in (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
+                if engaged != ph.brake(i):
+                    ph.set_brake(i, engaged)
+            self._inject_due_faults()
+            ph.step(self.control_period)
+            for node in self.drives:
+                node.on_sync(self.sync_count)
+            for node in self.encoders:
+                node.on_sync(self.sync_count)
+            t = ph.time
+            tensions = ph.cable_tension()
+            self.loadcells.emit(t, tensions)
+            roll, pitch, yaw = ph.orientation()
+            self.ahrs.emit(t, float(roll), float(pitch), float(yaw))
+            self._record()
+            return self.sync_count
+
+    def _record(self) -> None:
+        ph = self.physics
+        self._history.append((self.sync_count, ph.time, tuple(ph._xg), tuple(ph._q), tuple(ph._tau_cell)))
+
+    # -- truth --------------------------------------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        """Simulated time since power-on, s."""
+        return self.physics.time
+
+    def _sample(self, rec) -> TruthSample:
+        count, t, xg, q, tau = rec
+        rot = np.array(_quat_to_matrix(list(q)))
+        p = np.array(xg) - rot @ self.true_robot.com
+        ang = rotation_to_euler(rot, self.robot.orientation)[0]
+        return TruthSample(count, t, np.r_[p, ang], np.array(tau))
+
+    def truth(self, at_time: float | None = None, sync_count: int | None = None) -> TruthSample:
+        """The true state now, at the last tick at or before sim time ``at_time`` (s), or at SYNC ``sync_count``."""
+        with self._lock:
+            hist = self._history
+            if sync_count is not None:
+                if not 0 <= sync_count <= hist[-1][0]:
+                    raise ValueError(f"sync_count = {sync_count} is not between 0 and {hist[-1][0]}.")
+                return self._sample(hist[sync_count])
+            if at_time is None:
+                return self._sample(hist[-1])
+            if at_time < 0 or not math.isfinite(at_time):
+                raise ValueError(f"at_time = {at_time!r} s is not a time since power-on.")
+            lo, hi = 0, len(hist) - 1
+            while lo < hi:  # last record with time <= at_time
+                mid = (lo + hi + 1) // 2
+                if hist[mid][1] <= at_time + 1e-12:
+                    lo = mid
+                else:
+                    hi = mid - 1
+            return self._sample(hist[lo])
+
+    def truth_history(self) -> tuple[np.ndarray, np.ndarray]:
+        """(times (k,), poses (k, 6)) of every tick so far, for plots and tests."""
+        with self._lock:
+            recs = list(self._history)
+        return np.array([r[1] for r in recs]), np.array([self._sample(r).pose for r in recs])
