@@ -559,6 +559,8 @@ def _read_samples(folder: Path, n: int) -> tuple[list[str], list[list[str]]]:
             stacklevel=3,
         )
         lines.pop()
+    while len(lines) > 1 and lines[-1].strip() == "":
+        lines.pop()  # blank lines at the end (a hand edit): nothing lost
     header = [h.strip() for h in lines[0].rstrip("\r").split(",")]
     seen = set()
     for h in header:

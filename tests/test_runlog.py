@@ -236,6 +236,14 @@ def test_missing_files_and_extra_keys(tmp_path: Path):
     assert read_run(folder).meta["operator"] == "anna"  # unknown keys are kept, not refused
 
 
+def test_windows_line_endings_and_trailing_blank_lines(tmp_path: Path):
+    run = make_run(N=8)
+    write_run(tmp_path / "w", run)
+    f = tmp_path / "w" / "samples.csv"
+    f.write_bytes(f.read_bytes().replace(b"\n", b"\r\n") + b"\r\n\n")
+    assert_same_samples(run, read_run(tmp_path / "w"))
+
+
 def test_phase_and_setpoint_columns_are_optional(tmp_path: Path):
     def drop(lines):
         _drop_column(lines, "phase")
