@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
 
 import can
 import numpy as np
@@ -97,6 +98,7 @@ class CanRig:
                        for i in range(n_drives)]
         self.encoders = [CanEncoderEmulator(self.slave, 11 + i, self.plant, i) for i in range(n_encoders)]
         self.sync_counts: list[int] = []
+        self._stepped = threading.Condition()
         self.slave.subscribe(0x80, self._on_sync)
         self.sync = SyncProducer(self.master)
         self.drivers: list = []
@@ -109,15 +111,21 @@ class CanRig:
             d.apply_targets()
         self.plant.step(DT)
         count = data[0] if data else -1
-        self.sync_counts.append(count)
         for node in self.drives + self.encoders:
             node.on_sync(count)
+        with self._stepped:
+            self.sync_counts.append(count)
+            self._stepped.notify_all()
 
     def tick(self, wait: bool = True) -> int:
+        """One SYNC; wait for every driver's reading of it, or (wait=False) only for the emulated side."""
         count = self.sync.send_sync()
         if wait:
             for drv in self.drivers:
                 drv.wait_for_sync(count, 2.0)
+        else:
+            with self._stepped:
+                assert self._stepped.wait_for(lambda: len(self.sync_counts) >= count, 2.0)
         return count
 
     def ticks(self, n: int) -> None:
