@@ -12,6 +12,7 @@ lossless and deterministic: the same values give the same bytes.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -96,6 +97,12 @@ class Run:
     @property
     def source(self) -> str:
         return str(self.meta.get("source", ""))
+
+    def subset(self, index: slice | np.ndarray) -> Run:
+        """A copy holding only some samples (a slice, indices or a boolean mask); metadata shared, path None."""
+        names = ("t", *CABLE_GROUPS, *SCALAR_COLUMNS, "phase", "setpoint")
+        picked = {name: getattr(self, name)[index] for name in names}
+        return dataclasses.replace(self, path=None, extra={k: v[index] for k, v in self.extra.items()}, **picked)
 
     def columns(self) -> dict[str, np.ndarray]:
         """All columns of samples.csv by name, standard ones first, then the extra ones."""

@@ -93,6 +93,18 @@ def test_any_finite_float_survives_the_text_format(tmp_path_factory, values):
     assert back.tau.tolist() == [values] and back.dyaw.tolist() == [values[3]]
 
 
+def test_subset_keeps_columns_aligned(tmp_path: Path):
+    run = make_run(N=30)
+    part = run.subset(slice(10, 20))
+    assert len(part) == 10 and part.path is None and part.setpoints is run.setpoints
+    np.testing.assert_array_equal(part.dl, run.dl[10:20])
+    np.testing.assert_array_equal(part.extra["motor_position_1"], run.extra["motor_position_1"][10:20])
+    holds = run.subset(run.phase == "hold")
+    assert len(holds) == 15 and set(holds.setpoint) == {0}
+    write_run(tmp_path / "part", part)
+    assert_same_samples(part, read_run(tmp_path / "part"))
+
+
 def test_reelax8_run_with_full_robot_mapping(tmp_path: Path):
     spec = load_robot("reelax8").to_dict()
     spec["name"] = "my_reelax"  # not a built-in name: stored as a mapping
