@@ -30,7 +30,6 @@ import can
 import numpy as np
 
 from calib.equilibrium import direct_statics
-from calib.kinematics import rotation_to_euler
 from calib.robot import Robot
 from calib.statics import tension_model
 from drivers.can_bus import SYNC_COB_ID, open_network
@@ -39,7 +38,7 @@ from sim_backend.can_drive_emulator import OPERATION_ENABLED, QUICK_STOP_ACTIVE,
 from sim_backend.can_encoder_emulator import CanEncoderEmulator
 from sim_backend.config import SimConfig, SimConfigError, load_sim_config
 from sim_backend.loadcell_emulator import LoadCellEmulator
-from sim_backend.physics import CablePhysics, _quat_to_matrix
+from sim_backend.physics import CablePhysics, pose_of
 from sim_backend.pty import open_pty_pair
 from sim_backend.xsens_emulator import XsensEmulator
 
@@ -279,8 +278,8 @@ class SimBackend:
             t = ph.time
             tensions = ph.cable_tension()
             self.loadcells.emit(t, tensions)
-            roll, pitch, yaw = ph.orientation()
-            self.ahrs.emit(t, float(roll), float(pitch), float(yaw))
+            roll, pitch, yaw = ph.euler()
+            self.ahrs.emit(t, roll, pitch, yaw)
             self._record()
             return self.sync_count
 
@@ -296,10 +295,8 @@ class SimBackend:
 
     def _sample(self, rec) -> TruthSample:
         count, t, xg, q, tau = rec
-        rot = np.array(_quat_to_matrix(list(q)))
-        p = np.array(xg) - rot @ self.true_robot.com
-        ang = rotation_to_euler(rot, self.robot.orientation)[0]
-        return TruthSample(count, t, np.r_[p, ang], np.array(tau))
+        pose = pose_of(xg, q, self.true_robot.com.tolist(), self.robot.orientation)
+        return TruthSample(count, t, np.array(pose), np.array(tau))
 
     def truth(self, at_time: float | None = None, sync_count: int | None = None) -> TruthSample:
         """The true state now, at the last tick at or before sim time ``at_time`` (s), or at SYNC ``sync_count``."""

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.kinematics import rotation, rotation_to_euler
+from calib.kinematics import rotation
 from calib.robot import Robot
 
 
@@ -199,9 +199,13 @@ class CablePhysics:
         return np.array([g[4] for g in self._geo])
 
     def orientation(self) -> np.ndarray:
-        return self.pose()[3:]
+        return np.array(self.euler())
 
     # --- beyond the protocol --------------------------------------------------------------------------
+    def euler(self) -> tuple[float, float, float]:
+        """Roll, pitch, yaw (rad) in the robot's convention, as plain floats."""
+        return _euler(_quat_to_matrix(self._q), self.robot.orientation)
+
     def set_brake(self, i: int, engaged: bool) -> None:
         """Engage (motor shaft locked) or release the holding brake of winch i."""
         self._brake[i] = bool(engaged)
@@ -227,10 +231,7 @@ class CablePhysics:
 
     def pose(self) -> np.ndarray:
         """The true pose (6,) [x, y, z, roll, pitch, yaw] of the platform frame, m and rad."""
-        rot = self.rotation_matrix()
-        p = np.array(self._xg) - rot @ np.array(self._com)
-        ang = rotation_to_euler(rot, self.robot.orientation)[0]
-        return np.r_[p, ang]
+        return np.array(pose_of(self._xg, self._q, self._com, self.robot.orientation))
 
     def cable_lengths(self) -> np.ndarray:
         """(n,) true geometric cable lengths from drum exit over the pulley to the anchor (with sag), m."""
@@ -477,6 +478,28 @@ def _quat_to_matrix(q: list[float]) -> list[list[float]]:
         [2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)],
         [2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)],
     ]
+
+
+def _euler(r: list[list[float]], convention: str) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad) of a rotation matrix (as calib.kinematics.rotation_to_euler), plain floats."""
+    if convention == "xyz":
+        return (
+            math.atan2(-r[1][2], r[2][2]),
+            math.asin(max(-1.0, min(1.0, r[0][2]))),
+            math.atan2(-r[0][1], r[0][0]),
+        )
+    return (
+        math.atan2(r[2][1], r[2][2]),
+        math.asin(max(-1.0, min(1.0, -r[2][0]))),
+        math.atan2(r[1][0], r[0][0]),
+    )
+
+
+def pose_of(xg, q, com, convention: str) -> list[float]:
+    """Pose [x, y, z, roll, pitch, yaw] of the platform frame from G's position, the quaternion and com."""
+    r = _quat_to_matrix(q)
+    p = [xg[a] - (r[a][0] * com[0] + r[a][1] * com[1] + r[a][2] * com[2]) for a in range(3)]
+    return p + list(_euler(r, convention))
 
 
 def _quat_from_matrix(r: np.ndarray) -> list[float]:
