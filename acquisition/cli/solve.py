@@ -46,6 +46,23 @@ def _parse_reference(text: str | None) -> np.ndarray | None:
     return np.array(vals)
 
 
+def _effects_model(robot, effects):
+    """The measurement model with the effects named by ``--effects`` (an option the effect library adds to
+    this command), or None for the rigid model."""
+    if not effects:
+        return None
+    names = [e.strip() for e in effects.split(",")] if isinstance(effects, str) else [str(e) for e in effects]
+    names = [e for e in names if e]
+    if not names:
+        return None
+    from calib.effects import EffectLoadError, EffectModel, make_effects
+
+    try:
+        return EffectModel(robot, make_effects(names))
+    except EffectLoadError as exc:
+        raise UsageError(str(exc)) from exc
+
+
 def _solve(args) -> int:
     reference = _parse_reference(args.reference)
     if args.stride < 1:
@@ -54,14 +71,11 @@ def _solve(args) -> int:
         run = read_run(args.run)
     except RunFormatError as exc:
         raise UsageError(str(exc)) from exc
-    kwargs = {}
-    effects = getattr(args, "effects", None)  # added by the effects library (issue 7) when present
-    if effects:
-        raise UsageError(f"--effects {effects}: no effect library is installed in this version.")
+    model = _effects_model(run.robot, getattr(args, "effects", None))
     try:
         sol = solve(
             run.robot, run, method=args.method, noise=args.noise, stride=args.stride,
-            reference_sample=args.reference_sample, reference_pose=reference, **kwargs,
+            reference_sample=args.reference_sample, reference_pose=reference, model=model,
         )
     except SelfCalInputError as exc:
         raise UsageError(f"{args.run}: {exc}") from exc

@@ -320,6 +320,8 @@ def solve_run(
             "swivel": absolute["swivel"] - ref["dsigma"],
             "yaw": float(absolute["yaw"] - ref["ori"][2]),
         }
+    report = getattr(model, "report", None)
+    effects = report(res.theta) if callable(report) else {}
     comparison = None if reference_pose is None else compare_pose(res.theta[:6], reference_pose, robot.orientation)
     return Solution(
         method=method,
@@ -348,5 +350,6 @@ def solve_run(
             "guess_s": t_guess - t_rows,
             "lm_s": t_end - t_guess,
         },
+        effects=effects,
         reference=comparison,
     )
