@@ -219,3 +219,51 @@ def test_bad_runs_end_with_one_clear_sentence(robot):
     moving.dl = np.linspace(0, 0.5, 60)[:, None] * np.ones(4)
     with pytest.raises(SelfCalFailure, match=r"0 equilibrium window\(s\) found"):
         solve(robot, moving)
+
+
+def _synthetic_run(robot, hold=20, move=30):
+    """A model-exact run: six equilibria held `hold` samples each, joined by smooth `move`-sample motions;
+    relative channels zeroed at an arbitrary power-on pose (offsets below)."""
+    eq = np.array([
+        [0.3, 0.3, 1.1, 0.06, -0.07, 0.004], [-0.3, 0.3, 1.1, 0.06, 0.07, -0.004],
+        [-0.3, -0.3, 0.8, -0.1, 0.1, 0.006], [0.3, -0.3, 0.8, -0.1, -0.1, -0.006],
+        [0.0, 0.2, 0.7, 0.12, 0.0, 0.01], [0.1, -0.1, 1.0, -0.03, -0.02, 0.0],
+    ])
+    seg = []
+    for a, b in zip(eq[:-1], eq[1:], strict=True):
+        seg.append(np.tile(a, (hold, 1)))
+        s = 0.5 - 0.5 * np.cos(np.linspace(0, np.pi, move + 2)[1:-1])
+        seg.append(a + s[:, None] * (b - a))
+    seg.append(np.tile(eq[-1], (hold, 1)))
+    poses = np.concatenate(seg)
+    kin = inverse_kinematics(robot, poses)
+    tau = tension_model(robot, poses, derivatives=False).tau
+    N = len(poses)
+    offsets = np.array([1.0, 1.1, 0.9, 1.2]), np.array([0.5, -0.5, 0.5, -0.5]), 0.2
+    run = SimpleNamespace(
+        t=np.arange(N) * 0.1, tau=tau, dl=kin.lengths - offsets[0], dsigma=kin.swivel - offsets[1],
+        roll=poses[:, 3], pitch=poses[:, 4], dyaw=poses[:, 5] - offsets[2], ideal_poses=None, setpoints=None,
+    )
+    return run, poses, offsets
+
+
+@pytest.mark.parametrize("method", ["tlse", "lse", "hybrid"])
+def test_synthetic_run_exact_recovery(robot, method):
+    run, poses, (l_off, s_off, y_off) = _synthetic_run(robot)
+    sol = solve(robot, run, method=method, stride=3)
+    assert len(sol.windows) == 6
+    w0 = sol.windows[0]
+    assert w0.first == 0 and 17 <= w0.last <= 19 and sol.reference_sample == w0.middle
+    assert np.abs(sol.initial_pose - poses[0]).max() < 1e-8
+    assert np.allclose(sol.sensor_offsets["length"], l_off, atol=1e-8)
+    assert np.allclose(sol.sensor_offsets["swivel"], s_off, atol=1e-8)
+    assert sol.sensor_offsets["yaw"] == pytest.approx(y_off, abs=1e-8)
+    assert sol.chi2 < 1e-10
+    assert ("tension" in sol.residuals) == (method != "lse")
+
+
+def test_lse_without_windows_uses_the_chosen_reference(robot):
+    run, poses, _ = _synthetic_run(robot, hold=0, move=60)
+    sol = solve(robot, run, method="lse", reference_sample=100)
+    assert sol.windows == [] and sol.reference_sample == 100
+    assert np.abs(sol.initial_pose - poses[100]).max() < 1e-8
