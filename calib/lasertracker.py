@@ -185,9 +185,13 @@ def read_measurements_csv(path: str | Path, n_cables: int) -> tuple[np.ndarray, 
             except ValueError:
                 v = math.nan
             if not math.isfinite(v):
-                raise MeasurementFileError(f"{path}: line {lineno}, field '{name}' = {field!r} is not a finite number.")
+                raise MeasurementFileError(
+                    f"{path}: line {lineno}, field '{name}' = {field!r} is not a finite number."
+                )
             if name.startswith("l_") and v <= 0:
-                raise MeasurementFileError(f"{path}: line {lineno}, field '{name}' = {field!r} must be a positive length.")
+                raise MeasurementFileError(
+                    f"{path}: line {lineno}, field '{name}' = {field!r} must be a positive length."
+                )
             values.append(v)
         rows.append(values)
     if not rows:

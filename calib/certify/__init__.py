@@ -182,7 +182,8 @@ def certify_anchors(
     lengths = np.atleast_2d(np.asarray(lengths, float))
     if poses.shape[1] != 6 or lengths.shape != (poses.shape[0], robot.n):
         raise ValueError(
-            f"measurements have shapes {poses.shape} and {lengths.shape}; expected (k, 6) poses and (k, {robot.n}) lengths."
+            f"measurements have shapes {poses.shape} and {lengths.shape}; "
+            f"expected (k, 6) poses and (k, {robot.n}) lengths."
         )
     t_start = time.perf_counter()
     n = len(poses)

@@ -6,12 +6,13 @@ thick sphere |a - c_k|^2 in [r_lo_k, r_hi_k]^2. Careful: codac 2's CtcQInter / q
 contractors allowed to *fail*, not (as IBEX and the paper) the number that must hold; ``n_fail`` below is
 always that codac count.
 
-The paving bisects the contracted box and keeps the hull of the leaves. Two pruning rules keep it cheap
-without changing the hull: a box inside the hull of the leaves found so far cannot enlarge it, and each box
-first classifies the measurements by the exact range of |a - c_k| over the box (floating point with a
-margin far above rounding): spheres that contain the whole box or miss it entirely are counted, and only
-the undecided ones are contracted. A box where the undecided ones are fewer than the failures still
-allowed is a solution box as a whole (every point satisfies enough measurements).
+The paving then looks for the six faces of the hull of the solution set: for each axis and side, a
+best-first search pops the box with the lowest (highest) bound, contracts it and bisects it, until a box of
+the paving resolution, or a box whose every point is a solution, reaches the top of the queue; every
+solution lies in a queued box, so the popped bound is a guaranteed outer bound and tightens the box for the
+next searches. Each box first classifies the measurements by the exact range of |a - c_k| over the box
+(floating point with a margin far above rounding): spheres that contain the whole box or miss it entirely
+are counted, and only the undecided ones are contracted, with the number of failures still allowed.
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ _CLASSIFY_MARGIN = 1e-9  # m, far above the rounding error of a distance of a fe
 class CableSolution:
     """The outcome of one cable: boxes as (3, 2) arrays [[lo, hi], ...] in m, or None when empty.
 
-    contracted: FixP(QInter) on the initial box alone (the paper's programme); box: the hull of the paving;
-    outliers: measurements whose thick sphere misses ``box`` (0-based); boxes: boxes the paving visited;
+    contracted: FixP(QInter) on the initial box alone (the paper's programme); box: the enclosure after the
+    paving; outliers: measurements whose thick sphere misses ``box`` (0-based); boxes: boxes contracted;
     exhausted: the box budget ran out (the hull is still guaranteed, only less tight).
     """
 
