@@ -5,8 +5,8 @@ unique name carrying the emulated CiA 402 drives and CiA 406 encoders (canopen L
 the load-cell amplifier and the AHRS, and one SYNC subscriber that runs the lockstep. For each SYNC the
 master sends:
 
-1. every drive applies the last RPDO targets (``apply_targets``), the winch brakes follow the drive states
-   (released in operation enabled and quick stop, engaged otherwise, as a servo's holding brake);
+1. every drive applies the last RPDO targets (``apply_targets``); the drives engage the winch brakes
+   (``CablePhysics.set_brake``) in every state but operation enabled, as a servo's holding brake does;
 2. the faults due are injected, the physics advances by one control period;
 3. every node transmits its TPDOs (``on_sync``), the load-cell amplifier writes the tick's line and the AHRS
    its sample.
@@ -34,7 +34,7 @@ from calib.robot import Robot
 from calib.statics import tension_model
 from drivers.can_bus import SYNC_COB_ID, open_network
 from drivers.config import AhrsConfig, CanConfig, DeviceConfig, NodeConfig, SerialConfig
-from sim_backend.can_drive_emulator import OPERATION_ENABLED, QUICK_STOP_ACTIVE, CanDriveEmulator
+from sim_backend.can_drive_emulator import CanDriveEmulator
 from sim_backend.can_encoder_emulator import CanEncoderEmulator
 from sim_backend.config import SimConfig, SimConfigError, load_sim_config
 from sim_backend.loadcell_emulator import LoadCellEmulator
@@ -260,15 +260,12 @@ class SimBackend:
             self.errors.append(f"{type(exc).__name__}: {exc}")
 
     def tick(self) -> int:
-        """One SYNC: targets -> brakes -> faults -> physics step -> TPDOs and serial samples. Returns the count."""
+        """One SYNC: targets -> faults -> physics step -> TPDOs and serial samples. Returns the SYNC count."""
         with self._lock:
             ph = self.physics
             self.sync_count += 1
-            for i, drive in enumerate(self.drives):
-                drive.apply_targets()
-                engaged = drive.state not in (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
-                if engaged != ph.brake(i):
-                    ph.set_brake(i, engaged)
+            for drive in self.drives:
+                drive.apply_targets()  # the drive also engages or releases its winch's brake with its state
             self._inject_due_faults()
             ph.step(self.control_period)
             for node in self.drives:
