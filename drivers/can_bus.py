@@ -10,6 +10,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import can
 import canopen
@@ -128,3 +129,75 @@ class HeartbeatMonitor:
 
 
 NMT_STATE_NAMES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
+
+
+@dataclass
+class CanDevices:
+    """The CANopen side of a device set: one network, the SYNC producer, the drive and encoder drivers
+    (cable order). Close it to stop the nodes and release the bus."""
+
+    network: canopen.Network
+    sync: SyncProducer
+    drives: list = field(default_factory=list)  # CanopenWinchDrive
+    encoders: list = field(default_factory=list)  # CanopenSwivelEncoder
+
+    def open(self) -> None:
+        """Configure and start every node (DeviceError names the first that fails)."""
+        for drv in self.drives + self.encoders:
+            drv.open()
+
+    def send_sync(self) -> int:
+        return self.sync.send_sync()
+
+    def wait_for_sync(self, count: int, timeout: float = 1.0) -> tuple[list, list]:
+        """Readings of every drive and encoder answering SYNC ``count`` (DeviceError on timeout)."""
+        return ([d.wait_for_sync(count, timeout) for d in self.drives],
+                [e.wait_for_sync(count, timeout) for e in self.encoders])
+
+    def faults(self) -> dict[str, str | None]:
+        return {d.name: d.fault() for d in self.drives + self.encoders}
+
+    def close(self) -> None:
+        for drv in self.drives + self.encoders:
+            drv.close()
+        if self.network.bus is not None:
+            self.network.disconnect()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def open_can_devices(config, length_per_motor_rev, swivel_counts_per_rev: int = 65536,
+                     clock: Callable[[], float] = time.monotonic, open_nodes: bool = True,
+                     bus: can.BusABC | None = None) -> CanDevices:
+    """Open the bus of a :class:`drivers.config.DeviceConfig` and create its drivers.
+
+    ``length_per_motor_rev``: m of cable per motor revolution per drive (robot.sensors); ``clock``: time
+    source of timestamps and heartbeat checks (the simulated clock in simulation). With ``open_nodes`` the
+    nodes are configured and started at once.
+    """
+    from drivers.canopen_drive import CanopenWinchDrive
+    from drivers.swivel_encoder import CanopenSwivelEncoder
+
+    if len(length_per_motor_rev) < len(config.drives):
+        raise DeviceError(f"{config.source}: {len(config.drives)} drives but only {len(length_per_motor_rev)} "
+                          f"transmission ratios in the robot description")
+    network = open_network(bus if bus is not None else open_bus_from_config(config.can))
+    sync = SyncProducer(network, config.can.sync_overflow)
+    hb = config.can.heartbeat_period
+    devices = CanDevices(network, sync)
+    devices.drives = [CanopenWinchDrive(network, n.node_id, sync, float(length_per_motor_rev[i]), name=n.name,
+                                        clock=clock, heartbeat_period=hb) for i, n in enumerate(config.drives)]
+    devices.encoders = [CanopenSwivelEncoder(network, n.node_id, sync, name=n.name, clock=clock,
+                                             heartbeat_period=hb, counts_per_rev=swivel_counts_per_rev)
+                        for n in config.encoders]
+    if open_nodes:
+        try:
+            devices.open()
+        except Exception:
+            devices.close()
+            raise
+    return devices

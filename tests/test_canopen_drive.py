@@ -90,7 +90,7 @@ class CanRig:
     """Master and emulated nodes on one virtual channel, stepped in lockstep by SYNC."""
 
     def __init__(self, n_drives: int = 1, n_encoders: int = 0, plant: WinchPlant | None = None, **plant_kw):
-        channel = f"cdpr-test-{next(_channels)}-{id(self)}"
+        self.channel = channel = f"cdpr-test-{next(_channels)}-{id(self)}"
         self.plant = plant or WinchPlant(max(n_drives, n_encoders, 1), **plant_kw)
         self.slave = open_network(can.Bus(interface="virtual", channel=channel))
         self.master = open_network(can.Bus(interface="virtual", channel=channel))
