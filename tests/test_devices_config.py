@@ -162,3 +162,14 @@ def test_open_can_devices_streams_in_lockstep():
             assert [d.length_per_motor_rev for d in devices.drives] == list(robot.sensors.length_per_motor_rev)
     finally:
         rig.close()
+
+
+def test_devices_check_on_the_simulated_prototype(capsys):
+    pytest.importorskip("sim_backend.backend", reason="the simulator backend is not in this checkout")
+    status = main(["devices", "check", "--backend", "sim", "--json", "--syncs", "30"])
+    out = json.loads(capsys.readouterr().out)
+    assert status == 0, out
+    kinds = [d["kind"] for d in out]
+    assert kinds == ["winch drive"] * 4 + ["swivel encoder"] * 4 + ["load cells", "ahrs"]
+    assert all(d["ok"] for d in out)
+    assert all("SYNC 30" in d["state"] for d in out[:8])

@@ -41,36 +41,46 @@ def register(devsub) -> None:
 
 def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 0.005, clock=None,
                   lockstep: bool = False, bus=None) -> list[DeviceCheck]:
-    """Open and check every device of ``config``; ``lockstep``: the SYNC advances a simulator, so wait
-    for each SYNC's PDOs instead of pacing on wall time (the clock is then SYNC count x period)."""
+    """Open every device of ``config``, run ``syncs`` SYNC cycles, and report each device's state.
+
+    ``lockstep``: each SYNC advances a simulator, so wait for the PDOs of each SYNC instead of pacing on
+    wall time (the CAN drivers' clock is then SYNC count x period, the simulated time)."""
     from drivers.can_bus import open_can_devices
 
-    results: list[DeviceCheck] = []
-    devices = None
     try:
         devices = open_can_devices(config, robot.sensors.length_per_motor_rev or (1.0,) * len(config.drives),
                                    robot.sensors.swivel_counts_per_rev, clock=time.monotonic,
                                    open_nodes=False, bus=bus)
     except DeviceError as exc:
         raise OperationError(str(exc).rstrip(".") + ".") from exc
+    nodes = devices.drives + devices.encoders
+    serial = _serial_devices(config)
+    errors: dict[str, str] = {}
     try:
         if clock is None and lockstep:
             sync = devices.sync
 
             def clock():
                 return sync.count * period
-        for drv in devices.drives + devices.encoders:
+        for drv in nodes:
             if clock is not None:
                 drv.clock = clock
         opened = []
-        errors: dict[str, str] = {}
-        for drv in devices.drives + devices.encoders:
+        for drv in nodes:
             try:
                 drv.open()
                 opened.append(drv)
             except DeviceError as exc:
                 errors[drv.name] = str(exc)
-        for _ in range(max(syncs, 0)):
+        for name, _, _, dev in serial:
+            if isinstance(dev, str):
+                errors[name] = dev
+                continue
+            try:
+                dev.open()
+            except DeviceError as exc:
+                errors[name] = str(exc)
+        for _ in range(syncs):
             count = devices.send_sync()
             if lockstep:
                 for drv in opened:
@@ -80,59 +90,55 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
                         pass
             else:
                 time.sleep(period)
-        time.sleep(0.01 if lockstep else 2 * period)
+        time.sleep(0.02 if lockstep else 2 * period)
+        results = []
         for kind, group in (("winch drive", devices.drives), ("swivel encoder", devices.encoders)):
             for drv in group:
+                where = f"CAN node {drv.node_id}"
                 if drv.name in errors:
-                    results.append(DeviceCheck(drv.name, kind, f"CAN node {drv.node_id}", False, errors[drv.name]))
+                    results.append(DeviceCheck(drv.name, kind, where, False, errors[drv.name]))
                     continue
                 fault = drv.fault()
                 if fault is None and drv.latest() is None:
-                    fault = f"{drv.name} (CAN node {drv.node_id}) sent no PDO in {syncs} SYNC cycles"
+                    fault = f"{drv.name} ({where}) sent no PDO in {syncs} SYNC cycles"
                 if fault is None and drv.heartbeat is not None and drv.heartbeat.count == 0 \
                         and drv.heartbeat_period > 0 and syncs * period >= 2 * drv.heartbeat_period:
-                    fault = f"{drv.name} (CAN node {drv.node_id}) sent no heartbeat"
-                results.append(DeviceCheck(drv.name, kind, f"CAN node {drv.node_id}", fault is None,
+                    fault = f"{drv.name} ({where}) sent no heartbeat"
+                results.append(DeviceCheck(drv.name, kind, where, fault is None,
                                            drv.status() if fault is None else fault))
+        for name, kind, port, dev in serial:
+            if name in errors:
+                results.append(DeviceCheck(name, kind, port, False, errors[name]))
+                continue
+            fault = dev.fault()
+            if fault is None and dev.latest() is None:
+                fault = f"{kind} on {port}: no sample during the check"
+            results.append(DeviceCheck(name, kind, port, fault is None, dev.status() if fault is None else fault))
+        return results
     finally:
         devices.close()
-    results += _check_serial(config)
-    return results
+        for _, _, _, dev in serial:
+            if not isinstance(dev, str):
+                dev.close()
 
 
-def _check_serial(config: DeviceConfig) -> list[DeviceCheck]:
-    out = []
+def _serial_devices(config: DeviceConfig) -> list[tuple[str, str, str, object]]:
+    """(name, kind, port, driver or an error sentence) for the serial devices of the set."""
+    out: list[tuple[str, str, str, object]] = []
     if config.loadcells is not None:
         from drivers.loadcell import LoadCellConfig, LoadCellDriver
 
         dev = LoadCellDriver(LoadCellConfig(port=config.loadcells.port, baud=config.loadcells.baud))
-        out.append(_serial_one(dev, "loadcells", "load cells", config.loadcells.port))
+        out.append(("loadcells", "load cells", config.loadcells.port, dev))
     if config.ahrs is not None:
         from drivers.xsens import XsensConfig, XsensMti
 
         try:
             dev = XsensMti(XsensConfig(port=config.ahrs.port, baud=config.ahrs.baud, rate_hz=int(config.ahrs.rate)))
         except ValueError as exc:
-            return out + [DeviceCheck("ahrs", "ahrs", config.ahrs.port, False, str(exc))]
-        out.append(_serial_one(dev, "ahrs", "ahrs", config.ahrs.port))
+            dev = f"{config.source}: field 'ahrs.rate' = {config.ahrs.rate}: {exc}"
+        out.append(("ahrs", "ahrs", config.ahrs.port, dev))
     return out
-
-
-def _serial_one(dev, name: str, kind: str, port: str) -> DeviceCheck:
-    try:
-        dev.open()
-    except DeviceError as exc:
-        return DeviceCheck(name, kind, port, False, str(exc))
-    try:
-        deadline = time.monotonic() + 1.0
-        while dev.latest() is None and time.monotonic() < deadline:
-            time.sleep(0.01)
-        fault = dev.fault()
-        if fault is None and dev.latest() is None:
-            fault = f"{kind} on {port}: no sample within 1 s"
-        return DeviceCheck(name, kind, port, fault is None, dev.status() if fault is None else fault)
-    finally:
-        dev.close()
 
 
 def _sim_check(args, robot) -> list[DeviceCheck]:
