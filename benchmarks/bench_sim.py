@@ -1,0 +1,182 @@
+"""Speed of the simulated prototype: physics step, backend tick, lockstep through the real drivers, startup.
+
+    python benchmarks/bench_sim.py                 # physics, backend tick and driver lockstep at 200 and 500 Hz
+    python benchmarks/bench_sim.py --startup 2     # plus the full 'cdpr startup --backend sim --grid 2'
+
+The target (issue 4): the whole 8-pose startup routine at >= 20x real time on 2 cores, device traffic
+included. Reports wall microseconds per control tick, where they go, and the real-time factor
+(simulated seconds per wall second).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calib.equilibrium import direct_statics
+from calib.robot import load_robot
+from sim_backend.backend import SimBackend
+from sim_backend.physics import CablePhysics, PhysicsParams, transmission_of
+
+
+def bench_physics(robot, steps: int = 20000) -> float:
+    """Wall µs per physics step (5 ms) of the platform swinging under constant torques."""
+    tau = np.full(robot.n, 100.0)
+    pose = direct_statics(robot, tau).poses[0]
+    k = transmission_of(robot)
+    ph = CablePhysics(robot, PhysicsParams(), k, pose, tau, brakes=False)
+    ph._v = [0.05, 0.02, 0.0]
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        ph.step(0.005)
+    return (time.perf_counter() - t0) / steps * 1e6
+
+
+def _wrap(obj, name: str, acc: dict, key: str) -> None:
+    orig = getattr(obj, name)
+
+    def timed(*a, **kw):
+        t = time.perf_counter()
+        try:
+            return orig(*a, **kw)
+        finally:
+            acc[key] += time.perf_counter() - t
+
+    setattr(obj, name, timed)
+
+
+def _instrument(sim: SimBackend) -> dict:
+    acc = {"tick": 0.0, "physics": 0.0, "apply_targets": 0.0, "can_tpdos": 0.0, "loadcell_emit": 0.0,
+           "ahrs_emit": 0.0}
+    _wrap(sim.physics, "step", acc, "physics")
+    for d in sim.drives:
+        _wrap(d, "apply_targets", acc, "apply_targets")
+    for node in sim.drives + sim.encoders:
+        _wrap(node, "on_sync", acc, "can_tpdos")
+    _wrap(sim.loadcells, "emit", acc, "loadcell_emit")
+    _wrap(sim.ahrs, "emit", acc, "ahrs_emit")
+    _wrap(sim, "tick", acc, "tick")
+    return acc
+
+
+def bench_backend_tick(robot, period: float, ticks: int = 2000) -> tuple[float, dict]:
+    """Backend ticks called directly (no master, no drivers): wall µs per tick and its split."""
+    with SimBackend(robot, None, seed=1, control_period=period) as sim:
+        acc = _instrument(sim)
+        t0 = time.perf_counter()
+        for _ in range(ticks):
+            sim.tick()
+        wall = time.perf_counter() - t0
+    return wall / ticks * 1e6, {k: v / ticks * 1e6 for k, v in acc.items()}
+
+
+def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict]:
+    """A simple force loop through the real drivers in lockstep: torque targets -> SYNC -> wait for every
+    node's TPDOs and the load-cell line of that tick. Wall µs per tick and the backend's share."""
+    from drivers.can_bus import SyncProducer, open_bus_from_config, open_network
+    from drivers.canopen_drive import CanopenWinchDrive
+    from drivers.loadcell import LoadCellConfig, LoadCellDriver
+    from drivers.swivel_encoder import CanopenSwivelEncoder
+    from drivers.xsens import XsensConfig, XsensMti
+
+    lpr = np.asarray(robot.sensors.length_per_motor_rev)
+    radius = np.abs(lpr) / (2 * math.pi)
+    with SimBackend(robot, None, seed=1, control_period=period) as sim:
+        cfg = sim.devices
+        bus = open_bus_from_config(cfg.can)
+        net = open_network(bus)
+        sync = SyncProducer(net)
+        clock = lambda: sim.time  # noqa: E731
+        drives = [CanopenWinchDrive(net, n.node_id, sync, lpr[i], clock=clock) for i, n in enumerate(cfg.drives)]
+        encs = [CanopenSwivelEncoder(net, n.node_id, sync, clock=clock) for n in cfg.encoders]
+        cells = LoadCellDriver(LoadCellConfig(cfg.loadcells.port, rate_hz=1 / period, stale_periods=1e9))
+        ahrs = XsensMti(XsensConfig(cfg.ahrs.port, stale_periods=1e9))
+        devs = [*drives, *encs, cells, ahrs]
+        for d in devs:
+            d.open()
+        try:
+            ref = sim.truth().tensions
+            for d, r, tau in zip(drives, radius, ref, strict=True):
+                d.set_torque(tau * r)
+            for d in drives:
+                d.enable()
+            acc = _instrument(sim)
+            integ = np.zeros(robot.n)
+            target = np.full(robot.n, 100.0)
+            t0 = time.perf_counter()
+            lc = None
+            for s in range(ticks):
+                a = min(1.0, s * period / 3.0)
+                tref = ref + (target - ref) * a
+                meas = tref if lc is None else lc.tau
+                err = tref - meas
+                integ += err * period
+                u = radius * (tref + 0.5 * err + 10.0 * integ)
+                for d, ui in zip(drives, u, strict=True):
+                    d.set_torque(float(ui))
+                c = sync.send_sync()
+                for d in drives:
+                    d.wait_for_sync(c, 2.0)
+                for e in encs:
+                    e.wait_for_sync(c, 2.0)
+                lc = cells.wait_for(c - 1, 2.0)
+            wall = time.perf_counter() - t0
+        finally:
+            for d in devs:
+                d.close()
+            net.disconnect()
+        if sim.errors:
+            raise RuntimeError(sim.errors[0])
+    return wall / ticks * 1e6, {k: v / ticks * 1e6 for k, v in acc.items()}
+
+
+def bench_startup(grid: int) -> tuple[float, float]:
+    """The operator's routine: 'cdpr startup --backend sim --grid N'; (wall s, simulated s)."""
+    from acquisition.cli import main
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "run"
+        t0 = time.perf_counter()
+        status = main(["startup", "--backend", "sim", "--grid", str(grid), "--out", str(out), "--json"])
+        wall = time.perf_counter() - t0
+        from acquisition.runlog import read_run
+
+        run = read_run(out)
+        sim_s = float(np.asarray(run.t)[-1] - np.asarray(run.t)[0]) if len(run.t) else 0.0
+    if status:
+        raise RuntimeError(f"cdpr startup exited with status {status}")
+    return wall, sim_s
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ticks", type=int, default=2000)
+    ap.add_argument("--startup", type=int, default=0, metavar="GRID", help="also time the full startup")
+    args = ap.parse_args(argv)
+    robot = load_robot("irma4u")
+    print(f"physics step (5 ms, substeps 1): {bench_physics(robot):.1f} us")
+    for rate in (200, 500):
+        period = 1.0 / rate
+        us, split = bench_backend_tick(robot, period, args.ticks)
+        parts = ", ".join(f"{k} {v:.0f}" for k, v in split.items() if k != "tick")
+        print(f"{rate} Hz backend tick alone: {us:.0f} us/tick ({parts}) -> {period * 1e6 / us:.1f}x real time")
+        us, split = bench_lockstep(robot, period, args.ticks)
+        parts = ", ".join(f"{k} {v:.0f}" for k, v in split.items())
+        print(f"{rate} Hz lockstep through the real drivers: {us:.0f} us/tick -> {period * 1e6 / us:.1f}x real "
+              f"time; in the backend's SYNC handler: {parts}; master side, bus and thread hand-offs: "
+              f"{us - split['tick']:.0f}")
+    if args.startup:
+        wall, sim_s = bench_startup(args.startup)
+        print(f"cdpr startup --backend sim --grid {args.startup}: {sim_s:.1f} s simulated in {wall:.1f} s wall "
+              f"-> {sim_s / wall:.1f}x real time")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
