@@ -215,10 +215,71 @@ def _guess(
                 last = Z[i]
             else:
                 Z[i] = last
-        kin = Problem(problem.model, _kinematic_only(meas), problem.sigma)
-        Zf, _ = solve_poses(kin, theta0, Z)
-        Z[free] = Zf[free]
+        Z = estimate_poses(problem, theta0, Z, free)
     return theta0, Z
+
+
+def trilaterate(
+    robot: Robot, theta0: np.ndarray, dl: np.ndarray, orientation: np.ndarray, near: np.ndarray
+) -> np.ndarray:
+    """Closed-form pose starts (k, 6): orientation from the AHRS (yaw = zeta_0's yaw + its variation),
+    position from the cable lengths l(zeta_0) + dl as spheres about d_i - R a'_i (pulleys neglected: an
+    error of the order of their radius). Differences of the sphere equations are linear in the position;
+    the direction they leave undetermined (anchors nearly coplanar) is fixed by the spheres themselves,
+    taking the root nearer to ``near`` (k, 6)."""
+    from calib.kinematics import inverse_kinematics, rotation
+
+    k = dl.shape[0]
+    if k == 0:
+        return near.copy()
+    # the arc wrapped on each pulley (about a quarter turn) is not part of the straight segment
+    L = inverse_kinematics(robot, theta0[None, :6]).lengths[0] + dl - robot.r * np.pi / 2  # (k, n)
+    ang = orientation.copy()
+    ang[:, 2] += theta0[5]
+    R = rotation(ang, robot.orientation)
+    c = robot.d[None] - np.einsum("kab,nb->kna", R, robot.a_local)  # (k, n, 3)
+    A = 2.0 * (c[:, 1:] - c[:, :1])
+    b = np.sum(c[:, 1:] ** 2, -1) - np.sum(c[:, :1] ** 2, -1) - L[:, 1:] ** 2 + L[:, :1] ** 2
+    _, sv, vh = np.linalg.svd(A)
+    p0 = (np.linalg.pinv(A, rcond=1e-2) @ b[..., None])[..., 0]
+    nd = vh[:, -1, :] if A.shape[1] >= 3 else np.cross(vh[:, 0, :], vh[:, 1, :])
+    weak = sv[:, -1] < 1e-2 * sv[:, 0] if A.shape[1] >= 3 else np.ones(k, bool)
+    q = p0[:, None, :] - c  # (k, n, 3)
+    bq = np.einsum("ka,kna->kn", nd, q)
+    disc = np.clip(bq**2 - (np.sum(q**2, -1) - L**2), 0.0, None)
+    t_lo, t_hi = -bq - np.sqrt(disc), -bq + np.sqrt(disc)
+    ref = np.einsum("ka,ka->k", nd, near[:, :3] - p0)[:, None]
+    t = np.where(np.abs(t_lo - ref) < np.abs(t_hi - ref), t_lo, t_hi).mean(axis=1)
+    p = p0 + np.where(weak, t, 0.0)[:, None] * nd
+    out = np.c_[p, ang]
+    ok = np.all(np.isfinite(out), axis=1)
+    out[~ok] = near[~ok]
+    return out
+
+
+def estimate_poses(problem: Problem, theta0: np.ndarray, Z: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Pose estimation of the ``free`` rows from their kinematic readings (lengths, swivels, AHRS) with
+    theta fixed, from the starts in Z; rows left far from their readings restart from the nearest row (in
+    time) that converged."""
+    meas, k = problem.meas, problem.k
+    Z = Z.copy()
+    rows = np.flatnonzero(free)
+    Z[rows] = trilaterate(problem.model.robot, theta0, meas.dl[rows], meas.orientation[rows], Z[rows])
+    kin = Problem(problem.model, _kinematic_only(meas), problem.sigma)
+    Z, cost = solve_poses(kin, theta0, Z, rows)
+    # rows left far from their readings restart from the nearest (in time) row that converged
+    for _ in range(4):
+        c = cost[rows]
+        bad = rows[c > max(50.0, 20.0 * float(np.median(c)))]
+        good = np.setdiff1d(rows, bad)
+        if not bad.size or not good.size:
+            break
+        when = meas.samples if meas.samples is not None else np.arange(k)
+        near = good[np.abs(when[bad][:, None] - when[good][None, :]).argmin(axis=1)]
+        Z[bad] = Z[near]
+        Z, c_bad = solve_poses(kin, theta0, Z, bad)
+        cost[bad] = c_bad[bad]
+    return Z
 
 
 def _kinematic_only(meas: Measurements) -> Measurements:
@@ -300,7 +361,10 @@ def solve_run(
         theta0 = np.asarray(guess[0], float)
         if theta0.shape[0] < model.n_params:
             theta0 = model.initial_params(theta0)
-        Z0 = np.asarray(guess[1], float).reshape(-1, 6)
+        if guess[1] is None:
+            Z0 = estimate_poses(problem, theta0, np.tile(theta0[:6], (meas.k, 1)), np.ones(meas.k, bool))
+        else:
+            Z0 = np.asarray(guess[1], float).reshape(-1, 6)
     t_guess = time.perf_counter()
     res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
     t_end = time.perf_counter()

@@ -143,47 +143,41 @@ def covariance(U: np.ndarray, W: np.ndarray, V: np.ndarray) -> tuple[np.ndarray,
 
 
 def solve_poses(
-    problem: Problem, theta: np.ndarray, poses0: np.ndarray, max_iter: int = 60, tol: float = 1e-10
+    problem: Problem,
+    theta: np.ndarray,
+    poses0: np.ndarray,
+    rows: np.ndarray | None = None,
+    max_iter: int = 60,
+    tol: float = 1e-10,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each pose block alone with theta held fixed (a per-pose LM, batched): poses (k, 6) and the final
-    cost of each row (k,). Used for initial guesses (pose estimation from the readings)."""
+    """Each pose block alone with theta held fixed (a per-pose LM, batched over the rows still iterating):
+    poses (k, 6) and the final cost of each row (k,; 0 for rows not solved). Only ``rows`` (default all)
+    are solved. Used for initial guesses (pose estimation from the readings)."""
     Z = np.array(poses0, dtype=float).reshape(-1, 6)
     k = Z.shape[0]
-
-    def per_pose(ev: Evaluation, with_jac: bool):
-        c = np.zeros(k)
-        U = np.zeros((k, 6, 6))
-        b = np.zeros((k, 6))
-        for g, r, J, _ in ev.groups:
-            c[g.idx] = 0.5 * np.sum(r * r, axis=1)
-            if with_jac:
-                Jt = J.transpose(0, 2, 1)
-                U[g.idx] = Jt @ J
-                b[g.idx] = (Jt @ r[..., None])[..., 0]
-        return c, U, b
-
-    ev = problem.evaluate(theta, Z)
-    cost, U, b = per_pose(ev, True)
+    active = np.zeros(k, bool)
+    active[np.arange(k) if rows is None else rows] = True
+    cost, U, b = np.zeros(k), np.zeros((k, 6, 6)), np.zeros((k, 6))
+    act = np.flatnonzero(active)
+    cost[act], U[act], b[act] = problem.pose_normal_equations(theta, Z[act], act)
     lam = np.full(k, 1e-3)
-    active = np.ones(k, bool)
     for _ in range(max_iter):
-        if not active.any():
+        act = np.flatnonzero(active)
+        if not act.size:
             break
-        D = np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-9)
-        Ud = U + (lam[:, None] * D)[:, :, None] * np.eye(6)[None]
-        step = np.linalg.solve(Ud, -b[..., None])[..., 0]
+        D = np.maximum(np.diagonal(U[act], axis1=1, axis2=2), 1e-9)
+        Ud = U[act] + (lam[act, None] * D)[:, :, None] * np.eye(6)[None]
+        step = np.linalg.solve(Ud, -b[act][..., None])[..., 0]
         # limit to 0.3 m and 0.5 rad per iteration
         lim = np.maximum(np.abs(step[:, :3]).max(1) / 0.3, np.abs(step[:, 3:]).max(1) / 0.5)
         step /= np.maximum(lim, 1.0)[:, None]
-        step[~active] = 0.0
-        Zn = Z + step
-        evn = problem.evaluate(theta, Zn)
-        cost_n, Un, bn = per_pose(evn, True)
-        ok = (cost_n < cost) & active
-        small = (cost - cost_n) <= tol * np.maximum(cost, 1e-300)
-        Z[ok], U[ok], b[ok] = Zn[ok], Un[ok], bn[ok]
-        done = ok & small
-        cost = np.where(ok, cost_n, cost)
-        lam = np.where(ok, lam * 0.3, lam * 10.0)
-        active &= ~done & (lam < 1e12)
+        Zn = Z[act] + step
+        cost_n, Un, bn = problem.pose_normal_equations(theta, Zn, act)
+        ok = cost_n < cost[act]
+        small = (cost[act] - cost_n) <= tol * np.maximum(cost[act], 1e-300)
+        acc = act[ok]
+        Z[acc], U[acc], b[acc], cost[acc] = Zn[ok], Un[ok], bn[ok], cost_n[ok]
+        lam[act] = np.where(ok, lam[act] * 0.3, lam[act] * 10.0)
+        active[act[ok & small]] = False
+        active &= lam < 1e12
     return Z, cost

@@ -149,6 +149,28 @@ class Problem:
             g0 = self.ref_weight[:, None] * g0
         return Evaluation(out, r0, g0)
 
+    def pose_normal_equations(
+        self, theta: np.ndarray, poses: np.ndarray, rows: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For the given rows only, with theta fixed: cost 0.5|r_i|^2 (m,), J_i^T J_i (m, 6, 6), J_i^T r_i (m, 6);
+        poses (m, 6) are the poses of those rows."""
+        m = rows.shape[0]
+        cost, U, b = np.zeros(m), np.zeros((m, 6, 6)), np.zeros((m, 6))
+        for g in self.groups:
+            sel = np.flatnonzero(np.isin(rows, g.idx))
+            if not sel.size:
+                continue
+            pos = np.searchsorted(g.idx, rows[sel])
+            pred = self.model.predict(poses[sel], theta, g.channels)
+            w = g.weight[pos]
+            r = w * (np.concatenate([pred[c].value for c in g.channels], 1) - g.reading[pos])
+            J = w[..., None] * np.concatenate([pred[c].d_pose for c in g.channels], 1)
+            Jt = J.transpose(0, 2, 1)
+            cost[sel] = 0.5 * np.sum(r * r, axis=1)
+            U[sel] = Jt @ J
+            b[sel] = (Jt @ r[..., None])[..., 0]
+        return cost, U, b
+
     def channel_residuals(self, theta: np.ndarray, poses: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Per channel, the unweighted residuals (SI) and the normalised ones (divided by sigma), observed
         entries only (flattened)."""
