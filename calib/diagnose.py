@@ -1,0 +1,507 @@
+"""Model versus measurements: where the rigid model fails, and which physical effect is missing (issue 7).
+
+Steps, on the equilibrium rows of a run (or any :class:`calib.selfcal.Measurements` with its noise):
+
+1. fit the current model (zeta_0, the row poses and the effects already included) by the block-arrow LM;
+2. residuals in units of the noise, per channel, cable and row; chi2 with its p-value;
+3. a score (Lagrange multiplier) test of every candidate effect at that solution, no refit: with the
+   weighted residual r and the candidate's Jacobian columns C, after projecting out the nuisance directions
+   (the row poses and theta), LM = |P_C r|^2 (P_C: projector on the span of the projected columns),
+   chi2-distributed with rank(C) degrees of freedom when the effect is absent;
+4. a refit of the most promising candidates: delta chi2, likelihood-ratio p-value, AIC and BIC, the fitted
+   parameters with 1-sigma uncertainty, and how much of each channel's chi2 the effect removes;
+5. candidates whose explained directions nearly coincide (each explains > 95% of what the other explains)
+   are reported as indistinguishable with this data;
+6. forward selection: the best significant effect is added, the score tests are repeated at the new
+   solution, up to ``max_effects``.
+
+Significance is family-wise: an effect is significant at level ``alpha`` when its likelihood-ratio p-value
+is below ``alpha / number of candidates`` (Bonferroni over the library).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from calib.effects import BUILTIN, Effect, EffectModel
+from calib.effects.base import Projected
+from calib.kinematics import inverse_kinematics
+from calib.robot import Robot
+from calib.selfcal.lm import levenberg_marquardt
+from calib.selfcal.model import CHANNELS
+from calib.selfcal.problem import Measurements, Problem
+
+OVERLAP = 0.95  # share of an explained direction another candidate must reproduce to be a confusion
+
+
+@dataclass
+class Fit:
+    """A fitted model: effects, theta (p,), poses (k, 6), theta covariance, chi2, residual count."""
+
+    effects: list[Effect]
+    model: EffectModel
+    problem: Problem
+    theta: np.ndarray
+    poses: np.ndarray
+    cov_theta: np.ndarray
+    chi2: float
+    n_residuals: int
+    converged: bool
+
+    @property
+    def n_free(self) -> int:
+        return self.model.n_params + 6 * self.poses.shape[0]
+
+    @property
+    def dof(self) -> int:
+        return self.n_residuals - self.n_free
+
+    @property
+    def names(self) -> list[str]:
+        return [e.name for e in self.effects]
+
+    def params(self) -> dict[str, dict[str, float]]:
+        return self.model.report(self.theta)
+
+    def param_sigmas(self) -> dict[str, dict[str, float]]:
+        """1-sigma uncertainty of each effect parameter (for restricted effects, of the full parameters)."""
+        out = {}
+        for e, sl, specs in zip(self.model.effects, self.model.slices, self.model.specs, strict=True):
+            cov = self.cov_theta[sl, sl]
+            if isinstance(e, Projected):
+                cov, specs = e.covariance(cov), e.inner.params(self.model.robot)
+            sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+            out[e.name] = {s.name: float(v) for s, v in zip(specs, sd, strict=True)}
+        return out
+
+
+@dataclass
+class Residuals:
+    """Weighted residuals (m,) and dense Jacobian (m, 6k + p) at a solution, observed entries only, with
+    labels: channel name, cable/component index, row index (-1: the reference row)."""
+
+    r: np.ndarray
+    A: np.ndarray
+    si: np.ndarray
+    channel: np.ndarray
+    index: np.ndarray
+    row: np.ndarray
+
+
+def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: bool = True) -> Residuals:
+    """Dense weighted residuals and Jacobian (columns: the k pose blocks, then theta)."""
+    ev = problem.evaluate(theta, poses, derivatives=jacobian)
+    k, p = poses.shape[0], theta.shape[0]
+    rs, As, sis, ch, ix, rw = [], [], [], [], [], []
+    for g, r, J, G in ev.groups:
+        for c in g.channels:
+            sl = g.slices[c]
+            w = g.weight[:, sl]
+            for a in range(w.shape[1]):
+                ok = w[:, a] > 0
+                rows = g.idx[ok]
+                rs.append(r[ok, sl.start + a])
+                sis.append(r[ok, sl.start + a] / w[ok, a])
+                ch += [c] * rows.size
+                ix += [a] * rows.size
+                rw += rows.tolist()
+                if jacobian:
+                    blk = np.zeros((rows.size, 6 * k + p))
+                    for m, (i, jrow, grow) in enumerate(
+                        zip(rows, J[ok, sl.start + a], G[ok, sl.start + a], strict=True)
+                    ):
+                        blk[m, 6 * i : 6 * i + 6] = jrow
+                        blk[m, 6 * k :] = grow
+                    As.append(blk)
+    start = 0
+    n = problem.model.robot.n
+    for c in problem.ref_channels:
+        width = 3 if c == "orientation" else n
+        for a in range(width):
+            j = start + a
+            if problem.ref_weight[j] > 0:
+                rs.append(ev.r0[j : j + 1])
+                sis.append(ev.r0[j : j + 1] / problem.ref_weight[j])
+                ch.append(c)
+                ix.append(a)
+                rw.append(-1)
+                if jacobian:
+                    blk = np.zeros((1, 6 * k + p))
+                    blk[0, 6 * k :] = ev.g0[j]
+                    As.append(blk)
+        start += width
+    A = np.vstack(As) if jacobian else np.zeros((0, 0))
+    return Residuals(np.concatenate(rs), A, np.concatenate(sis), np.array(ch), np.array(ix), np.array(rw))
+
+
+OBSERVABLE = 1e-2  # a typical-size change must move the weighted residuals by this much (noise units)
+
+
+def observable_basis(MC: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observable directions of an effect's projected columns MC (m, q) with typical parameter sizes
+    scales (q,): basis B (q, r) in parameter units, left singular vectors (m, r), singular values (r,)."""
+    if MC.shape[1] == 0:
+        return np.zeros((0, 0)), np.zeros((MC.shape[0], 0)), np.zeros(0)
+    U, s, Vt = np.linalg.svd(MC * scales, full_matrices=False)
+    keep = s > max(OBSERVABLE, 1e-6 * s.max(initial=0.0))
+    return scales[:, None] * Vt[keep].T, U[:, keep], s[keep]
+
+
+def _restrict(robot: Robot, meas: Measurements, sigma, effects: list[Effect], theta0: np.ndarray,
+              poses0: np.ndarray) -> list[Effect]:
+    """The effects, each restricted to the parameter directions this data can observe (Projected) where
+    some are not (after projecting out the pose and zeta_0 directions)."""
+    model = EffectModel(robot, effects)
+    problem = Problem(model, meas, sigma)
+    res = residuals(problem, theta0, poses0)
+    k = poses0.shape[0]
+    Q = _orth(res.A[:, : 6 * k + 6])
+    out = []
+    for e, sl, specs in zip(effects, model.slices, model.specs, strict=True):
+        C = res.A[:, 6 * k + sl.start : 6 * k + sl.stop]
+        B, _, _ = observable_basis(C - Q @ (Q.T @ C), np.array([sp.scale for sp in specs]))
+        if B.shape[1] == len(specs) or isinstance(e, Projected):
+            out.append(e)
+        else:
+            out.append(Projected(e, B))
+    return out
+
+
+def _orth(A: np.ndarray) -> np.ndarray:
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    U, s, _ = np.linalg.svd(A / scale, full_matrices=False)
+    return U[:, s > 1e-10 * s.max(initial=0.0)]
+
+
+def fit(
+    robot: Robot, meas: Measurements, sigma: dict[str, np.ndarray], effects: Sequence[Effect],
+    theta0: np.ndarray, poses0: np.ndarray, max_iter: int = 200, restrict: bool = True,
+) -> Fit:
+    """Fit zeta_0, the row poses and the effects' parameters from a guess (theta0 may be zeta_0 or the
+    theta of a model with fewer effects: missing effect values start absent). With ``restrict``, effects
+    with unobservable parameter directions are fitted in their observable subspace (the rest absent)."""
+    effects = list(effects)
+    theta0 = np.asarray(theta0, float)
+    poses0 = np.asarray(poses0, float).reshape(-1, 6)
+    model = EffectModel(robot, effects)
+    if theta0.shape[0] < model.n_params:
+        theta0 = np.r_[theta0, model.absent_values()[theta0.shape[0] - 6 :]]
+    if restrict and effects:
+        new = _restrict(robot, meas, sigma, effects, theta0, poses0)
+        if any(a is not b for a, b in zip(new, effects, strict=True)):
+            # restart the restricted effects at their absent values, keep the others' values
+            vals = []
+            for a, b, sl in zip(new, effects, model.slices, strict=True):
+                vals.append(np.zeros(a.basis.shape[1]) if a is not b else theta0[sl])
+            effects = new
+            model = EffectModel(robot, effects)
+            theta0 = np.r_[theta0[:6], np.concatenate(vals) if vals else np.zeros(0)]
+    problem = Problem(model, meas, sigma)
+    res = levenberg_marquardt(problem, theta0, poses0, max_iter=max_iter)
+    return Fit(effects, model, problem, res.theta, res.poses, res.cov_theta, 2.0 * res.cost,
+               problem.n_residuals, bool(res.converged))
+
+
+@dataclass
+class Candidate:
+    """One candidate effect's evidence. ``score``/``score_dof``/``score_p``: the LM test at the current
+    solution; ``delta_chi2``/``p_value``/``delta_aic``/``delta_bic``: from the refit (None when not refitted);
+    ``params`` and ``params_sigma`` as fitted; ``channels``: share of each channel's chi2 removed;
+    ``confused_with``: candidates that explain the same thing with this data."""
+
+    effect: str
+    n_params: int
+    score: float
+    score_dof: int
+    score_p: float
+    delta_chi2: float | None = None
+    p_value: float | None = None
+    delta_aic: float | None = None
+    delta_bic: float | None = None
+    params: dict[str, float] = field(default_factory=dict)
+    params_sigma: dict[str, float] = field(default_factory=dict)
+    channels: dict[str, float] = field(default_factory=dict)
+    confused_with: list[str] = field(default_factory=list)
+    significant: bool = False
+    refit: Fit | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        d = self.delta_chi2 if self.delta_chi2 is not None else self.score
+        p = self.p_value if self.p_value is not None else self.score_p
+        return {
+            "effect": self.effect,
+            "delta_chi2": float(d),
+            "p_value": float(p),
+            "params": {k: _num(v) for k, v in self.params.items()},
+            "params_sigma": {k: _num(v) for k, v in self.params_sigma.items()},
+            "score": float(self.score),
+            "score_dof": int(self.score_dof),
+            "score_p": float(self.score_p),
+            "refitted": self.delta_chi2 is not None,
+            "delta_aic": None if self.delta_aic is None else float(self.delta_aic),
+            "delta_bic": None if self.delta_bic is None else float(self.delta_bic),
+            "significant": bool(self.significant),
+            "channels": {k: float(v) for k, v in self.channels.items()},
+            "confused_with": list(self.confused_with),
+        }
+
+
+def _num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+@dataclass
+class ScoreBasis:
+    """Orthonormal basis of the nuisance directions (poses and theta) at a solution, and the residual."""
+
+    Q: np.ndarray
+    r: np.ndarray
+
+
+def score_basis(res: Residuals) -> ScoreBasis:
+    return ScoreBasis(_orth(res.A), res.r)
+
+
+def score_test(fit0: Fit, effect: Effect, basis: ScoreBasis) -> tuple[float, int, np.ndarray, np.ndarray]:
+    """LM statistic, its dof (number of observable directions), the unit vector of the explained part of
+    the residual (m,) and an orthonormal basis of the effect's projected span (m, dof), for adding
+    ``effect`` to ``fit0`` (no refit)."""
+    model = EffectModel(fit0.model.robot, fit0.effects + [effect])
+    problem = Problem(model, fit0.problem.meas, fit0.problem.sigma)
+    theta = np.r_[fit0.theta, model.absent_values()[fit0.theta.shape[0] - 6 :]]
+    res = residuals(problem, theta, fit0.poses)
+    C = res.A[:, 6 * fit0.poses.shape[0] + fit0.theta.shape[0] :]
+    Q = basis.Q
+    _, Uk, _ = observable_basis(C - Q @ (Q.T @ C), np.array([s.scale for s in model.specs[-1]]))
+    proj = Uk.T @ basis.r
+    lm = float(proj @ proj)
+    u = Uk @ proj
+    nu = np.linalg.norm(u)
+    return lm, int(Uk.shape[1]), (u / nu if nu > 0 else u), Uk
+
+
+@dataclass
+class Diagnosis:
+    """Outcome of :func:`diagnose` (see the module doc). ``steps``: chi2 as effects are added one by one
+    (names, chi2, dof, initial pose)."""
+
+    fit: Fit
+    chi2: float
+    dof: int
+    p_value: float
+    noise_source: str
+    channels: dict[str, dict[str, float]]
+    cables: dict[str, list[float]]
+    rows: list[dict[str, Any]]
+    ranking: list[Candidate]
+    selected: list[str]
+    steps: list[dict[str, Any]]
+    verdict: str
+    alpha: float
+    residual_data: Residuals
+    final: Fit
+
+    def to_json(self) -> dict[str, Any]:
+        """The `cdpr diagnose --json` object of spec/cli.md (plus extra keys)."""
+        return {
+            "chi2": float(self.chi2),
+            "dof": int(self.dof),
+            "noise": self.noise_source,
+            "p_value": float(self.p_value),
+            "channels": {c: {k: float(v) for k, v in d.items()} for c, d in self.channels.items()},
+            "cables": {c: [float(v) for v in vals] for c, vals in self.cables.items()},
+            "rows": self.rows,
+            "ranking": [c.to_json() for c in self.ranking],
+            "selected": list(self.selected),
+            "steps": self.steps,
+            "verdict": self.verdict,
+            "alpha": self.alpha,
+        }
+
+
+def _channel_tables(res: Residuals, n: int, meas: Measurements) -> tuple[dict, dict, list]:
+    channels, cables = {}, {}
+    for c in CHANNELS:
+        m = res.channel == c
+        if not m.any():
+            continue
+        z = res.r[m]
+        channels[c] = {
+            "rms": float(np.sqrt(np.mean(res.si[m] ** 2))),
+            "rms_normalized": float(np.sqrt(np.mean(z**2))),
+            "max_normalized": float(np.abs(z).max()),
+            "chi2": float(z @ z),
+            "n": int(m.sum()),
+        }
+        width = 3 if c == "orientation" else n
+        cables[c] = [
+            float(np.sqrt(np.mean(res.r[m & (res.index == a)] ** 2))) if (m & (res.index == a)).any() else 0.0
+            for a in range(width)
+        ]
+    rows = []
+    for i in sorted(set(res.row.tolist())):
+        m = res.row == i
+        z = res.r[m]
+        worst = int(np.argmax(np.abs(z)))
+        entry = {
+            "row": int(i),
+            "sample": int(meas.samples[i]) if (i >= 0 and meas.samples is not None) else -1,
+            "rms_normalized": float(np.sqrt(np.mean(z**2))),
+            "max_normalized": float(np.abs(z).max()),
+            "worst": f"{res.channel[m][worst]}[{int(res.index[m][worst]) + 1}]",
+        }
+        if i >= 0 and meas.windows is not None:
+            entry["window"] = [int(v) for v in meas.windows[i]]
+        rows.append(entry)
+    return channels, cables, rows
+
+
+def _refit(fit0: Fit, effect: Effect) -> Fit:
+    return fit(fit0.model.robot, fit0.problem.meas, fit0.problem.sigma, fit0.effects + [effect], fit0.theta,
+               fit0.poses)
+
+
+def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refits: int) -> list[Candidate]:
+    """Score tests of every candidate at fit0, refits of the most promising, ordered most likely first."""
+    base = residuals(fit0.problem, fit0.theta, fit0.poses)
+    basis = score_basis(base)
+    m = base.r.shape[0]
+    out: list[Candidate] = []
+    dirs, spans = {}, {}
+    for eff in candidates:
+        lm, q, u, Uk = score_test(fit0, eff, basis)
+        p = float(stats.chi2.sf(lm, q)) if q > 0 else 1.0
+        out.append(Candidate(eff.name, len(eff.params(fit0.model.robot)), lm, q, p))
+        dirs[eff.name], spans[eff.name] = u, Uk
+    by_score = sorted(range(len(out)), key=lambda i: (out[i].score_p, -out[i].score))
+    chosen = [i for i in by_score if out[i].score_dof > 0][: max(refits, 0)]
+    chosen += [i for i in by_score if out[i].score_p < alpha_each and i not in chosen and out[i].score_dof > 0]
+    per_channel0 = {c: float(np.sum(base.r[base.channel == c] ** 2)) for c in CHANNELS}
+    for i in chosen:
+        cand = out[i]
+        eff = candidates[i]
+        f1 = _refit(fit0, eff)
+        d = fit0.chi2 - f1.chi2
+        q = cand.score_dof
+        cand.refit = f1
+        cand.delta_chi2 = d
+        cand.p_value = float(stats.chi2.sf(max(d, 0.0), q))
+        cand.delta_aic = d - 2 * q
+        cand.delta_bic = d - q * math.log(max(m, 2))
+        cand.params = f1.params()[eff.name]
+        cand.params_sigma = f1.param_sigmas()[eff.name]
+        r1 = residuals(f1.problem, f1.theta, f1.poses, jacobian=False)
+        cand.channels = {
+            c: (per_channel0[c] - float(np.sum(r1.r[r1.channel == c] ** 2))) / per_channel0[c]
+            for c in CHANNELS if per_channel0[c] > 0
+        }
+        cand.significant = cand.p_value < alpha_each and f1.converged
+    for a in out:
+        if a.score_dof == 0 or np.linalg.norm(dirs[a.effect]) == 0:
+            continue
+        for b in out:
+            if a is b or b.score_dof == 0 or np.linalg.norm(dirs[b.effect]) == 0:
+                continue
+            ab = np.linalg.norm(spans[b.effect].T @ dirs[a.effect])
+            ba = np.linalg.norm(spans[a.effect].T @ dirs[b.effect])
+            if ab > OVERLAP and ba > OVERLAP:
+                a.confused_with.append(b.effect)
+
+    def key(c: Candidate):
+        if c.delta_chi2 is not None:
+            return (0, -c.delta_aic)
+        return (1, c.score_p)
+
+    return sorted(out, key=key)
+
+
+def diagnose(
+    robot: Robot,
+    meas: Measurements,
+    sigma: dict[str, np.ndarray],
+    theta0: np.ndarray,
+    poses0: np.ndarray,
+    candidates: Sequence[Effect] | None = None,
+    included: Sequence[Effect] = (),
+    alpha: float = 0.01,
+    refits: int = 3,
+    max_effects: int = 2,
+    noise_source: str = "given",
+) -> Diagnosis:
+    """Fit, locate the misfit and rank the candidate effects (module doc). theta0/poses0: initial guess."""
+    if candidates is None:
+        candidates = [cls() for cls in BUILTIN.values()]
+    inc_names = {e.name for e in included}
+    cands = [c for c in candidates if c.name not in inc_names]
+    alpha_each = alpha / max(len(cands), 1)
+    fit0 = fit(robot, meas, sigma, list(included), theta0, poses0)
+    res0 = residuals(fit0.problem, fit0.theta, fit0.poses, jacobian=False)
+    channels, cables, rows = _channel_tables(res0, robot.n, meas)
+    ranking = _rank_round(fit0, cands, alpha_each, refits)
+    steps = [_step(fit0)]
+    selected: list[str] = []
+    current, rank_now = fit0, ranking
+    while len(selected) < max_effects and rank_now and rank_now[0].significant:
+        best = rank_now[0]
+        selected.append(best.effect)
+        current = best.refit
+        steps.append(_step(current))
+        rest = [c for c in cands if c.name not in selected]
+        if not rest or len(selected) >= max_effects:
+            break
+        rank_now = _rank_round(current, rest, alpha_each, min(refits, 2))
+    p_fit = float(stats.chi2.sf(fit0.chi2, max(fit0.dof, 1)))
+    verdict = _verdict(fit0, ranking, selected, current, alpha)
+    return Diagnosis(fit0, fit0.chi2, fit0.dof, p_fit, noise_source, channels, cables, rows, ranking, selected,
+                     steps, verdict, alpha, res0, current)
+
+
+def _step(f: Fit) -> dict[str, Any]:
+    return {"effects": f.names, "chi2": float(f.chi2), "dof": int(f.dof),
+            "initial_pose": [float(v) for v in f.theta[:6]], "params": f.params()}
+
+
+def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fit, alpha: float) -> str:
+    dof = max(fit0.dof, 1)
+    excess = fit0.chi2 - dof
+    p0 = stats.chi2.sf(fit0.chi2, dof)
+    if not selected:
+        if p0 >= alpha:
+            return (f"the model fits within the noise (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}); "
+                    f"no effect in the library is significant at the {alpha:g} level")
+        return (f"the model does not fit (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}) but nothing in the "
+                "library explains what is left: look for an effect outside it")
+    best = ranking[0]
+    share = 100.0 * min(1.0, best.delta_chi2 / excess) if excess > 0 else 100.0
+    text = f"{best.effect} explains {share:.0f}% of the excess"
+    if best.confused_with:
+        text += f" (cannot be told apart from {', '.join(best.confused_with)} with this data)"
+    pf = stats.chi2.sf(final.chi2, max(final.dof, 1))
+    text += f"; refit with --effects {','.join(selected)}"
+    if pf < alpha:
+        left = final.chi2 - max(final.dof, 1)
+        text += (f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): "
+                 f"{100.0 * left / excess:.0f}% of the excess is not explained by the library")
+    return text
+
+
+def pose_error(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance between the positions of two poses, m."""
+    return float(np.linalg.norm(np.asarray(a, float)[:3] - np.asarray(b, float)[:3]))
+
+
+def reveal_quantities(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, meas: Measurements) -> dict[str, Any]:
+    """Per row (k,) the quantities against which residuals reveal effects: tension (k, n) N, cable length
+    (k, n) m, height z (k,) m, swivel angle (k, n) rad, tilt (k,) rad; the reference row appended last."""
+    Z = np.vstack([poses, np.asarray(zeta0)[None, :6]])
+    kin = inverse_kinematics(robot, Z)
+    tau = np.vstack([meas.tau, meas.ref_tau[None]])
+    tilt = np.hypot(Z[:, 3], Z[:, 4])
+    return {"tension": tau, "length": kin.lengths, "height": Z[:, 2], "swivel": kin.swivel, "tilt": tilt}

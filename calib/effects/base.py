@@ -1,0 +1,330 @@
+"""The effect protocol and the model that composes effects around the rigid-body measurement model.
+
+An effect is a physical phenomenon the rigid model of Zoffoli eq. 8-13 leaves out. It declares its
+parameters (:class:`ParamSpec`: name, unit, the value meaning "absent", bounds) and acts at one of two
+stages:
+
+* ``robot`` effects change the robot description itself (pulley radii and positions, centre of mass, mass):
+  ``modify(robot, values) -> Robot``; the absolute physical quantities (cable lengths L, swivel angles,
+  modelled tensions) are then recomputed with the modified robot. ``physical_columns`` gives
+  dL/dq, dsigma/dq and dtau/dq (k, n, q) at k poses; the default is central differences, built-in effects
+  override it analytically (or exactly, where the dependence is linear).
+* ``reading`` effects change what a sensor reports of the physical quantities (cable elasticity between
+  the motor encoder and the geometric length, transmission ratio errors, load-cell offsets and gains, the
+  AHRS mounting): ``transform(ctx, values, preds)`` edits the channel predictions in place, value, pose
+  derivatives and theta derivatives alike (chain rule), and fills its own theta columns ``ctx.cols``.
+  Reading effects run in ``order`` (physical before sensor), each on the output of the previous one.
+
+:class:`EffectModel` wraps a robot with a list of effects and has the interface of
+``calib.selfcal.model.MeasurementModel`` (``param_names``, ``initial_params``, ``predict``,
+``absolute_readings``), so ``calib.selfcal.problem.Problem`` and the LM solver use it unchanged: theta is
+[zeta_0 (6), the first effect's parameters, the second's, ...].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.kinematics import inverse_kinematics, kinematic_jacobians
+from calib.robot import Robot
+from calib.selfcal.model import CHANNELS, ChannelPrediction
+from calib.statics import tension_model
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One effect parameter: name, unit, the value meaning the effect is absent, bounds, and a typical size
+    (used for finite-difference steps and for reporting)."""
+
+    name: str
+    unit: str
+    absent: float = 0.0
+    lower: float = -np.inf
+    upper: float = np.inf
+    scale: float = 1.0
+
+
+@dataclass
+class Physical:
+    """Absolute physical quantities at k poses with the current robot: cable lengths L (k, n) m, swivel
+    angles (k, n) rad, modelled tensions tau (k, n) N; their pose derivatives (k, n, 6) and theta
+    derivatives (k, n, p) (robot-effect columns; zeta_0 columns are zero here)."""
+
+    L: np.ndarray
+    sigma: np.ndarray
+    tau: np.ndarray
+    dL: np.ndarray
+    dsigma: np.ndarray
+    dtau: np.ndarray
+    tL: np.ndarray
+    tsigma: np.ndarray
+    ttau: np.ndarray
+
+
+@dataclass
+class Context:
+    """What a reading effect sees: the robot (robot effects applied), the poses (k, 6), theta (p,), the
+    columns of theta that are its own (``cols``), and the physical quantities at the poses (``at``) and at
+    zeta_0 (``ref``, whose theta derivatives include the zeta_0 columns)."""
+
+    robot: Robot
+    poses: np.ndarray
+    theta: np.ndarray
+    cols: slice
+    at: Physical
+    ref: Physical
+
+
+class Effect:
+    """Base class of an effect. Subclasses set ``name``, ``stage`` ('robot' or 'reading'), ``order``
+    (reading effects: lower runs first; elasticity 10, length scale 20, load cells 30, AHRS 40) and
+    ``params(robot) -> list[ParamSpec]``, and implement ``modify`` (robot stage) or ``transform`` (reading
+    stage). ``report(values)`` turns fitted values into the reported parameters (default: by name)."""
+
+    name: str = ""
+    stage: str = "reading"
+    order: int = 50
+    description: str = ""
+    fd_steps: float = 1e-6  # relative to each parameter's scale
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        raise NotImplementedError
+
+    def modify(self, robot: Robot, values: np.ndarray) -> Robot:
+        """Robot stage: the robot as it is with these parameter values."""
+        raise NotImplementedError
+
+    def physical_columns(
+        self, robot: Robot, values: np.ndarray, poses: np.ndarray, recompute
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Robot stage: dL/dq, dsigma/dq, dtau/dq (k, n, q) at the poses. ``recompute(values)`` returns the
+        (L, sigma, tau) arrays with this effect's values replaced (everything else fixed). Default: central
+        differences."""
+        specs = self.params(robot)
+        cols = [[], [], []]
+        for j, s in enumerate(specs):
+            h = self.fd_steps * s.scale
+            vp, vm = values.copy(), values.copy()
+            vp[j] += h
+            vm[j] -= h
+            plus, minus = recompute(vp), recompute(vm)
+            for c in range(3):
+                d = (plus[c] - minus[c]) / (2 * h)
+                if c == 1:
+                    d = np.angle(np.exp(1j * (plus[c] - minus[c]))) / (2 * h)
+                cols[c].append(d)
+        return tuple(np.stack(c, axis=-1) for c in cols)
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        """Reading stage: change ``preds`` in place (values, d_pose, d_theta; fill d_theta[..., ctx.cols])."""
+        raise NotImplementedError
+
+    def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
+        """Reported parameters, e.g. ``{"EA": 15020.0}`` (default: the parameters by name)."""
+        return {s.name: float(v) for s, v in zip(self.params(robot), values, strict=True)}
+
+
+def physical(robot: Robot, poses: np.ndarray, p: int) -> Physical:
+    """L, swivel and modelled tensions with pose derivatives at poses (k, 6); theta columns zero (p)."""
+    kin = inverse_kinematics(robot, poses)
+    jac = kinematic_jacobians(robot, kin)
+    tm = tension_model(robot, kin=kin, jac=jac)
+    k, n = kin.lengths.shape
+    z = np.zeros((k, n, p))
+    return Physical(kin.lengths, kin.swivel, tm.tau, jac.lengths, jac.swivel, tm.jacobian, z, z.copy(), z.copy())
+
+
+def wrap(a: np.ndarray) -> np.ndarray:
+    """Angles wrapped to (-pi, pi]."""
+    return np.angle(np.exp(1j * a))
+
+
+class EffectModel:
+    """The rigid-body measurement model with effects composed around it (interface of MeasurementModel).
+
+    ``values`` of every effect start at their ``absent`` values (``initial_params``); theta is zeta_0 then
+    the effects' parameters in the order given.
+    """
+
+    def __init__(self, robot: Robot, effects: Sequence[Effect] = ()):
+        self.robot = robot
+        self.effects = list(effects)
+        names = [e.name for e in self.effects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"effect listed twice in {', '.join(names)}")
+        self.specs: list[list[ParamSpec]] = [e.params(robot) for e in self.effects]
+        self.slices: list[slice] = []
+        start = 6
+        for s in self.specs:
+            self.slices.append(slice(start, start + len(s)))
+            start += len(s)
+        self._p = start
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """zeta_0's six coordinates, then ``effect.param`` for every effect parameter."""
+        out = ["x0", "y0", "z0", "roll0", "pitch0", "yaw0"]
+        for e, specs in zip(self.effects, self.specs, strict=True):
+            out += [f"{e.name}.{s.name}" for s in specs]
+        return tuple(out)
+
+    @property
+    def n_params(self) -> int:
+        return self._p
+
+    def absent_values(self) -> np.ndarray:
+        """The effect part of theta with every effect absent (p - 6,)."""
+        return np.array([s.absent for specs in self.specs for s in specs], dtype=float)
+
+    def initial_params(self, zeta0: np.ndarray, values: np.ndarray | None = None) -> np.ndarray:
+        """Global vector [zeta_0, effect values] (absent values unless given)."""
+        v = self.absent_values() if values is None else np.asarray(values, float)
+        return np.r_[np.asarray(zeta0, float), v]
+
+    def effect_values(self, theta: np.ndarray) -> dict[str, np.ndarray]:
+        return {e.name: np.asarray(theta[sl]) for e, sl in zip(self.effects, self.slices, strict=True)}
+
+    def report(self, theta: np.ndarray) -> dict[str, dict[str, float]]:
+        """Fitted parameters of every effect, as the effects report them."""
+        return {e.name: e.report(self.robot, np.asarray(theta[sl])) for e, sl in zip(self.effects, self.slices,
+                                                                                        strict=True)}
+
+    def true_robot(self, theta: np.ndarray) -> Robot:
+        """The robot with every robot-stage effect applied at theta."""
+        robot = self.robot
+        for e, sl in zip(self.effects, self.slices, strict=True):
+            if e.stage == "robot":
+                robot = e.modify(robot, np.asarray(theta[sl]))
+        return robot
+
+    def _physical(self, theta: np.ndarray, poses: np.ndarray) -> tuple[Robot, Physical]:
+        p = theta.shape[0]
+        robot = self.true_robot(theta)
+        ph = physical(robot, poses, p)
+        for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
+            if e.stage != "robot":
+                continue
+
+            def recompute(vals, idx=idx, sl=sl):
+                th = theta.copy()
+                th[sl] = vals
+                r = self.robot
+                for e2, sl2 in zip(self.effects, self.slices, strict=True):
+                    if e2.stage == "robot":
+                        r = e2.modify(r, np.asarray(th[sl2]))
+                kin = inverse_kinematics(r, poses)
+                tm = tension_model(r, kin=kin, derivatives=False)
+                return kin.lengths, kin.swivel, tm.tau
+
+            dL, ds, dt = e.physical_columns(robot, np.asarray(theta[sl]), poses, recompute)
+            ph.tL[..., sl], ph.tsigma[..., sl], ph.ttau[..., sl] = dL, ds, dt
+        return robot, ph
+
+    def predict(
+        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str]
+    ) -> dict[str, ChannelPrediction]:
+        """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included."""
+        z = np.asarray(poses, dtype=float).reshape(-1, 6)
+        theta = np.asarray(theta, dtype=float)
+        k, p = z.shape[0], theta.shape[0]
+        robot, at = self._physical(theta, z)
+        _, ref = self._physical(theta, theta[None, :6])
+        for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta
+            getattr(ref, "t" + name)[..., :6] += getattr(ref, "d" + name)
+        out: dict[str, ChannelPrediction] = {}
+        for name in channels:
+            if name == "tension":
+                out[name] = ChannelPrediction(at.tau.copy(), at.dtau.copy(), at.ttau.copy())
+            elif name == "length":
+                out[name] = ChannelPrediction(at.L - ref.L, at.dL.copy(), at.tL - ref.tL)
+            elif name == "swivel":
+                out[name] = ChannelPrediction(wrap(at.sigma - ref.sigma), at.dsigma.copy(), at.tsigma - ref.tsigma)
+            elif name == "orientation":
+                val = z[:, 3:].copy()
+                val[:, 2] -= theta[5]
+                dp = np.zeros((k, 3, 6))
+                dp[:, 0, 3] = dp[:, 1, 4] = dp[:, 2, 5] = 1.0
+                dth = np.zeros((k, 3, p))
+                dth[:, 2, 5] = -1.0
+                out[name] = ChannelPrediction(val, dp, dth)
+            else:
+                raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
+        readers = sorted(
+            (i for i, e in enumerate(self.effects) if e.stage == "reading"), key=lambda i: self.effects[i].order
+        )
+        for i in readers:
+            ctx = Context(robot, z, theta, self.slices[i], at, ref)
+            self.effects[i].transform(ctx, np.asarray(theta[self.slices[i]]), out)
+        return out
+
+    def absolute_readings(self, theta: np.ndarray) -> dict[str, np.ndarray]:
+        """Absolute geometric values of the relative sensors at the reference pose: cable lengths (n,) m,
+        swivel angles (n,) rad, yaw rad (robot effects applied)."""
+        _, ref = self._physical(theta, theta[None, :6])
+        return {"length": ref.L[0], "swivel": ref.sigma[0], "yaw": float(theta[5])}
+
+
+class Projected(Effect):
+    """An effect restricted to a subspace of its parameters: values = absent + B @ p (B (q, r)). Used for
+    the components of an effect that a data set can observe (the others stay at their absent values)."""
+
+    def __init__(self, inner: Effect, basis: np.ndarray, labels: Sequence[str] | None = None):
+        self.inner = inner
+        self.basis = np.asarray(basis, float)
+        self.name = inner.name
+        self.stage = inner.stage
+        self.order = inner.order
+        self.description = inner.description
+        self.labels = list(labels) if labels is not None else [f"c{j + 1}" for j in range(self.basis.shape[1])]
+
+    def _absent(self, robot: Robot) -> np.ndarray:
+        return np.array([s.absent for s in self.inner.params(robot)], float)
+
+    def full_values(self, robot: Robot, values: np.ndarray) -> np.ndarray:
+        return self._absent(robot) + self.basis @ np.asarray(values, float)
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        specs = self.inner.params(robot)
+        scale = float(np.median([s.scale for s in specs]))
+        return [ParamSpec(lab, "mixed", 0.0, -np.inf, np.inf, scale) for lab in self.labels]
+
+    _override: np.ndarray | None = None
+
+    def modify(self, robot: Robot, values: np.ndarray) -> Robot:
+        full = self._override if self._override is not None else self.full_values(robot, values)
+        return self.inner.modify(robot, full)
+
+    def physical_columns(self, robot, values, poses, recompute):
+        full = self.full_values(robot, values)
+
+        def recompute_full(v):  # the inner effect perturbs its full values: evaluate them as they are
+            self._override = np.asarray(v, float)
+            try:
+                return recompute(values)
+            finally:
+                self._override = None
+
+        cols = self.inner.physical_columns(robot, full, poses, recompute_full)
+        return tuple(c @ self.basis for c in cols)
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        q = self.basis.shape[0]
+        p = ctx.theta.shape[0]
+        for pr in preds.values():
+            pr.d_theta = np.concatenate([pr.d_theta, np.zeros(pr.d_theta.shape[:2] + (q,))], axis=2)
+        inner_ctx = Context(ctx.robot, ctx.poses, ctx.theta, slice(p, p + q), ctx.at, ctx.ref)
+        self.inner.transform(inner_ctx, self.full_values(ctx.robot, values), preds)
+        for pr in preds.values():
+            extra = pr.d_theta[..., p:]
+            pr.d_theta = pr.d_theta[..., :p]
+            pr.d_theta[..., ctx.cols] = extra @ self.basis
+
+    def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
+        return self.inner.report(robot, self.full_values(robot, values))
+
+    def covariance(self, cov: np.ndarray) -> np.ndarray:
+        """Covariance of the inner (full) parameters from the covariance of the projected ones."""
+        return self.basis @ cov @ self.basis.T

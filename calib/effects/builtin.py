@@ -1,0 +1,303 @@
+"""The built-in effects (names of spec/cli.md), each with analytic (or exact) Jacobian columns.
+
+Reading effects: cable_elasticity (encoders count the unstretched length l0 = L / (1 + tau / EA)),
+length_scale (per winch: length reading = (1 + k_i) * true change of the unstretched length),
+tension_gain and tension_offset (load cell i reads (1 + g_i) tau_i + o_i), ahrs_mounting (the AHRS frame
+is tilted by Rx(roll) Ry(pitch) on the platform: it reads the angles of R(zeta) Rx(roll) Ry(pitch)).
+Robot effects: pulley_radius (common, or per pulley), pulley_position (d_i, 3 per pulley), com_offset
+(3, platform frame), mass_scale (true mass = (1 + s) model mass).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from calib.effects.base import Context, Effect, ParamSpec
+from calib.kinematics import euler_axes, inverse_kinematics, rotation, rotation_to_euler
+from calib.robot import Robot
+from calib.selfcal.model import ChannelPrediction
+
+
+def _scale_channel(pred: ChannelPrediction, factor: np.ndarray) -> None:
+    """Multiply a channel's value and derivatives by factor (c,) in place."""
+    pred.value = pred.value * factor
+    pred.d_pose = pred.d_pose * factor[None, :, None]
+    pred.d_theta = pred.d_theta * factor[None, :, None]
+
+
+class CableElasticity(Effect):
+    """Elastic cables: the encoders count the unstretched length l0 = L / (1 + c tau), c = 1/EA (1/N)."""
+
+    name = "cable_elasticity"
+    order = 10
+    description = "axial cable compliance 1/EA: encoders see L / (1 + tau / EA)"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec("compliance", "1/N", 0.0, 0.0, 1e-2, 1e-5)]
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        if "length" not in preds:
+            return
+        c = float(values[0])
+
+        def parts(ph):
+            den = 1.0 + c * ph.tau
+            l0 = ph.L / den
+            d_l = 1.0 / den
+            d_tau = -ph.L * c / den**2
+            d_c = -ph.L * ph.tau / den**2
+            return l0, d_l, d_tau, d_c
+
+        l0, a_l, a_t, a_c = parts(ctx.at)
+        r0, b_l, b_t, b_c = parts(ctx.ref)
+        pr = preds["length"]
+        pr.value = l0 - r0
+        pr.d_pose = a_l[..., None] * ctx.at.dL + a_t[..., None] * ctx.at.dtau
+        pr.d_theta = (a_l[..., None] * ctx.at.tL + a_t[..., None] * ctx.at.ttau) - (
+            b_l[..., None] * ctx.ref.tL + b_t[..., None] * ctx.ref.ttau
+        )
+        pr.d_theta[..., ctx.cols] = (a_c - b_c)[..., None]
+
+    def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
+        c = float(values[0])
+        return {"EA": (1.0 / c) if c > 0 else math.inf, "compliance": c}
+
+
+class LengthScale(Effect):
+    """Transmission-ratio error per winch: length reading = (1 + k_i) true change of length."""
+
+    name = "length_scale"
+    order = 20
+    description = "per-winch transmission ratio error k_i"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec(f"k_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01) for i in range(robot.n)]
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        if "length" not in preds:
+            return
+        pr = preds["length"]
+        base = pr.value.copy()
+        _scale_channel(pr, 1.0 + values)
+        n = values.shape[0]
+        pr.d_theta[..., ctx.cols] = base[..., None] * np.eye(n)[None]
+
+
+class TensionGain(Effect):
+    """Load-cell gain error per channel: reading = (1 + g_i) tau_i."""
+
+    name = "tension_gain"
+    order = 30
+    description = "per-channel load-cell gain error g_i"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec(f"g_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01) for i in range(robot.n)]
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        if "tension" not in preds:
+            return
+        pr = preds["tension"]
+        base = pr.value.copy()
+        _scale_channel(pr, 1.0 + values)
+        pr.d_theta[..., ctx.cols] = base[..., None] * np.eye(values.shape[0])[None]
+
+
+class TensionOffset(Effect):
+    """Load-cell offset per channel: reading = tau_i + o_i (N)."""
+
+    name = "tension_offset"
+    order = 31
+    description = "per-channel load-cell offset o_i, N"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec(f"o_{i + 1}", "N", 0.0, -100.0, 100.0, 1.0) for i in range(robot.n)]
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        if "tension" not in preds:
+            return
+        pr = preds["tension"]
+        pr.value = pr.value + values[None]
+        pr.d_theta[..., ctx.cols] = np.eye(values.shape[0])[None]
+
+
+class AhrsMounting(Effect):
+    """AHRS tilted on the platform by Rx(roll) Ry(pitch): it reads the Euler angles of R(zeta) M."""
+
+    name = "ahrs_mounting"
+    order = 40
+    description = "roll and pitch tilt of the AHRS on the platform, rad"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec("roll", "rad", 0.0, -0.5, 0.5, 0.01), ParamSpec("pitch", "rad", 0.0, -0.5, 0.5, 0.01)]
+
+    @staticmethod
+    def _read(conv: str, angles: np.ndarray, a: float, b: float):
+        """Measured angles (k, 3), d(measured)/d(angles) (k, 3, 3) and d(measured)/d(a, b) (k, 3, 2)."""
+        R = rotation(angles, conv)
+        M = rotation(np.array([[a, b, 0.0]]), "xyz")[0]
+        meas = rotation_to_euler(R @ M, conv)
+        Hinv = np.linalg.inv(euler_axes(meas, conv))
+        d_ang = Hinv @ euler_axes(angles, conv)
+        ex, ey = np.array([1.0, 0, 0]), np.array([0, math.cos(a), math.sin(a)])
+        w = np.stack([R @ ex, R @ ey], axis=-1)  # (k, 3, 2): world rotation axes of d a and d b
+        return meas, d_ang, Hinv @ w
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        if "orientation" not in preds:
+            return
+        conv = ctx.robot.orientation
+        a, b = float(values[0]), float(values[1])
+        meas, d_ang, d_ab = self._read(conv, ctx.poses[:, 3:], a, b)
+        m0, d0, d0ab = self._read(conv, ctx.theta[None, 3:6], a, b)
+        pr = preds["orientation"]
+        val = meas.copy()
+        val[:, 2] = np.angle(np.exp(1j * (meas[:, 2] - m0[0, 2])))
+        pr.value = val
+        pr.d_pose = np.zeros_like(pr.d_pose)
+        pr.d_pose[:, :, 3:] = d_ang
+        pr.d_theta = np.zeros_like(pr.d_theta)
+        pr.d_theta[:, 2, 3:6] = -d0[0, 2]
+        cols = d_ab.copy()
+        cols[:, 2] -= d0ab[0, 2]
+        pr.d_theta[..., ctx.cols] = cols
+
+
+class PulleyRadius(Effect):
+    """Pulley radius error, m: one common value (``per_pulley=False``) or one per pulley."""
+
+    name = "pulley_radius"
+    stage = "robot"
+    description = "error of the swivel pulleys' radius, m"
+
+    def __init__(self, per_pulley: bool = False):
+        self.per_pulley = per_pulley
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        if self.per_pulley:
+            return [ParamSpec(f"dr_{i + 1}", "m", 0.0, -0.02, 0.05, 0.001) for i in range(robot.n)]
+        return [ParamSpec("dr", "m", 0.0, -0.02, 0.05, 0.001)]
+
+    def modify(self, robot: Robot, values: np.ndarray) -> Robot:
+        has = robot.r > 0
+        return robot.replace(r=np.where(has, robot.r + values, robot.r))
+
+    def physical_columns(self, robot, values, poses, recompute):
+        _, _, dtau = super().physical_columns(robot, values, poses, recompute)
+        kin = inverse_kinematics(robot, poses)
+        cp, sp = np.cos(kin.psi), np.sin(kin.psi)
+        tu = np.einsum("kna,kna->kn", kin.t, kin.u)
+        tk = np.einsum("kna,na->kn", kin.t, robot.frames[:, 2])
+        dl = np.where(robot.r[None] > 0, (np.pi - kin.psi) - (1 + cp) * tu - sp * tk, 0.0)  # (k, n)
+        if self.per_pulley:
+            dL = dl[..., None] * np.eye(robot.n)[None]
+        else:
+            dL = dl[..., None]
+        return dL, np.zeros_like(dL), dtau
+
+
+def pulley_gauge_basis(robot: Robot) -> np.ndarray:
+    """Orthonormal basis (3n, 3n - 4) of pulley displacements that are not a gauge motion: a common
+    translation of all pulleys, or a common rotation about the vertical through their centroid, moves the
+    fixed frame, not the robot (the readings cannot see it; the AHRS yaw is relative)."""
+    n = robot.n
+    c = robot.d.mean(axis=0)
+    G = np.zeros((3 * n, 4))
+    for i in range(n):
+        G[3 * i : 3 * i + 3, :3] = np.eye(3)
+        G[3 * i : 3 * i + 3, 3] = np.cross([0.0, 0.0, 1.0], robot.d[i] - c)
+    U, _, _ = np.linalg.svd(G, full_matrices=True)
+    return U[:, 4:]
+
+
+class PulleyPosition(Effect):
+    """Pulley entry-point errors (m, fixed frame): the 3n - 4 observable deformation modes of the pulley
+    set (see :func:`pulley_gauge_basis`); reported as per-pulley offsets dx_i, dy_i, dz_i of zero mean
+    translation and zero mean rotation about the vertical."""
+
+    name = "pulley_position"
+    stage = "robot"
+    description = "error of the pulleys' entry points D_i (deformation of the pulley set), m"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec(f"mode_{j + 1}", "m", 0.0, -0.2, 0.2, 0.001) for j in range(3 * robot.n - 4)]
+
+    def modify(self, robot: Robot, values: np.ndarray) -> Robot:
+        return robot.replace(d=robot.d + (pulley_gauge_basis(robot) @ values).reshape(robot.n, 3))
+
+    def physical_columns(self, robot, values, poses, recompute):
+        _, _, dtau = super().physical_columns(robot, values, poses, recompute)
+        kin = inverse_kinematics(robot, poses)
+        k, n = kin.lengths.shape
+        dL = np.zeros((k, n, 3 * n))
+        ds = np.zeros((k, n, 3 * n))
+        for i in range(n):  # q = a - d: dL = t . dq, dsigma = w . dq / (q . u)
+            dL[:, i, 3 * i : 3 * i + 3] = -kin.t[:, i]
+            ds[:, i, 3 * i : 3 * i + 3] = -kin.w[:, i] / kin.rho_u[:, i, None]
+        B = pulley_gauge_basis(robot)
+        return dL @ B, ds @ B, dtau
+
+    def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
+        off = (pulley_gauge_basis(robot) @ values).reshape(robot.n, 3)
+        return {f"d{ax}_{i + 1}": float(off[i, j]) for i in range(robot.n) for j, ax in enumerate("xyz")}
+
+
+class ComOffset(Effect):
+    """Centre-of-mass error (m, platform frame): the tensions are linear in it (exact columns)."""
+
+    name = "com_offset"
+    stage = "robot"
+    description = "centre of mass offset in the platform frame, m"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec(f"d{ax}", "m", 0.0, -0.2, 0.2, 0.01) for ax in "xyz"]
+
+    def modify(self, robot: Robot, values: np.ndarray) -> Robot:
+        return robot.replace(com=robot.com + values)
+
+    def physical_columns(self, robot, values, poses, recompute):
+        L, _, tau = recompute(values)
+        cols = []
+        for j in range(3):
+            v = values.copy()
+            v[j] += 1.0
+            cols.append(recompute(v)[2] - tau)  # exact: tau is affine in the centre of mass
+        dtau = np.stack(cols, axis=-1)
+        z = np.zeros(L.shape + (3,))
+        return z, z.copy(), dtau
+
+
+class MassScale(Effect):
+    """Platform mass error: true mass = (1 + s) model mass; the tensions scale with it (exact)."""
+
+    name = "mass_scale"
+    stage = "robot"
+    description = "relative error of the platform mass"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec("s", "1", 0.0, -0.5, 0.5, 0.01)]
+
+    def modify(self, robot: Robot, values: np.ndarray) -> Robot:
+        return robot.replace(mass=robot.mass * (1.0 + float(values[0])))
+
+    def physical_columns(self, robot, values, poses, recompute):
+        L, _, tau = recompute(values)
+        z = np.zeros(L.shape + (1,))
+        return z, z.copy(), (tau / (1.0 + float(values[0])))[..., None]
+
+
+BUILTIN: dict[str, type[Effect]] = {
+    cls.name: cls
+    for cls in (
+        CableElasticity,
+        LengthScale,
+        TensionOffset,
+        TensionGain,
+        PulleyRadius,
+        AhrsMounting,
+        ComOffset,
+        MassScale,
+        PulleyPosition,
+    )
+}

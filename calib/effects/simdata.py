@@ -1,0 +1,94 @@
+"""Equilibrium measurements of the simulated prototype, with its hidden effects, without running the loop.
+
+The startup routine drives the platform by force control to each planned setpoint and averages the sensors
+in the equilibrium windows. At such an equilibrium the load cells read the setpoint, so the true tensions
+are ``(setpoint - offset) / (1 + gain)``; the platform of the TRUE robot (``SimConfig.true_robot``: pulley
+radii and positions, centre of mass, mass) rests where those tensions balance it (direct statics); the
+motor encoders count the unstretched length ``l0 = L / (1 + tau / EA)`` through the nominal transmission
+(the true one is ``(1 + k_i)`` times larger, so the reading is ``delta l0 / (1 + k_i)``); the swivel
+encoders see the true geometry; the AHRS reads the angles of ``R(zeta) Rx(roll_m) Ry(pitch_m)``. This is
+the physics of ``sim_backend`` (same SimConfig, same formulas) at its static equilibria plus white noise of
+the size of a window average; it leaves out the per-device constant biases the emulators also draw
+(load-cell accuracy class, AHRS roll/pitch bias), which are themselves effects the library detects.
+The reference (zeta_0) is the home pose under the home tensions, the rows are the planned poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.equilibrium import direct_statics
+from calib.kinematics import inverse_kinematics, rotation, rotation_to_euler
+from calib.planning import PosePlan, plan_poses
+from calib.robot import Robot
+from calib.selfcal.problem import Measurements
+
+# standard deviation of one equilibrium-window average: N, m, rad, rad (roll, pitch, yaw)
+WINDOW_NOISE = {
+    "tension": 0.1,
+    "length": 5e-5,
+    "swivel": 1e-4,
+    "orientation": np.array([5e-4, 5e-4, 2e-3]),
+}
+
+
+@dataclass
+class SimulatedRows:
+    """Readings at the planned equilibria (``meas``), the noise used (``sigma``, per channel), the true
+    initial pose and row poses, and the Section 3.3 guess (ideal poses)."""
+
+    meas: Measurements
+    sigma: dict[str, np.ndarray]
+    zeta0: np.ndarray
+    poses: np.ndarray
+    guess_zeta0: np.ndarray
+    guess_poses: np.ndarray
+
+
+def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: dict | None = None,
+                   plan: PosePlan | None = None) -> SimulatedRows:
+    """Window-averaged readings at the planned poses of ``robot`` with the hidden effects of ``config``
+    (a ``sim_backend.config.SimConfig``), noise of ``noise`` (default WINDOW_NOISE) drawn with ``seed``."""
+    e = config.effects
+    if e.cable_sag is not None:
+        raise ValueError("simulated_rows: the cable_sag effect needs the full simulation (cdpr startup).")
+    n = robot.n
+    plan = plan or plan_poses(robot, grid)
+    sp = np.vstack([plan.tau0, plan.setpoints])
+    gain, offset = config.tension_gain(n), config.tension_offset(n)
+    tau = (sp - offset) / gain
+    truth = config.true_robot(robot)
+    guess = np.vstack([plan.home_pose, plan.poses])
+    ds = direct_statics(truth, tau, guess)
+    if not ds.converged.all():
+        raise ValueError("simulated_rows: no equilibrium of the true robot under some setpoint.")
+    Z = ds.poses
+    kin = inverse_kinematics(truth, Z)
+    ea = config.physics_params().ea
+    l0 = kin.lengths / (1.0 + tau / ea)
+    scale = 1.0 if e.length_scale is None else 1.0 + np.asarray(e.length_scale)
+    dl = (l0[1:] - l0[0]) / scale
+    dsig = np.angle(np.exp(1j * (kin.swivel[1:] - kin.swivel[0])))
+    mr, mp = config.ahrs_mounting()
+    M = rotation(np.array([[mr, mp, 0.0]]), "xyz")[0]
+    ang = rotation_to_euler(rotation(Z[:, 3:], robot.orientation) @ M, robot.orientation)
+    ori = ang[1:].copy()
+    ori[:, 2] = np.angle(np.exp(1j * (ori[:, 2] - ang[0, 2])))
+    read_tau = gain * tau + offset
+    sig = {k: np.broadcast_to(np.asarray(v, float), (3 if k == "orientation" else n,)).copy()
+           for k, v in (noise or WINDOW_NOISE).items()}
+    rng = np.random.default_rng(seed)
+    k = Z.shape[0] - 1
+    meas = Measurements(
+        tau=read_tau[1:] + sig["tension"] * rng.standard_normal((k, n)),
+        dl=dl + sig["length"] * rng.standard_normal((k, n)),
+        dsigma=dsig + sig["swivel"] * rng.standard_normal((k, n)),
+        orientation=ori + sig["orientation"] * rng.standard_normal((k, 3)),
+        ref_tau=read_tau[0] + sig["tension"] * rng.standard_normal(n),
+        ref_orientation=ang[0, :2] + sig["orientation"][:2] * rng.standard_normal(2),
+        samples=np.arange(1, k + 1),
+        windows=np.stack([np.arange(1, k + 1)] * 2, axis=1),
+    )
+    return SimulatedRows(meas, sig, Z[0].copy(), Z[1:].copy(), plan.home_pose.copy(), plan.poses.copy())
