@@ -190,23 +190,24 @@ class SimulatedNode:
 
     # -- SYNC ---------------------------------------------------------------------------------------
     def on_sync(self, sync_count: int) -> None:
-        """After the physics step: transmit the TPDOs due at this SYNC, then the heartbeat if due."""
+        """After the physics step: the heartbeat if due, then the TPDOs due at this SYNC (in this order, so
+        that a master that has the TPDOs of a SYNC has also seen that tick's heartbeat and EMCY)."""
         with self.lock:
             self.last_sync_count = sync_count
             self.before_tpdo()
-            if self.node.nmt.state == "OPERATIONAL":
-                self._sync_seen += 1
-                for cob_id, every, st, getters in self._tpdos:
-                    if self._sync_seen % every:
-                        continue
-                    values = [clamp_int(code, self.process_value(i, s)) for (i, s), code in getters]
-                    self.send(cob_id, st.pack(*values), "tpdo")
             now = self.plant.time
             if now >= self._next_heartbeat - 1e-9:
                 state = {"OPERATIONAL": 5, "STOPPED": 4, "PRE-OPERATIONAL": 127}.get(self.node.nmt.state, 0)
                 self.send(0x700 + self.node.id, bytes([state]), "heartbeat")
                 while self._next_heartbeat <= now + 1e-9:
                     self._next_heartbeat += self.heartbeat_period
+            if self.node.nmt.state == "OPERATIONAL":
+                self._sync_seen += 1
+                value = self.process_value
+                for cob_id, every, st, getters in self._tpdos:
+                    if self._sync_seen % every:
+                        continue
+                    self.send(cob_id, st.pack(*[clamp_int(code, value(i, s)) for (i, s), code in getters]), "tpdo")
 
     def before_tpdo(self) -> None:
         """Hook run at each SYNC before the TPDOs are built."""
