@@ -302,7 +302,10 @@ class SimBackend:
             if sync_count is not None:
                 if not 0 <= sync_count <= hist[-1][0]:
                     raise ValueError(f"sync_count = {sync_count} is not between 0 and {hist[-1][0]}.")
-                return self._sample(hist[sync_count])
+                i = min(sync_count, len(hist) - 1)
+                while hist[i][0] > sync_count:  # a tick that failed left no record: the one before it
+                    i -= 1
+                return self._sample(hist[i])
             if at_time is None:
                 return self._sample(hist[-1])
             if at_time < 0 or not math.isfinite(at_time):

@@ -300,8 +300,10 @@ def _physics(c: _Check, raw: Any) -> PhysicsParams:
             vals[k] = c.number(v, "physics.stiff_theta", 0.5, 1.0)
         else:
             vals[k] = c.number(v, f"physics.{k}", 0.0, strict=(k == "ea"))
-    if "winch" in vals and vals["winch"].inertia <= 0:
-        raise c.fail("physics.winch.inertia", vals["winch"].inertia, "must be > 0")
+    if "winch" in vals:
+        for name in ("rotor_inertia", "drum_radius"):
+            if getattr(vals["winch"], name) <= 0:
+                raise c.fail(f"physics.winch.{name}", getattr(vals["winch"], name), "must be > 0")
     return PhysicsParams(**vals)
 
 

@@ -13,7 +13,7 @@ Model (SI units throughout):
 * optional cable mass (kg/m): parabolic sag, which lengthens the path by ``w^2 Lc^3 cos^2(alpha) /
   (24 tau^2)``, loads each anchor with half the cable weight and makes the tension at the pulley (where
   the load cell is) exceed the chord tension by ``w dz / 2``;
-* each winch: inertia J at the motor shaft (rotor + drum + gear, reflected), viscous and Coulomb
+* each winch: inertia J at the motor shaft (rotor + drum reflected through the gear), viscous and Coulomb
   friction (Coulomb regularised over ``coulomb_speed``), motor torque u (positive reels the cable in),
   an optional holding brake (engaged at power-on until the drive is enabled).
 
@@ -43,12 +43,25 @@ class SimulationError(RuntimeError):
 
 @dataclass(frozen=True)
 class WinchParams:
-    """One winch at the motor shaft: inertia kg m^2, viscous N m s/rad, Coulomb N m, smoothing rad/s."""
+    """One winch: motor rotor and drum inertias kg m^2, drum radius m, friction at the motor shaft (viscous
+    N m s/rad, Coulomb N m regularised over ``coulomb_speed`` rad/s).
 
-    inertia: float = 5.0e-5
+    The gear ratio follows from the drum radius and the transmission k (m of cable per rad of motor):
+    ratio = drum_radius / |k|, and the inertia at the motor shaft is rotor + drum / ratio^2. With the
+    defaults and IRMA4U's k (4.6 mm/rad): ratio 8.7, 5.9e-5 kg m^2, i.e. 2.8 kg moving with each cable.
+    """
+
+    rotor_inertia: float = 3.3e-5
+    drum_inertia: float = 2.0e-3
+    drum_radius: float = 0.04
     viscous: float = 2.0e-4
     coulomb: float = 0.01
     coulomb_speed: float = 0.05
+
+    def inertia_at_motor(self, k: float) -> float:
+        """Rotor plus reflected drum inertia, kg m^2, for a transmission of k m/rad."""
+        ratio = self.drum_radius / abs(k)
+        return self.rotor_inertia + self.drum_inertia / (ratio * ratio)
 
 
 @dataclass(frozen=True)
@@ -147,7 +160,8 @@ class CablePhysics:
         self._ea = float(params.ea)
         self._w = float(params.cable_density) * self._g  # cable weight per length, N/m
         w = params.winch
-        self._jm, self._bm, self._fc, self._ws = w.inertia, w.viscous, w.coulomb, w.coulomb_speed
+        self._jm = [w.inertia_at_motor(k) for k in self._k]
+        self._bm, self._fc, self._ws = w.viscous, w.coulomb, w.coulomb_speed
         # state
         pose = np.asarray(pose, float).reshape(6)
         rot = rotation(pose[3:], robot.orientation)[0]
@@ -254,7 +268,7 @@ class CablePhysics:
         ke = 0.5 * m * sum(x * x for x in self._v)
         ib, wb = self._ib, self._wb
         ke += 0.5 * sum(wb[a] * sum(ib[a][b] * wb[b] for b in range(3)) for a in range(3))
-        ke += 0.5 * self._jm * sum(x * x for x in self._thd)
+        ke += 0.5 * sum(j * x * x for j, x in zip(self._jm, self._thd, strict=True))
         pe = m * self._g * self._xg[2]
         for i in range(self.n):
             l0 = self._l00[i] + self._k[i] * self._th[i]
@@ -387,7 +401,7 @@ class CablePhysics:
             th_ = math.tanh(x / self._ws)
             fric = self._bm * x + self._fc * th_
             dfric = self._bm + self._fc / self._ws * (1.0 - th_ * th_)
-            jeff = self._jm + h * dfric
+            jeff = self._jm[i] + h * dfric
             thds[i] = x + h * (self._u[i] - fric) / jeff
             minv[i] = 1.0 / jeff
         # cable-space implicit solve

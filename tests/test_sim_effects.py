@@ -62,7 +62,7 @@ def _tension_step(cfg: SimConfig) -> tuple[CablePhysics, np.ndarray, np.ndarray,
     return ph, ph.motor_position() - th_a, len_b - len_a, len_a, len_b
 
 
-NO_COULOMB = {"winch": {"coulomb": 0.0, "inertia": WinchParams().inertia, "viscous": WinchParams().viscous}}
+NO_COULOMB = {"winch": {"coulomb": 0.0, "viscous": WinchParams().viscous}}
 
 
 def test_cable_elasticity_motor_length_lags_geometry_by_tau_l_over_ea():
@@ -175,6 +175,8 @@ def test_validation_errors_name_file_field_and_value():
         sim_config_from_dict({"faults": [{"kind": "loadcell_disconnected"}]}, 4, "<test>")
     with pytest.raises(SimConfigError, match=r"field 'physics.ea' = -1 must be > 0"):
         sim_config_from_dict({"physics": {"ea": -1}}, 4, "<test>")
+    with pytest.raises(SimConfigError, match=r"field 'physics.winch.drum_radius' = 0.0 must be > 0"):
+        sim_config_from_dict({"physics": {"winch": {"drum_radius": 0}}}, 4, "<test>")
 
 
 def test_every_shipped_example_loads_and_nominal_changes_nothing(tmp_path):
