@@ -87,12 +87,13 @@ def solve(
 
     run: a Run (arrays t (N,), tau, dl, dsigma (N, n), roll, pitch, dyaw (N,); optional tau_ref,
         setpoints, ideal_poses) or a :class:`Measurements` of readings already relative to the reference
-        (then ``guess`` = (theta0, poses0) is used if given, else pose estimation from zeta_0 = home).
+        (then ``guess`` = (theta0, poses0) is used if given, else the robot's home pose and pose estimation).
     method: 'tlse' | 'lse' | 'hybrid'. noise: 'paper' | 'sensors' | 'estimate' | NoiseLevels | per-channel
         dict of sigmas. stride: for lse/hybrid, every stride-th sample. reference_sample: the sample whose
         pose is zeta_0 (default: the middle of the first equilibrium window, else sample 0).
     windows: use these equilibrium windows instead of finding them. model: a measurement model (effects).
-    guess: (theta0, poses0) instead of the initial guess of Section 3.3. reference_pose: a known
+    guess: (theta0, poses0) instead of the initial guess of Section 3.3 (poses0 None: estimated from the
+        readings given theta0). reference_pose: a known
         zeta_0 to compare with (Solution.reference: eps_p, eps_r of eq. 20, geodesic angle).
 
     Raises SelfCalInputError (bad run or arguments) or SelfCalFailure (no equilibrium, no convergence).

@@ -175,7 +175,8 @@ def _guess(
     windows: list[Window], win_of: list[int], ideal: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Section 3.3: zeta_0 from the ideal pose of its setpoint or direct statics; window poses from ideal
-    poses or direct statics; other rows by pose estimation from the readings, chained from zeta_0's guess."""
+    poses or direct statics; other rows by pose estimation from the readings given zeta_0's guess
+    (:func:`estimate_poses`)."""
 
     def ideal_of(w: Window | None) -> np.ndarray | None:
         if ideal is None or w is None or w.setpoint < 0 or w.setpoint >= len(ideal):
@@ -205,7 +206,8 @@ def _guess(
         ds = direct_statics(robot, meas.tau[need_ds], np.tile(z0, (len(need_ds), 1)))
         ok = ds.converged
         Z[np.array(need_ds)[ok]] = ds.poses[ok]
-    # kinematic rows (and windows without a planned pose): start from the preceding row, then estimate
+        fixed[np.array(need_ds)[ok]] = True
+    # kinematic rows (and windows where direct statics failed): pose estimation from the readings
     free = ~fixed
     if free.any():
         order = np.argsort(meas.samples, kind="stable")
