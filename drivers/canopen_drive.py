@@ -318,6 +318,16 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
             self.close()
             raise
 
+    def close(self) -> None:
+        """Disable the power stage if it is enabled (the winch brake holds), then stop the node."""
+        if self.node is not None and self.operational:
+            try:
+                if self.state() in ("operation enabled", "quick stop active"):
+                    self._command(CW_DISABLE_VOLTAGE)
+            except DeviceError:
+                pass  # the node no longer answers: nothing left to disable
+        super().close()
+
     def set_mode(self, mode: int) -> None:
         """Mode of operation 0x6060 (10 CST, 9 CSV), by SDO, checked on 0x6061."""
         if mode not in MODE_NAMES:

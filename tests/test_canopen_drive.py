@@ -295,6 +295,20 @@ def test_quick_stop_holds_and_reenable(rig):
     assert drv.latest().position_counts / CPR * 2 * math.pi == pytest.approx(0.3, abs=5e-3)
 
 
+def test_close_disables_the_drive_and_the_brake_holds(rig):
+    drv = rig.winch()
+    drv.set_torque(0.3)
+    drv.enable()
+    rig.ticks(20)
+    assert not rig.plant.brake[0]
+    drv.close()
+    rig.drivers.remove(drv)
+    rig.tick(wait=False)
+    assert rig.drives[0].state == "switch on disabled"
+    assert rig.plant.brake[0] and rig.plant.tau[0] == 0.0
+    assert rig.drives[0].nmt_state == "PRE-OPERATIONAL"
+
+
 def test_cyclic_synchronous_velocity_mode():
     rig = CanRig(n_drives=1, k=0.0)  # no spring: the motor can turn at constant speed
     drv = rig.winch()
