@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -434,6 +435,7 @@ def diagnose(
     refits: int = 3,
     max_effects: int = 2,
     noise_source: str = "given",
+    reference_pose: np.ndarray | None = None,
 ) -> Diagnosis:
     """Fit, locate the misfit and rank the candidate effects (module doc). theta0/poses0: initial guess."""
     if candidates is None:
@@ -445,14 +447,14 @@ def diagnose(
     res0 = residuals(fit0.problem, fit0.theta, fit0.poses, jacobian=False)
     channels, cables, rows = _channel_tables(res0, robot.n, meas)
     ranking = _rank_round(fit0, cands, alpha_each, refits)
-    steps = [_step(fit0)]
+    steps = [_step(fit0, reference_pose)]
     selected: list[str] = []
     current, rank_now = fit0, ranking
     while len(selected) < max_effects and rank_now and rank_now[0].significant:
         best = rank_now[0]
         selected.append(best.effect)
         current = best.refit
-        steps.append(_step(current))
+        steps.append(_step(current, reference_pose))
         rest = [c for c in cands if c.name not in selected]
         if not rest or len(selected) >= max_effects:
             break
@@ -463,9 +465,13 @@ def diagnose(
                      steps, verdict, alpha, res0, current)
 
 
-def _step(f: Fit) -> dict[str, Any]:
-    return {"effects": f.names, "chi2": float(f.chi2), "dof": int(f.dof),
-            "initial_pose": [float(v) for v in f.theta[:6]], "params": f.params()}
+def _step(f: Fit, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
+    out = {"effects": f.names, "chi2": float(f.chi2), "dof": int(f.dof),
+           "initial_pose": [float(v) for v in f.theta[:6]],
+           "params": {e: {k: _num(v) for k, v in p.items()} for e, p in f.params().items()}}
+    if reference_pose is not None:
+        out["eps_p"] = pose_error(f.theta, reference_pose)
+    return out
 
 
 def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fit, alpha: float) -> str:
@@ -505,3 +511,159 @@ def reveal_quantities(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, meas: 
     tau = np.vstack([meas.tau, meas.ref_tau[None]])
     tilt = np.hypot(Z[:, 3], Z[:, 4])
     return {"tension": tau, "length": kin.lengths, "height": Z[:, 2], "swivel": kin.swivel, "tilt": tilt}
+
+
+def diagnose_run(
+    run: Any,
+    noise: str = "estimate",
+    candidates: Sequence[Effect] | None = None,
+    included: Sequence[Effect] = (),
+    alpha: float = 0.01,
+    max_effects: int = 2,
+    reference_pose: np.ndarray | None = None,
+) -> Diagnosis:
+    """:func:`diagnose` on the equilibrium windows of a run (``acquisition.runlog.Run``): the windows,
+    rows, noise and initial guess are those of ``calib.selfcal.solve(method='tlse')``."""
+    from calib.selfcal import solve
+    from calib.selfcal._solve import _rows, _signals, noise_levels
+
+    robot = run.robot
+    sol = solve(robot, run, method="tlse", noise=noise)
+    sig = _signals(robot, run)
+    meas, _, _, _, _ = _rows(sig, sol.windows, "tlse", 1, sol.reference_sample)
+    sigma, source = noise_levels(robot, noise, sig, sol.windows)
+    return diagnose(robot, meas, sigma, sol.theta[:6], sol.poses, candidates, included, alpha,
+                    max_effects=max_effects, noise_source=source, reference_pose=reference_pose)
+
+
+QUANTITIES = {
+    "tension": ("tension [N]", True),
+    "length": ("cable length [m]", True),
+    "height": ("platform height z [m]", False),
+    "swivel": ("swivel angle [rad]", True),
+    "tilt": ("tilt [rad]", False),
+}
+
+
+def plot_residuals(diag: Diagnosis, outdir: str | Path) -> list[Path]:
+    """PNG files (matplotlib, Agg) of the normalised residuals against tension, cable length, height,
+    swivel angle and tilt, one file per quantity with a panel per channel, and the chi2 of each step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    f0 = diag.fit
+    robot = f0.model.true_robot(f0.theta)
+    q = reveal_quantities(robot, f0.poses, f0.theta, f0.problem.meas)
+    res = diag.residual_data
+    k = f0.poses.shape[0]
+    rowpos = np.where(res.row < 0, k, res.row)
+    files = []
+    for name, (label, per_cable) in QUANTITIES.items():
+        fig, axes = plt.subplots(1, 4, figsize=(16, 3.6), sharex=False)
+        for ax, c in zip(axes, CHANNELS, strict=True):
+            m = res.channel == c
+            if not m.any():
+                ax.set_visible(False)
+                continue
+            x = q[name]
+            comp = res.index[m]
+            if per_cable and c != "orientation":
+                xv = x[rowpos[m], comp]
+            elif per_cable:
+                xv = x[rowpos[m]].mean(axis=1)
+            else:
+                xv = x[rowpos[m]]
+            width = 3 if c == "orientation" else robot.n
+            labels = ("roll", "pitch", "yaw") if c == "orientation" else [f"cable {i + 1}" for i in range(width)]
+            for a in range(width):
+                sel = comp == a
+                if sel.any():
+                    ax.plot(xv[sel], res.r[m][sel], "o", ms=4, label=labels[a])
+            ax.axhline(0.0, color="k", lw=0.6)
+            ax.set_title(c)
+            ax.set_xlabel(label)
+            ax.set_ylabel("residual / sigma")
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = out / f"residuals_vs_{name}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        files.append(path)
+    files.append(plot_steps(diag.steps, out / "chi2_by_effect.png"))
+    return files
+
+
+def plot_steps(steps: Sequence[dict[str, Any]], path: str | Path) -> Path:
+    """The error falling as effects are added one by one: chi2 (log) and, where known, eps_p per step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = ["rigid model"] + ["+ " + s["effects"][-1] for s in steps[1:]]
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.plot(range(len(steps)), [max(s["chi2"], 1e-9) for s in steps], "o-", label="chi2")
+    ax.plot(range(len(steps)), [max(s["dof"], 1) for s in steps], "k--", lw=0.8, label="dof")
+    ax.set_yscale("log")
+    ax.set_xticks(range(len(steps)), labels, rotation=15, fontsize=8)
+    ax.set_ylabel("chi2")
+    if all("eps_p" in s for s in steps):
+        ax2 = ax.twinx()
+        ax2.plot(range(len(steps)), [1000 * s["eps_p"] for s in steps], "s-", color="tab:red", label="eps_p")
+        ax2.set_ylabel("eps_p [mm]", color="tab:red")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=90)
+    plt.close(fig)
+    return p
+
+
+def format_diagnosis(diag: Diagnosis) -> str:
+    """A readable report of a diagnosis."""
+    lines = [f"chi2 {diag.chi2:.1f} on {diag.dof} dof (p = {diag.p_value:.3g}), noise {diag.noise_source}"]
+    lines.append("channel        rms/sigma   max/sigma   chi2     per cable (rms/sigma)")
+    for c, d in diag.channels.items():
+        cab = "  ".join(f"{v:.2f}" for v in diag.cables.get(c, []))
+        lines.append(f"  {c:<12} {d['rms_normalized']:>9.2f}  {d['max_normalized']:>9.2f}  {d['chi2']:>8.1f}  {cab}")
+    lines.append("row  sample  rms/sigma  max/sigma  worst")
+    for r in diag.rows:
+        lines.append(f"  {r['row']:>3} {r['sample']:>6}  {r['rms_normalized']:>9.2f}  {r['max_normalized']:>9.2f}  "
+                     f"{r['worst']}")
+    lines.append("effect             score (dof)   delta chi2   p-value    dAIC      parameters")
+    for c in diag.ranking:
+        d = "" if c.delta_chi2 is None else f"{c.delta_chi2:>10.1f}"
+        p = c.score_p if c.p_value is None else c.p_value
+        aic = "" if c.delta_aic is None else f"{c.delta_aic:>8.1f}"
+        par = ", ".join(f"{k}={v:.4g}" for k, v in list(c.params.items())[:6])
+        flag = "*" if c.significant else " "
+        conf = f"  ~ {', '.join(c.confused_with)}" if c.confused_with else ""
+        lines.append(f" {flag}{c.effect:<17} {c.score:>8.1f} ({c.score_dof:>2})  {d:>10}  {p:>9.2g}  {aic:>8}  "
+                     f"{par}{conf}")
+    if len(diag.steps) > 1:
+        lines.append("chi2 as effects are added: " + " -> ".join(
+            f"{s['chi2']:.1f}" + (f" (eps_p {1000 * s['eps_p']:.1f} mm)" if "eps_p" in s else "")
+            for s in diag.steps))
+    lines.append("verdict: " + diag.verdict)
+    return "\n".join(lines) + "\n"
+
+
+def html_report(diag: Diagnosis, pngs: Sequence[str | Path], title: str = "cdpr diagnose") -> str:
+    """A self-contained HTML page: the tables of :func:`format_diagnosis` and the plots (embedded)."""
+    import base64
+    import html
+
+    imgs = []
+    for p in pngs:
+        data = base64.b64encode(Path(p).read_bytes()).decode("ascii")
+        imgs.append(f'<h3>{html.escape(Path(p).stem)}</h3><img src="data:image/png;base64,{data}"/>')
+    return (
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title></head><body>"
+        f"<h1>{html.escape(title)}</h1><p><b>Verdict:</b> {html.escape(diag.verdict)}</p>"
+        f"<pre>{html.escape(format_diagnosis(diag))}</pre>{''.join(imgs)}</body></html>\n"
+    )

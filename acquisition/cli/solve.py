@@ -31,6 +31,9 @@ def register(sub) -> None:
         help="a known initial pose (m, rad) to compare with: eps_p, eps_r (eq. 20) and the geodesic angle",
     )
     p.add_argument("--json", action="store_true", help="print the solution as JSON")
+    from acquisition.cli.diagnose import add_solve_options  # --effects, --effects-from (issue 7)
+
+    add_solve_options(p)
     p.set_defaults(func=_solve)
 
 
@@ -71,12 +74,21 @@ def _solve(args) -> int:
         run = read_run(args.run)
     except RunFormatError as exc:
         raise UsageError(str(exc)) from exc
-    model = _effects_model(run.robot, getattr(args, "effects", None))
+    with_effects = bool(getattr(args, "effects", None))
+    model = None if with_effects else _effects_model(run.robot, getattr(args, "effects", None))
+    table = ""
     try:
-        sol = solve(
-            run.robot, run, method=args.method, noise=args.noise, stride=args.stride,
-            reference_sample=args.reference_sample, reference_pose=reference, model=model,
-        )
+        if with_effects:  # effects added one by one, with the before/after table (issue 7)
+            from acquisition.cli.diagnose import solve_with_effects
+
+            kw = dict(method=args.method, noise=args.noise, stride=args.stride,
+                      reference_sample=args.reference_sample, reference_pose=reference)
+            sol, table = solve_with_effects(args, run, reference, kw)
+        else:
+            sol = solve(
+                run.robot, run, method=args.method, noise=args.noise, stride=args.stride,
+                reference_sample=args.reference_sample, reference_pose=reference, model=model,
+            )
     except SelfCalInputError as exc:
         raise UsageError(f"{args.run}: {exc}") from exc
     except SelfCalFailure as exc:
@@ -89,7 +101,7 @@ def _solve(args) -> int:
     if args.json:
         sys.stdout.write(json.dumps(doc) + "\n")
     else:
-        sys.stdout.write(format_solution(sol))
+        sys.stdout.write(format_solution(sol) + table)
     return 0
 
 

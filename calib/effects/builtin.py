@@ -62,7 +62,7 @@ class CableElasticity(Effect):
 
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
         c = float(values[0])
-        return {"EA": (1.0 / c) if c > 0 else math.inf, "compliance": c}
+        return {"EA": (1.0 / c) if c != 0 else math.inf, "compliance": c}
 
 
 class LengthScale(Effect):

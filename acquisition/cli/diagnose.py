@@ -1,0 +1,210 @@
+"""`cdpr diagnose RUN`: compare model and measurements, rank the candidate physical effects (spec/cli.md).
+
+Also the `--effects` support of `cdpr solve` (:func:`solve_with_effects`), which acquisition/cli/solve.py
+calls: the refit with the named effects and its before/after table.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from acquisition.cli.errors import OperationError, UsageError
+from acquisition.runlog import RunFormatError, read_run
+from calib.effects import Effect, EffectLoadError, EffectModel, available_effects, make_effects
+from calib.effects.base import Projected
+
+
+def register(sub) -> None:
+    p = sub.add_parser("diagnose", help="compare model and measurements, rank the candidate physical effects")
+    p.add_argument("run", type=Path, metavar="RUN", help="run folder")
+    p.add_argument("--json", action="store_true", help="print the diagnosis as JSON (spec/cli.md)")
+    p.add_argument(
+        "--noise", choices=("estimate", "paper"), default="estimate",
+        help="noise units: estimate (scatter inside the equilibrium windows, default) or paper (eq. 18)",
+    )
+    p.add_argument("--plots", type=Path, default=None, metavar="DIR", help="write PNG plots of the residuals here")
+    p.add_argument("--html", type=Path, default=None, metavar="FILE", help="write an HTML report (plots embedded)")
+    p.add_argument(
+        "--effects-from", action="append", default=[], metavar="MODULE",
+        help="also consider the effects of this Python file or importable module (repeatable)",
+    )
+    p.add_argument("--effects", default=None, metavar="A,B", help="effects already in the model")
+    p.add_argument("--max-effects", type=int, default=2, help="effects added at most by forward selection")
+    p.add_argument(
+        "--reference", default=None, metavar="x,y,z,r,p,y",
+        help="a known initial pose (m, rad): eps_p after each added effect",
+    )
+    p.set_defaults(func=_diagnose)
+
+
+def effect_classes(sources: list[str]) -> dict[str, type[Effect]]:
+    """Built-in, installed (entry points) and --effects-from effects; a source is a file or a module name."""
+    files, modules = [], []
+    for s in sources:
+        (files if s.endswith(".py") or Path(s).is_file() else modules).append(s)
+    try:
+        out = available_effects(files)
+    except EffectLoadError as exc:
+        raise UsageError(f"--effects-from: {exc}") from exc
+    for name in modules:
+        try:
+            mod = importlib.import_module(name)
+        except ImportError as exc:
+            raise UsageError(f"--effects-from '{name}': no such file or importable module ({exc}).") from exc
+        found = {c.name: c for c in vars(mod).values()
+                 if isinstance(c, type) and issubclass(c, Effect) and c is not Effect and getattr(c, "name", "")}
+        if not found:
+            raise UsageError(f"--effects-from '{name}': the module defines no calib.effects.Effect subclass.")
+        out.update(found)
+    return out
+
+
+def parse_effects(text: str | None, classes: dict[str, type[Effect]], option: str = "--effects") -> list[Effect]:
+    """Effect instances from 'A,B' (empty: none); unknown names are a usage error."""
+    if not text:
+        return []
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    if len(set(names)) != len(names):
+        raise UsageError(f"{option} '{text}' names an effect twice.")
+    try:
+        return make_effects(names, classes)
+    except EffectLoadError as exc:
+        raise UsageError(f"{option} '{text}': {exc}") from exc
+
+
+def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
+    if text is None:
+        return None
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
+        raise UsageError(f"{option} '{text}' must be six numbers x,y,z,roll,pitch,yaw (m, rad).")
+    return np.array(vals)
+
+
+def _read(path: Path):
+    try:
+        return read_run(path)
+    except RunFormatError as exc:
+        raise UsageError(str(exc)) from exc
+
+
+def _diagnose(args) -> int:
+    from calib.diagnose import diagnose_run, format_diagnosis, html_report, plot_residuals
+    from calib.selfcal import SelfCalFailure, SelfCalInputError
+
+    if args.max_effects < 0:
+        raise UsageError(f"--max-effects {args.max_effects} must be 0 or more.")
+    reference = parse_pose(args.reference)
+    classes = effect_classes(args.effects_from)
+    included = parse_effects(args.effects, classes)
+    run = _read(args.run)
+    cands = [cls() for name, cls in classes.items() if name not in {e.name for e in included}]
+    try:
+        diag = diagnose_run(run, noise=args.noise, candidates=cands, included=included,
+                            max_effects=args.max_effects, reference_pose=reference)
+    except SelfCalInputError as exc:
+        raise UsageError(f"{args.run}: {exc}") from exc
+    except SelfCalFailure as exc:
+        raise OperationError(f"{args.run}: {exc}") from exc
+    pngs: list[Path] = []
+    if args.plots is not None or args.html is not None:
+        import tempfile
+
+        folder = args.plots if args.plots is not None else Path(tempfile.mkdtemp(prefix="cdpr-diagnose-"))
+        try:
+            pngs = plot_residuals(diag, folder)
+        except OSError as exc:
+            raise OperationError(f"{folder}: cannot write the plots ({exc.strerror}).") from exc
+    if args.html is not None:
+        try:
+            args.html.write_text(html_report(diag, pngs, f"cdpr diagnose {args.run}"))
+        except OSError as exc:
+            raise OperationError(f"{args.html}: cannot write the HTML report ({exc.strerror}).") from exc
+    if args.json:
+        sys.stdout.write(json.dumps(diag.to_json()) + "\n")
+    else:
+        sys.stdout.write(format_diagnosis(diag))
+    return 0
+
+
+# ---- cdpr solve --effects --------------------------------------------------------------------------------
+
+def add_solve_options(parser) -> None:
+    """The options `cdpr solve` gains from the effect library."""
+    parser.add_argument("--effects", default=None, metavar="A,B",
+                        help="physical effects to include in the model (see cdpr diagnose)")
+    parser.add_argument("--effects-from", action="append", default=[], metavar="MODULE",
+                        help="a Python file or module defining more effects (repeatable)")
+
+
+def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: dict[str, Any]):
+    """Solve with the effects of ``args.effects`` added one by one. Returns the final Solution (its
+    ``effects`` filled) and the before/after table; writes the plot RUN/effects_chi2.png."""
+    from calib.diagnose import _restrict, plot_steps, pose_error
+    from calib.selfcal import solve
+    from calib.selfcal._solve import _rows, _signals, noise_levels
+
+    classes = effect_classes(getattr(args, "effects_from", []) or [])
+    effects = parse_effects(args.effects, classes)
+    robot = run.robot
+    base = solve(robot, run, **solve_kwargs)
+    sig = _signals(robot, run)
+    meas, _, _, _, _ = _rows(sig, base.windows, base.method, int(solve_kwargs.get("stride", 1)),
+                             base.reference_sample)
+    sigma, _ = noise_levels(robot, solve_kwargs.get("noise", "paper"), sig, base.windows)
+    sols = [base]
+    for j in range(1, len(effects) + 1):
+        model0 = EffectModel(robot, effects[:j])
+        prev = sols[-1]
+        theta0 = np.r_[prev.theta, model0.absent_values()[prev.theta.shape[0] - 6 :]]
+        used = _restrict(robot, meas, sigma, effects[:j], theta0, prev.poses)
+        model = EffectModel(robot, used)
+        vals = [np.zeros(u.basis.shape[1]) if isinstance(u, Projected) else theta0[sl]
+                for u, sl in zip(used, model0.slices, strict=True)]
+        theta0 = np.r_[theta0[:6], np.concatenate(vals)]
+        sol = solve(robot, run, model=model, guess=(theta0, prev.poses), **solve_kwargs)
+        sol.effects = {k: {a: b for a, b in v.items() if math.isfinite(b)}
+                       for k, v in model.report(sol.theta).items()}
+        sols.append(sol)
+    steps = []
+    for j, s in enumerate(sols):
+        st = {"effects": [e.name for e in effects[:j]], "chi2": s.chi2, "dof": s.dof}
+        if reference is not None:
+            st["eps_p"] = pose_error(s.initial_pose, reference)
+        steps.append(st)
+    try:
+        plot_steps(steps, Path(args.run) / "effects_chi2.png")
+    except OSError:
+        pass
+    return sols[-1], effects_table(sols, effects, reference)
+
+
+def effects_table(sols, effects: list[Effect], reference: np.ndarray | None) -> str:
+    """Before/after: chi2, per-channel RMS (normalised), change of the initial pose, eps_p where known."""
+    from calib.diagnose import pose_error
+
+    chans = list(sols[0].residuals)
+    head = f"{'model':<36} {'chi2':>10} {'dof':>4} " + " ".join(f"{c[:6]:>7}" for c in chans)
+    head += f" {'d zeta0 [mm]':>12}" + (f" {'eps_p [mm]':>10}" if reference is not None else "")
+    lines = ["effects added one by one (rms/sigma per channel)", head]
+    for j, s in enumerate(sols):
+        name = "rigid model" if j == 0 else "+ " + effects[j - 1].name
+        row = f"{name:<36} {s.chi2:>10.1f} {s.dof:>4} " + " ".join(
+            f"{s.residuals.get(c, {}).get('rms_normalized', float('nan')):>7.2f}" for c in chans)
+        row += f" {1000 * pose_error(s.initial_pose, sols[0].initial_pose):>12.2f}"
+        if reference is not None:
+            row += f" {1000 * pose_error(s.initial_pose, reference):>10.2f}"
+        lines.append(row)
+    for name, params in sols[-1].effects.items():
+        lines.append(f"  {name}: " + ", ".join(f"{k} = {v:.5g}" for k, v in params.items()))
+    return "\n".join(lines) + "\n"
