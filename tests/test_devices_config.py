@@ -107,10 +107,12 @@ def test_devices_check_lists_every_node(tmp_path, capsys):
     try:
         cfg = _virtual_config(tmp_path, rig.channel)
         status = main(["devices", "check", "--config", cfg, "--json", "--syncs", "60"])
-        out = json.loads(capsys.readouterr().out)
+        report = json.loads(capsys.readouterr().out)
     finally:
         rig.close()
+    out = report["devices"]
     assert status == 0, out
+    assert report["sync_round_trip"]["cycles"] == 60
     assert [d["name"] for d in out] == [f"winch{i}" for i in range(1, 5)] + [f"swivel{i}" for i in range(1, 5)]
     assert all(d["ok"] for d in out)
     assert all("NMT OPERATIONAL" in d["state"] for d in out)
@@ -127,9 +129,9 @@ def test_devices_check_reports_a_missing_node(tmp_path, capsys):
         rig.close()
     assert status == 1
     lines = captured.out.splitlines()
-    assert len(lines) == 8
+    assert len(lines) == 9 and lines[8].startswith("SYNC round trip")
     assert lines[3].startswith("winch4") and "FAIL" in lines[3] and "SDO read of 0x1000:00 failed" in lines[3]
-    assert all("OK" in line for line in lines[:3] + lines[4:])
+    assert all("OK" in line for line in lines[:3] + lines[4:8])
     assert "1 of 8 devices failed the check: winch4." in captured.err
 
 
@@ -167,7 +169,7 @@ def test_open_can_devices_streams_in_lockstep():
 def test_devices_check_on_the_simulated_prototype(capsys):
     pytest.importorskip("sim_backend.backend", reason="the simulator backend is not in this checkout")
     status = main(["devices", "check", "--backend", "sim", "--json", "--syncs", "30"])
-    out = json.loads(capsys.readouterr().out)
+    out = json.loads(capsys.readouterr().out)["devices"]
     assert status == 0, out
     kinds = [d["kind"] for d in out]
     assert kinds == ["winch drive"] * 4 + ["swivel encoder"] * 4 + ["load cells", "ahrs"]

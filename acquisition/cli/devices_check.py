@@ -1,7 +1,8 @@
 """`cdpr devices check --config FILE | --backend sim`: connect every device of the set and list its state.
 
 The CAN nodes are configured (SDO), started, and a few SYNCs are sent so that each one shows its PDO
-feedback and heartbeat; the drives stay disabled (no torque). Serial devices are opened and one sample is
+feedback and heartbeat; the drives stay disabled (no torque). The SYNC round trip (SYNC sent -> the PDOs of
+every node received) is measured on the way. Serial devices are opened and one sample is
 awaited. One line per device: ``OK`` or ``FAIL`` and its state; exit status 1 when any device fails.
 """
 
@@ -26,6 +27,18 @@ class DeviceCheck:
     state: str
 
 
+@dataclass
+class CheckResult:
+    devices: list[DeviceCheck]
+    sync_round_trip: list[float]  # s, per SYNC: sent -> every opened node's PDOs received
+
+    def round_trip_summary(self) -> dict[str, float] | None:
+        rt = self.sync_round_trip
+        if not rt:
+            return None
+        return {"cycles": len(rt), "mean_us": 1e6 * sum(rt) / len(rt), "max_us": 1e6 * max(rt)}
+
+
 def register(devsub) -> None:
     p = devsub.add_parser("check", help="connect every device of the set and list its state")
     src = p.add_mutually_exclusive_group(required=True)
@@ -40,7 +53,7 @@ def register(devsub) -> None:
 
 
 def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 0.005, clock=None,
-                  lockstep: bool = False, bus=None) -> list[DeviceCheck]:
+                  lockstep: bool = False, bus=None) -> CheckResult:
     """Open every device of ``config``, run ``syncs`` SYNC cycles, and report each device's state.
 
     ``lockstep``: each SYNC advances a simulator, so wait for the PDOs of each SYNC instead of pacing on
@@ -80,16 +93,21 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
                 dev.open()
             except DeviceError as exc:
                 errors[name] = str(exc)
+        round_trip = []
         for _ in range(syncs):
+            t0 = time.perf_counter()
             count = devices.send_sync()
-            if lockstep:
-                for drv in opened:
-                    try:
-                        drv.wait_for_sync(count, 0.5)
-                    except DeviceError:
-                        pass
-            else:
-                time.sleep(period)
+            complete = True
+            for drv in opened:  # lockstep: the next SYNC only once this one is answered
+                try:
+                    drv.wait_for_sync(count, 0.5 if lockstep else period)
+                except DeviceError:
+                    complete = False
+            elapsed = time.perf_counter() - t0
+            if complete and opened:
+                round_trip.append(elapsed)
+            if not lockstep and elapsed < period:
+                time.sleep(period - elapsed)
         time.sleep(0.02 if lockstep else 2 * period)
         results = []
         for kind, group in (("winch drive", devices.drives), ("swivel encoder", devices.encoders)):
@@ -114,7 +132,7 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
             if fault is None and dev.latest() is None:
                 fault = f"{kind} on {port}: no sample during the check"
             results.append(DeviceCheck(name, kind, port, fault is None, dev.status() if fault is None else fault))
-        return results
+        return CheckResult(results, round_trip)
     finally:
         devices.close()
         for _, _, _, dev in serial:
@@ -141,7 +159,7 @@ def _serial_devices(config: DeviceConfig) -> list[tuple[str, str, str, object]]:
     return out
 
 
-def _sim_check(args, robot) -> list[DeviceCheck]:
+def _sim_check(args, robot) -> CheckResult:
     try:
         from sim_backend.backend import SimBackend
     except ModuleNotFoundError as exc:
@@ -174,14 +192,19 @@ def run(args) -> int:
         except DeviceConfigError as exc:
             raise UsageError(str(exc).rstrip(".") + ".") from exc
         results = check_devices(config, robot, args.syncs, args.period)
+    rt = results.round_trip_summary()
+    devices = results.devices
     if args.json:
-        print(json.dumps([asdict(r) for r in results]))
+        print(json.dumps({"devices": [asdict(r) for r in devices], "sync_round_trip": rt}))
     else:
-        width = max((len(r.name) for r in results), default=4)
-        for r in results:
+        width = max((len(r.name) for r in devices), default=4)
+        for r in devices:
             print(f"{r.name:<{width}}  {r.address:<14}  {'OK  ' if r.ok else 'FAIL'}  {r.state}")
-    failed = [r.name for r in results if not r.ok]
+        if rt:
+            print(f"SYNC round trip (SYNC sent -> all PDOs in): mean {rt['mean_us']:.0f} us, "
+                  f"max {rt['max_us']:.0f} us over {rt['cycles']} cycles")
+    failed = [r.name for r in devices if not r.ok]
     if failed:
-        sys.stderr.write(f"cdpr: {len(failed)} of {len(results)} devices failed the check: {', '.join(failed)}.\n")
+        sys.stderr.write(f"cdpr: {len(failed)} of {len(devices)} devices failed the check: {', '.join(failed)}.\n")
         return 1
     return 0
