@@ -39,7 +39,7 @@ def register(sub) -> None:
     anchors.add_argument("--rotation-bound", choices=("centred", "naive"), default=defaults.rotation_bound,
                          help="enclosure of the orientation error: centred form (default) or naive interval product")
     anchors.add_argument("--resolution", type=float, default=defaults.resolution,
-                         help="paving resolution, m (default 0.0002)")
+                         help="paving resolution, m (default 0.0005)")
     anchors.add_argument("--loss", choices=LOSSES, default=defaults.nwls_loss,
                          help="loss of the least-squares comparison (default linear: plain NWLS)")
     anchors.add_argument("--json", action="store_true", help="print the result as JSON")

@@ -40,7 +40,8 @@ class CertifyConfig:
     of the initial box about the nominal anchors (m). platform_tol: tolerance of the platform points b_i (m).
     rotation_bound: 'centred' (mean-value form of R b) or 'naive' (interval product of the three rotations).
     resolution: the paving stops bisecting boxes narrower than this (m). max_boxes: paving budget per cable.
-    fixpoint_ratio: the fixpoint stops when no dimension shrinks by more than this fraction.
+    fixpoint_ratio: the fixpoint stops when no dimension shrinks by more than this fraction (root box);
+    paving_ratio: the same criterion inside the paving.
     uncontracted_ratio: a dimension whose final width exceeds this fraction of the initial one is reported
     as not contracted. pulley_angle_range: Euler angles (rad) over which the pulley effect is bounded.
     nwls_loss: scipy robust loss of the least-squares comparison ('linear' is plain NWLS).
@@ -53,9 +54,10 @@ class CertifyConfig:
     anchor_tol: float = 0.01
     platform_tol: float = 0.0
     rotation_bound: str = "centred"
-    resolution: float = 2e-4
+    resolution: float = 5e-4
     max_boxes: int = 20000
     fixpoint_ratio: float = 0.01
+    paving_ratio: float = 0.1
     uncontracted_ratio: float = 0.9
     pulley_angle_range: float = 0.1
     nwls_loss: str = "linear"
@@ -68,7 +70,7 @@ class CertifyConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} = {v} must be a non-negative number.")
-        for name in ("anchor_tol", "resolution"):
+        for name in ("anchor_tol", "resolution", "fixpoint_ratio", "paving_ratio"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} = {v} must be a positive number.")
@@ -205,7 +207,7 @@ def certify_anchors(
             model_error=model_error, rotation_bound=config.rotation_bound,
         )
         sol = solve_cable(shells, initial, n_fail, resolution=config.resolution, max_boxes=config.max_boxes,
-                          ratio=config.fixpoint_ratio)
+                          ratio=config.fixpoint_ratio, paving_ratio=config.paving_ratio)
         nwls = anchor_least_squares(shells, nominal, config.nwls_loss)
         inside = sol.box is not None and bool(np.all((sol.box[:, 0] <= nwls) & (nwls <= sol.box[:, 1])))
         if sol.box is None:

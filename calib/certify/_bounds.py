@@ -24,9 +24,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import codac
 import numpy as np
 
+from calib.certify._rounding import codac, codac_rounding
 from calib.kinematics import euler_axes, rotation
 from calib.robot import Robot
 
@@ -110,7 +110,9 @@ def cable_shells(
         w = pose_tol * (np.abs(u0).sum(axis=1) + np.sqrt(3.0) * du) + angle_tol * proj.sum(axis=1) + rem
         emax = np.sqrt(3.0) * pose_tol + angle_tol * np.linalg.norm(jac, axis=2).sum(axis=1) + rem
     elif rotation_bound == "naive":
-        half = _naive_error_radius(robot.orientation, poses[:, 3:], b, rb, angle_tol, platform_tol) + pose_tol
+        with codac_rounding():
+            half = _naive_error_radius(robot.orientation, poses[:, 3:], b, rb, angle_tol, platform_tol)
+        half = half + pose_tol
         w = ((np.abs(u0) + du[:, None]) * half).sum(axis=1)
         emax = np.linalg.norm(half, axis=1)
     else:

@@ -20,10 +20,10 @@ from __future__ import annotations
 import heapq
 from dataclasses import dataclass
 
-import codac
 import numpy as np
 
 from calib.certify._bounds import Shells
+from calib.certify._rounding import codac, codac_rounding
 
 _CLASSIFY_MARGIN = 1e-9  # m, far above the rounding error of a distance of a few metres
 
@@ -153,11 +153,22 @@ def solve_cable(
     box: np.ndarray,
     n_fail: int,
     *,
-    resolution: float = 2e-4,
+    resolution: float = 5e-4,
     max_boxes: int = 20000,
     ratio: float = 0.01,
+    paving_ratio: float = 0.1,
 ) -> CableSolution:
-    """Enclose the anchors of ``box`` (3, 2) satisfying all but ``n_fail`` thick spheres (codac meaning)."""
+    """Enclose the anchors of ``box`` (3, 2) satisfying all but ``n_fail`` thick spheres (codac meaning).
+
+    ``ratio`` is the fixpoint criterion of the root contraction (the paper's 1 %), ``paving_ratio`` that of
+    the paving's boxes, where bisection takes over sooner.
+    """
+    with codac_rounding():
+        return _solve_cable(shells, box, n_fail, resolution, max_boxes, ratio, paving_ratio)
+
+
+def _solve_cable(shells: Shells, box: np.ndarray, n_fail: int, resolution: float, max_boxes: int,
+                 ratio: float, paving_ratio: float) -> CableSolution:
     n = len(shells.r_lo)
     ctcs = shell_contractors(shells)
     x0 = codac.IntervalVector([[float(lo), float(hi)] for lo, hi in box])
@@ -171,7 +182,7 @@ def solve_cable(
     for j in range(3):
         for side in (0, 1):
             bound, used, out_of_budget = _extreme(shells, ctcs, n_fail, box_now, j, side, resolution,
-                                                  max_boxes - visited, ratio)
+                                                  max_boxes - visited, paving_ratio)
             visited += used
             exhausted |= out_of_budget
             if bound is None:
