@@ -147,7 +147,10 @@ class SimulatedNode:
         if len(data) >= 2 and data[1] in (0, self.node.id):
             if data[0] == 1:  # start remote node: the PDO configuration written by SDO takes effect
                 self.load_pdo_config()
-            elif data[0] in (129, 130):  # reset node / communication
+            elif data[0] in (129, 130):  # reset node (every object) / communication (0x1000-0x1FFF)
+                for index in list(self.node.data_store):
+                    if data[0] == 129 or 0x1000 <= index <= 0x1FFF:
+                        del self.node.data_store[index]
                 self.reset()
 
     def reset(self) -> None:
@@ -431,6 +434,18 @@ class CanDriveEmulator(SimulatedNode):
             elif enable and self.quick_stop_option in (5, 6, 7, 8):
                 self.state = OPERATION_ENABLED
                 self._v_integral = 0.0
+
+    def reset(self) -> None:
+        """NMT reset node: the application restarts in switch on disabled, errors and targets cleared."""
+        with self.lock:
+            self.error_code = 0
+            self.error_register = 0
+            self.target_torque = 0
+            self.target_velocity = 0
+            self.controlword = 0
+            self._rpdos = []
+            self.state = SWITCH_ON_DISABLED
+        super().reset()
 
     def trigger_fault(self, code: int = 0x2310, register: int = 0x03) -> None:
         """A drive fault now: torque off, statusword fault bit, EMCY ``code`` (default 0x2310 over-current)."""

@@ -244,6 +244,36 @@ def test_drive_fault_detected_within_three_sync_periods_and_recovery(rig):
     assert rig.plant.tau[0] == pytest.approx(round(0.4 / 0.64 * 1000) / 1000 * 0.64)
 
 
+def test_fault_seen_in_the_statusword_when_the_emcy_is_lost(rig):
+    drv = rig.winch()
+    drv.set_torque(0.2)
+    drv.enable()
+    rig.ticks(5)
+    rig.drives[0].lose_frames(1.0, kinds=("emcy",))
+    rig.drives[0].trigger_fault(0x8611)
+    rig.tick()
+    assert drv.emcy_faults == []
+    assert "fault in its statusword 0x0208" in drv.fault()
+    assert not drv.enabled
+
+
+def test_nmt_reset_node_is_reported_and_recovered(rig):
+    drv = rig.winch()
+    drv.enable()
+    rig.ticks(30)
+    drv.node.nmt.state = "RESET"
+    for _ in range(int(0.2 / DT)):
+        rig.tick(wait=False)  # no PDOs while pre-operational
+    assert "left the operational state" in drv.fault()
+    assert rig.drives[0].state == "switch on disabled"
+    drv.close()
+    rig.drivers.remove(drv)
+    drv = rig.winch()  # configure again after the reset
+    drv.enable()
+    rig.ticks(int(0.2 / DT))
+    assert drv.fault() is None and drv.enabled
+
+
 def test_lost_heartbeat_detected_within_three_periods(rig):
     drv = rig.winch()
     period = drv.heartbeat_period
