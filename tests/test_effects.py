@@ -1,0 +1,186 @@
+"""The effect library: Jacobian columns against finite differences, composition, absent = rigid model,
+the physics each effect encodes, and user effects loaded from a file."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.effects import (
+    BUILTIN,
+    EffectLoadError,
+    EffectModel,
+    Projected,
+    available_effects,
+    load_effect_file,
+    make_effects,
+)
+from calib.effects.builtin import pulley_gauge_basis
+from calib.planning import plan_poses
+from calib.robot import load_robot
+from calib.selfcal.model import CHANNELS, MeasurementModel
+
+ROBOT = load_robot("irma4u")
+POSES = plan_poses(ROBOT, 2).poses[:4]
+
+
+def _values(model: EffectModel, rng) -> np.ndarray:
+    out = []
+    for specs in model.specs:
+        for s in specs:
+            v = 0.6 * s.scale * rng.standard_normal()
+            out.append(abs(v) if s.lower >= 0 else v)
+    return np.array(out)
+
+
+def _check_fd(model: EffectModel, theta: np.ndarray, poses: np.ndarray) -> None:
+    """Analytic d/dtheta and d/dpose against central differences, every channel (relative to the column's
+    size, absolute floor for columns that are zero)."""
+    pred = model.predict(poses, theta, CHANNELS)
+    for c in CHANNELS:
+        for j in range(theta.size):
+            h = 1e-6 if j < 6 else 1e-6 * max(abs(theta[j]), 1e-2)
+            tp, tm = theta.copy(), theta.copy()
+            tp[j] += h
+            tm[j] -= h
+            fd = (model.predict(poses, tp, (c,))[c].value - model.predict(poses, tm, (c,))[c].value) / (2 * h)
+            an = pred[c].d_theta[..., j]
+            floor = 1e-12 * np.abs(pred[c].value).max() / h  # round-off of the differences
+            assert np.allclose(an, fd, rtol=2e-4, atol=max(2e-4 * np.abs(fd).max(), floor)), (c, j)
+        for j in range(6):
+            zp, zm = poses.copy(), poses.copy()
+            zp[:, j] += 1e-6
+            zm[:, j] -= 1e-6
+            fd = (model.predict(zp, theta, (c,))[c].value - model.predict(zm, theta, (c,))[c].value) / 2e-6
+            an = pred[c].d_pose[..., j]
+            assert np.allclose(an, fd, rtol=2e-4, atol=2e-4 * max(np.abs(fd).max(), 1e-3)), (c, "pose", j)
+
+
+@pytest.mark.parametrize("name", list(BUILTIN))
+def test_each_effect_jacobian_matches_finite_differences(name):
+    rng = np.random.default_rng(7)
+    model = EffectModel(ROBOT, make_effects([name]))
+    theta = model.initial_params(POSES[0] + 0.01 * rng.standard_normal(6), _values(model, rng))
+    _check_fd(model, theta, POSES)
+
+
+def test_all_effects_composed_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(11)
+    model = EffectModel(ROBOT, make_effects(list(BUILTIN)))
+    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 3 + 1 + 8  # pulley_position: 12 - 4 gauge modes
+    theta = model.initial_params(POSES[1] + 0.01 * rng.standard_normal(6), _values(model, rng))
+    _check_fd(model, theta, POSES[:3])
+
+
+def test_projected_effect_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(3)
+    basis = np.array([[1.0, 0.0], [0.0, 1.0], [0.5, -0.5]]) * 0.01
+    model = EffectModel(ROBOT, [Projected(BUILTIN["com_offset"](), basis), BUILTIN["ahrs_mounting"]()])
+    theta = model.initial_params(POSES[0], np.array([0.3, -0.7, 0.01, -0.02]))
+    _check_fd(model, theta, POSES[:3])
+    rep = model.report(theta)["com_offset"]
+    assert rep["dx"] == pytest.approx(0.003) and rep["dz"] == pytest.approx(0.005)
+    del rng
+
+
+def test_absent_effects_reproduce_the_rigid_model():
+    rigid = MeasurementModel(ROBOT)
+    model = EffectModel(ROBOT, make_effects(list(BUILTIN)))
+    zeta0 = POSES[2] + np.array([0.01, -0.02, 0.01, 0.01, 0.0, 0.02])
+    theta = model.initial_params(zeta0)
+    a = rigid.predict(POSES, zeta0, CHANNELS)
+    b = model.predict(POSES, theta, CHANNELS)
+    for c in CHANNELS:
+        assert np.allclose(a[c].value, b[c].value, atol=1e-12)
+        assert np.allclose(a[c].d_pose, b[c].d_pose, atol=1e-10)
+        assert np.allclose(a[c].d_theta, b[c].d_theta[..., :6], atol=1e-10)
+
+
+def test_effects_change_readings_as_their_physics_says():
+    zeta0 = POSES[0]
+    rigid = EffectModel(ROBOT, [])
+    base = rigid.predict(POSES, zeta0, CHANNELS)
+    # cable elasticity: the encoders count L / (1 + tau / EA)
+    m = EffectModel(ROBOT, make_effects(["cable_elasticity"]))
+    p = m.predict(POSES, m.initial_params(zeta0, [1 / 15000.0]), ("length", "tension"))
+    ph = m._physical(m.initial_params(zeta0, [1 / 15000.0]), np.vstack([POSES, zeta0]))[1]
+    l0 = ph.L / (1 + ph.tau / 15000.0)
+    assert np.allclose(p["length"].value, l0[:-1] - l0[-1])
+    assert np.abs(p["length"].value - base["length"].value).max() > 5e-4  # sub-mm to mm at 30-170 N
+    # length scale: reading = (1 + k) true change
+    m = EffectModel(ROBOT, make_effects(["length_scale"]))
+    p = m.predict(POSES, m.initial_params(zeta0, [0.02, 0, -0.01, 0]), ("length",))
+    assert np.allclose(p["length"].value, base["length"].value * [1.02, 1, 0.99, 1])
+    # load cells: (1 + g) tau + o
+    m = EffectModel(ROBOT, make_effects(["tension_gain", "tension_offset"]))
+    p = m.predict(POSES, m.initial_params(zeta0, [0.02, 0, 0, 0, 3.0, 0, 0, -1.0]), ("tension",))
+    assert np.allclose(p["tension"].value, base["tension"].value * [1.02, 1, 1, 1] + [3.0, 0, 0, -1.0])
+    # mass scale: tensions scale with the mass
+    m = EffectModel(ROBOT, make_effects(["mass_scale"]))
+    p = m.predict(POSES, m.initial_params(zeta0, [0.03]), ("tension",))
+    assert np.allclose(p["tension"].value, 1.03 * base["tension"].value)
+    # AHRS mounting: a pure roll tilt at a level pose reads as roll
+    m = EffectModel(ROBOT, make_effects(["ahrs_mounting"]))
+    level = np.array([[0.0, 0.0, 0.9, 0.0, 0.0, 0.0]])
+    p = m.predict(level, m.initial_params(zeta0, [0.0175, 0.0]), ("orientation",))
+    assert p["orientation"].value[0, 0] == pytest.approx(0.0175, abs=1e-9)
+
+
+def test_pulley_modes_exclude_the_gauge_motions():
+    B = pulley_gauge_basis(ROBOT)
+    assert B.shape == (12, 8)
+    assert np.allclose(B.T @ B, np.eye(8), atol=1e-12)
+    for ax in range(3):
+        t = np.zeros((4, 3))
+        t[:, ax] = 1.0
+        assert np.allclose(B.T @ t.ravel(), 0.0, atol=1e-12)
+
+
+def test_duplicate_and_unknown_effects_are_refused():
+    with pytest.raises(ValueError, match="twice"):
+        EffectModel(ROBOT, make_effects(["mass_scale", "mass_scale"]))
+    with pytest.raises(EffectLoadError, match="unknown effect 'warp_drive'"):
+        make_effects(["warp_drive"])
+
+
+USER_EFFECT = '''
+import numpy as np
+from calib.effects import Effect, ParamSpec
+
+
+class SwivelOffset(Effect):
+    """A constant error of each swivel encoder's zero does not show in relative readings; a swivel gain does."""
+
+    name = "swivel_gain"
+    order = 25
+
+    def params(self, robot):
+        return [ParamSpec("gain", "1", 0.0, -0.5, 0.5, 0.01)]
+
+    def transform(self, ctx, values, preds):
+        if "swivel" in preds:
+            pr = preds["swivel"]
+            base = pr.value.copy()
+            pr.value = (1 + values[0]) * pr.value
+            pr.d_pose = (1 + values[0]) * pr.d_pose
+            pr.d_theta = (1 + values[0]) * pr.d_theta
+            pr.d_theta[..., ctx.cols] = base[..., None]
+'''
+
+
+def test_user_effect_from_a_file(tmp_path):
+    f = tmp_path / "my_effects.py"
+    f.write_text(USER_EFFECT)
+    found = load_effect_file(f)
+    assert list(found) == ["swivel_gain"]
+    avail = available_effects([f])
+    assert "swivel_gain" in avail and "cable_elasticity" in avail
+    model = EffectModel(ROBOT, make_effects(["swivel_gain", "length_scale"], avail))
+    theta = model.initial_params(POSES[0], [0.05, 0.01, 0.0, 0.0, -0.01])
+    _check_fd(model, theta, POSES[:2])
+    bad = tmp_path / "bad.py"
+    bad.write_text("x = 1\n")
+    with pytest.raises(EffectLoadError, match="defines no subclass"):
+        load_effect_file(bad)
+    with pytest.raises(EffectLoadError, match="not found"):
+        load_effect_file(tmp_path / "missing.py")
