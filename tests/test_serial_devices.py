@@ -272,17 +272,25 @@ def test_loadcell_silent_amplifier_gap_and_corruption(cells):
     drv.wait_for(2, 2.0)
     emu.disconnect()
     time.sleep(0.1)
-    last = drv.latest()
+    last, frames = drv.latest(), drv.stats.frames
     assert drv.staleness(now=last.t + 2.9 / 100) is None
     assert drv.staleness(now=last.t + 3.05 / 100).startswith(f"load-cell amplifier on {drv.config.port} silent")
     with pytest.raises(DeviceError, match="no sample with sequence"):
         drv.wait_for(last.device_seq + 1, 0.2)
     emu.reconnect()
-    r = drv.wait_for(last.device_seq + 1, 2.0)
-    assert drv.stats.sequence_gaps == r.device_seq - last.device_seq - 1 > 0  # lines lost while silent
-    emu.corrupt(5)
-    r2 = drv.wait_for(r.device_seq + 5, 2.0)
-    assert drv.stats.checksum_errors >= 1
+    drv.wait_for(last.device_seq + 1, 2.0)
+    tick.running.clear()
+    time.sleep(0.1)
+    # every sequence number after the last line before the silence was either received or counted missing
+    received = drv.stats.frames - frames
+    gaps = drv.stats.sequence_gaps
+    assert gaps > 0 and drv.latest().device_seq - last.device_seq == gaps + received
+    tick.running.set()
+    seq = drv.wait_for(0, 2.0).device_seq
+    emu.corrupt(5)  # five bytes of the next line
+    r2 = drv.wait_for(seq + 5, 2.0)
+    assert drv.stats.sequence_gaps == gaps + 1  # the damaged line is dropped, not misread
+    assert drv.stats.checksum_errors + drv.stats.bytes_discarded > 0
     assert not np.any(np.isnan(r2.tau)) and drv.staleness(now=r2.t) is None
 
 
