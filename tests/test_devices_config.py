@@ -175,3 +175,32 @@ def test_devices_check_on_the_simulated_prototype(capsys):
     assert kinds == ["winch drive"] * 4 + ["swivel encoder"] * 4 + ["load cells", "ahrs"]
     assert all(d["ok"] for d in out)
     assert all("SYNC 30" in d["state"] for d in out[:8])
+
+
+def test_open_bus_failure_is_one_sentence():
+    from drivers.can_bus import open_bus
+    from drivers.interfaces import DeviceError
+
+    with pytest.raises(DeviceError, match=r"cannot open CAN interface 'socketcan' channel 'cdpr-no-such0'"):
+        open_bus("socketcan", "cdpr-no-such0", 1_000_000)
+
+
+def test_sync_producer_counter_wraps_at_the_overflow_value():
+    import can
+
+    from drivers.can_bus import SyncProducer, open_network
+
+    net = open_network(can.Bus(interface="virtual", channel="cdpr-sync-test"))
+    listener = can.Bus(interface="virtual", channel="cdpr-sync-test")
+    try:
+        sync = SyncProducer(net, overflow=240)
+        counts = [sync.send_sync() for _ in range(242)]
+        wire = [listener.recv(1.0) for _ in range(242)]
+    finally:
+        listener.shutdown()
+        net.disconnect()
+    assert counts == list(range(1, 243))
+    assert all(m.arbitration_id == 0x80 and m.dlc == 1 for m in wire)
+    assert [m.data[0] for m in wire[-3:]] == [240, 1, 2]
+    with pytest.raises(ValueError, match="overflow"):
+        SyncProducer(net, overflow=1)
