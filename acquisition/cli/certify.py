@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -60,8 +61,14 @@ def register(sub) -> None:
     parser.set_defaults(func=lambda args: parser.print_help(sys.stderr) or 2)
 
 
+# "--model-error -0.0006,0.0037": let argparse read a value starting with a negative number as a value
+_NEGATIVE_VALUE = re.compile(r"^-\d*\.?\d+([eE][-+]?\d+)?(,[-+]?\d*\.?\d+([eE][-+]?\d+)?)?$")
+
+
 def _tolerance_options(p) -> None:
     d = CertifyConfig()
+    if hasattr(p, "_negative_number_matcher"):
+        p._negative_number_matcher = _NEGATIVE_VALUE
     p.add_argument("--pose-tol", type=float, default=d.pose_tol,
                    help="position tolerance per axis, m (default 0.001)")
     p.add_argument("--angle-tol", type=float, default=d.angle_tol,
