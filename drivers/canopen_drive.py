@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import canopen
+from canopen.objectdictionary import datatypes
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from drivers.can_bus import NMT_STATE_NAMES, HeartbeatMonitor, SyncProducer
@@ -240,12 +241,13 @@ class CanopenNodeDriver:
         return None
 
 
-def _code(data_type: int) -> str:
-    from canopen.objectdictionary import datatypes
+_STRUCT_CODES = {datatypes.UNSIGNED8: "B", datatypes.INTEGER8: "b", datatypes.UNSIGNED16: "H",
+                 datatypes.INTEGER16: "h", datatypes.UNSIGNED32: "I", datatypes.INTEGER32: "i"}
 
-    codes = {datatypes.UNSIGNED8: "B", datatypes.INTEGER8: "b", datatypes.UNSIGNED16: "H",
-             datatypes.INTEGER16: "h", datatypes.UNSIGNED32: "I", datatypes.INTEGER32: "i"}
-    return codes[data_type]
+
+def _code(data_type: int) -> str:
+    """struct code of a CANopen integer data type."""
+    return _STRUCT_CODES[data_type]
 
 
 class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):

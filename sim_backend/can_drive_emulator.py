@@ -177,6 +177,11 @@ class SimulatedNode:
     def on_rpdo_config(self) -> None:
         """Drives read their RPDO maps here."""
 
+    @property
+    def tpdo_layout(self) -> list[tuple[int, str]]:
+        """(COB-ID, struct format) of each TPDO the node sends at SYNC, as the master mapped them."""
+        return [(cob, st.format) for cob, _, st, _ in self._tpdos]
+
     # -- SDO live values ---------------------------------------------------------------------------
     def _on_read(self, index, subindex, od):
         return self.process_value(index, subindex)
@@ -364,6 +369,11 @@ class CanDriveEmulator(SimulatedNode):
             if packed is not None:
                 pdo_map.is_received = False
                 self._rpdos.append((pdo_map, packed[0], packed[1]))
+
+    @property
+    def rpdo_layout(self) -> list[tuple[int, list[int]]]:
+        """(COB-ID, mapped object indices) of each RPDO the drive applies at SYNC."""
+        return [(m.cob_id, [i for i, _ in keys]) for m, _, keys in self._rpdos]
 
     # -- state machine -------------------------------------------------------------------------------
     @property

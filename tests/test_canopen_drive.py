@@ -171,11 +171,8 @@ def test_configuration_by_sdo(rig):
     rig.tick()  # the NMT start frame precedes this SYNC on the bus
     # the mapping the driver wrote by SDO is what the emulated node now transmits
     assert emu.nmt_state == "OPERATIONAL"
-    cobs = sorted(cob for cob, *_ in emu._tpdos)
-    assert cobs == [0x181, 0x281]
-    fmts = {cob: st.format for cob, _, st, _ in emu._tpdos}
-    assert fmts == {0x181: "<ii", 0x281: "<hH"}
-    assert [k for k, _ in [(i, s) for (i, s) in emu._rpdos[0][2]]] == [0x6040, 0x6071, 0x60FF]
+    assert emu.tpdo_layout == [(0x181, "<ii"), (0x281, "<hH")]
+    assert emu.rpdo_layout == [(0x201, [0x6040, 0x6071, 0x60FF])]
     assert emu.heartbeat_period == pytest.approx(0.1)
     assert emu.mode == 10
     assert drv.rated_torque == pytest.approx(0.64)

@@ -34,7 +34,7 @@ def test_configuration_and_streaming(rig):
     rig.tick()
     emu = rig.encoders[0]
     assert emu.nmt_state == "OPERATIONAL"
-    assert [(cob, st.format) for cob, _, st, _ in emu._tpdos] == [(0x18B, "<I")]
+    assert emu.tpdo_layout == [(0x18B, "<I")]
     assert emu.heartbeat_period == pytest.approx(0.1)
     r = enc.latest()
     assert r.counts == 0 and r.delta_angle == 0.0  # reads 0 at power-on
