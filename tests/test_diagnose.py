@@ -1,0 +1,166 @@
+"""Diagnosis on data with a hidden effect: the simulated prototype's physics at its planned equilibria
+(calib.effects.simdata: the sim's true static equilibria under each setpoint plus the sensor models, with
+the effects of a sim_backend SimConfig), one hidden effect at a time; then the real IRMA4U run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import scipy.io
+
+from acquisition.cli import main as cdpr
+from calib.diagnose import diagnose, fit, pose_error
+from calib.effects import make_effects
+from calib.effects.builtin import pulley_gauge_basis
+from calib.effects.simdata import simulated_rows
+from calib.robot import load_robot
+from sim_backend.config import sim_config_from_dict
+
+ROBOT = load_robot("irma4u")
+SEED = 5
+
+
+def _pulley_deformation() -> list[list[float]]:
+    """1 cm on three pulleys, without the gauge part (a common shift or yaw of the pulley set moves the
+    frame, not the robot: no reading can see it, so it is not part of what the fit must recover)."""
+    raw = np.array([[0.01, 0, 0], [0, 0.01, 0], [0, 0, -0.01], [0, 0, 0]])
+    B = pulley_gauge_basis(ROBOT)
+    return (B @ (B.T @ raw.ravel())).reshape(4, 3).tolist()
+
+
+HIDDEN = {
+    "cable_elasticity": {"cable_elasticity": {"EA": 15000.0}},
+    "length_scale": {"length_scale": {"k": [0.015, -0.01, 0.02, 0.0]}},
+    "tension_offset": {"tension_offset": {"offset": [3.0, -2.0, 0.0, 1.5]}},
+    "tension_gain": {"tension_gain": {"gain": [0.02, -0.01, 0.0, 0.015]}},
+    "pulley_radius": {"pulley_radius": {"delta": 0.003}},
+    "ahrs_mounting": {"ahrs_mounting": {"roll": 0.01745, "pitch": -0.01}},
+    "com_offset": {"com_offset": {"offset": [0.01, -0.01, 0.0]}},
+    "mass_scale": {"mass_scale": {"scale": 0.03}},
+    "pulley_position": {"pulley_position": {"offset": _pulley_deformation()}},
+}
+
+
+def _rows(effects: dict):
+    return simulated_rows(ROBOT, sim_config_from_dict({"effects": effects}), seed=SEED)
+
+
+@pytest.fixture(scope="module")
+def clean():
+    """The same run (seed, plan) without any hidden effect, fitted with the rigid model."""
+    d = _rows({})
+    return d, fit(ROBOT, d.meas, d.sigma, [], d.guess_zeta0, d.guess_poses)
+
+
+@pytest.mark.parametrize("name", list(HIDDEN))
+def test_hidden_effect_ranks_first_and_its_refit_recovers_the_initial_pose(name, clean):
+    d0, f0 = clean
+    d = _rows(HIDDEN[name])
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=1)
+    assert diag.ranking[0].effect == name
+    assert diag.ranking[0].significant and diag.selected == [name]
+    assert diag.p_value < 1e-6  # the rigid model visibly fails
+    e_rigid = pose_error(diag.fit.theta, d.zeta0)
+    e_refit = pose_error(diag.final.theta, d.zeta0)
+    e_clean = pose_error(f0.theta, d0.zeta0)
+    if name == "ahrs_mounting":
+        # a free AHRS tilt leaves roll and pitch of every pose to the statics alone: the estimator itself is
+        # looser (sigma_y 0.09 -> 0.37 mm), so compare with the same estimator on the effect-free run
+        fc = fit(ROBOT, d0.meas, d0.sigma, make_effects([name]), d0.guess_zeta0, d0.guess_poses)
+        e_clean = pose_error(fc.theta, d0.zeta0)
+    assert e_refit <= 2.0 * e_clean, (e_rigid, e_refit, e_clean)
+    assert diag.final.chi2 < 2.0 * diag.final.dof
+    assert "explains" in diag.verdict and name in diag.verdict
+
+
+def test_fitted_parameters_match_the_injected_ones():
+    d = _rows({**HIDDEN["cable_elasticity"], **HIDDEN["tension_offset"]})
+    f = fit(ROBOT, d.meas, d.sigma, make_effects(["cable_elasticity", "tension_offset"]), d.guess_zeta0,
+            d.guess_poses)
+    p, s = f.params(), f.param_sigmas()
+    assert p["cable_elasticity"]["EA"] == pytest.approx(15000.0, rel=0.02)
+    for i, o in enumerate([3.0, -2.0, 0.0, 1.5]):
+        assert abs(p["tension_offset"][f"o_{i + 1}"] - o) < 4 * s["tension_offset"][f"o_{i + 1}"] + 1e-9
+    assert 0 < s["tension_offset"]["o_1"] < 0.5
+
+
+def test_no_effect_is_reported_on_an_effect_free_run(clean):
+    d, _ = clean
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=1, max_effects=1)
+    assert diag.selected == []
+    assert not any(c.significant for c in diag.ranking)
+    assert diag.p_value > 0.01
+    assert "no effect in the library is significant" in diag.verdict
+    doc = diag.to_json()
+    assert set(doc) >= {"chi2", "dof", "noise", "channels", "ranking", "verdict"}
+    assert set(doc["channels"]) == {"tension", "length", "swivel", "orientation"}
+    assert all(set(r) >= {"effect", "delta_chi2", "p_value", "params"} for r in doc["ranking"])
+    assert len(doc["ranking"]) == 9
+    json.dumps(doc, allow_nan=False)
+
+
+def test_two_effects_are_found_by_forward_selection():
+    d = _rows({**HIDDEN["length_scale"], **HIDDEN["mass_scale"]})
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=2)
+    assert diag.selected[0] == "length_scale"
+    assert diag.selected[1] in ("mass_scale", "tension_gain")  # a common gain and a mass error look alike
+    assert [s["chi2"] for s in diag.steps] == sorted([s["chi2"] for s in diag.steps], reverse=True)
+    assert diag.steps[-1]["chi2"] < 2 * diag.steps[-1]["dof"]
+
+
+def test_unexplained_misfit_is_said_so():
+    """Cable sag is not in the library: with a heavy cable its misfit is reported as not (fully) explained.
+    Emulated here by a swivel-encoder gain error, which no built-in effect models."""
+    d = _rows({})
+    d.meas.dsigma = d.meas.dsigma * 1.01
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=1)
+    assert diag.p_value < 1e-6
+    assert "not explained by the library" in diag.verdict or "nothing in the library" in diag.verdict
+    # the swivel channel is where it fails
+    worst = max(diag.channels, key=lambda c: diag.channels[c]["rms_normalized"])
+    assert worst == "swivel"
+
+
+# ---- the real run ---------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def real_run(irma_data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("irma") / "run"
+    assert cdpr(["import", "irma", str(irma_data / "sc_8_final_parsed.mat"), "-o", str(out)]) == 0
+    ws = scipy.io.loadmat(irma_data / "ws_selfcalibration_8_final.mat", squeeze_me=True, struct_as_record=False)
+    return out, np.asarray(ws["zeta_0_real"], float)
+
+
+def test_real_run_diagnosis_ranks_effects_and_the_refit_lowers_chi2(real_run, tmp_path, capsys):
+    run, zeta_real = real_run
+    ref = ",".join(f"{v:.9g}" for v in zeta_real)
+    capsys.readouterr()
+    code = cdpr(["diagnose", str(run), "--json", "--reference", ref, "--plots", str(tmp_path / "plots"),
+                 "--html", str(tmp_path / "report.html")])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    doc = json.loads(out.out)
+    assert doc["noise"] == "estimate" and doc["dof"] > 0 and doc["chi2"] > doc["dof"]
+    assert len(doc["ranking"]) == 9 and doc["ranking"][0]["delta_chi2"] > 0
+    assert doc["steps"][-1]["chi2"] < doc["steps"][0]["chi2"]
+    assert doc["verdict"]
+    pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))
+    assert "residuals_vs_tension.png" in pngs and "chi2_by_effect.png" in pngs and len(pngs) == 6
+    assert (tmp_path / "report.html").read_text().count("data:image/png;base64") == 6
+    best = doc["ranking"][0]["effect"]
+    code = cdpr(["solve", str(run), "--noise", "estimate", "--effects", best, "--reference", ref, "--json"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    sol = json.loads(out.out)
+    assert set(sol["effects"]) == {best}
+    assert sol["chi2"] < doc["chi2"]
+
+
+def test_cli_errors_name_the_value(real_run, tmp_path, capsys):
+    run, _ = real_run
+    assert cdpr(["diagnose", str(run), "--effects-from", str(tmp_path / "nope.py")]) == 2
+    assert "nope.py" in capsys.readouterr().err
+    assert cdpr(["solve", str(run), "--effects", "warp_drive"]) == 2
+    assert "warp_drive" in capsys.readouterr().err
