@@ -90,7 +90,7 @@ class XsensMti(AhrsBase):
         ack = self.request(MID.SET_OUTPUT_CONFIGURATION, xbus.encode_output_configuration(wanted),
                            MID.OUTPUT_CONFIGURATION)
         got = xbus.decode_output_configuration(ack.payload)
-        if got != wanted:
+        if got is None or sorted(got) != sorted(wanted):
             raise DeviceError(f"Xsens MTi on {self.config.port} applied output configuration {got} "
                               f"instead of {wanted}.")
         self._box.opened_at = time.monotonic()

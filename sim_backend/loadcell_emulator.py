@@ -192,3 +192,33 @@ class _CommandSplitter:
         if len(self.buf) > loadcell.MAX_LINE:
             self.buf.clear()
         return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Free-running demo for operators: ``python -m sim_backend.loadcell_emulator [tau_1 .. tau_4]`` (N).
+
+    Creates a pty, prints its path (for ``cdpr devices read loadcells --port PATH``) and clocks the
+    emulator on wall time at 100 Hz until interrupted; the simulator itself never free-runs.
+    """
+    import sys
+    import time
+
+    from sim_backend.pty import open_pty_pair
+
+    tau = np.array([float(a) for a in (sys.argv[1:] if argv is None else argv)] or [50.0, 30.0, 55.0, 80.0])
+    master, path = open_pty_pair()
+    print(path, flush=True)
+    emu = LoadCellEmulator(master, np.random.default_rng(0), channels=len(tau)).start()
+    t0 = time.monotonic()
+    try:
+        while True:
+            emu.emit(time.monotonic() - t0, tau)
+            time.sleep(1 / emu.rate_hz)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        emu.close()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

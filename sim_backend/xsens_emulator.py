@@ -145,7 +145,12 @@ class XsensEmulator:
         return ang
 
     def emit(self, sim_time: float, roll: float, pitch: float, yaw: float) -> int | None:
-        """One physics tick: write an MTData2 if one is due; returns its packet counter (else None)."""
+        """One physics tick: write an MTData2 if one is due and return its packet number, else None.
+
+        The number is the packet counter before its 16-bit wrap, i.e. the ``seq`` that
+        :class:`drivers.xsens.XsensMti` gives the reading (when it was connected before the first wrap), so
+        the acquisition can ``wait_for`` it.
+        """
         ang = self.measured_angles(sim_time, roll, pitch, yaw)  # drawn every tick: same seed, same bytes
         with self._lock:
             if not self.measuring or self._silent:
@@ -153,7 +158,8 @@ class XsensEmulator:
             items = self._due_items(sim_time)
             if not items:
                 return None
-            pc = self.packet_counter & 0xFFFF
+            number = self.packet_counter
+            pc = number & 0xFFFF
             deg = tuple(math.degrees(a) for a in ang)
             q = euler_to_quaternion(*ang)
             data = []
@@ -170,7 +176,7 @@ class XsensEmulator:
             frame = xbus.encode(MID.MTDATA2, xbus.encode_mtdata2(data))
             frame = self._maybe_corrupt(frame)
             self._write(frame)
-            return pc
+            return number
 
     def _due_items(self, sim_time: float) -> list[int]:
         """Items due at this tick: each explicit rate on its own grid; 0xFFFF items ride along."""
@@ -260,3 +266,34 @@ class XsensEmulator:
         self.config = list(items)
         self._last_slot.clear()
         return xbus.encode(MID.OUTPUT_CONFIGURATION, xbus.encode_output_configuration(self.config))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Free-running demo for operators: ``python -m sim_backend.xsens_emulator [roll pitch yaw]`` (deg).
+
+    Creates a pty, prints its path (for ``cdpr devices read ahrs --port PATH``) and clocks the emulator
+    on wall time at 400 Hz until interrupted; the simulator itself never free-runs.
+    """
+    import sys
+    import time
+
+    from sim_backend.pty import open_pty_pair
+
+    args = [float(a) for a in (sys.argv[1:] if argv is None else argv)] or [2.0, -1.0, 10.0]
+    roll, pitch, yaw = (math.radians(a) for a in (args + [0.0, 0.0, 0.0])[:3])
+    master, path = open_pty_pair()
+    print(path, flush=True)
+    emu = XsensEmulator(master, np.random.default_rng(0)).start()
+    t0 = time.monotonic()
+    try:
+        while True:
+            emu.emit(time.monotonic() - t0, roll, pitch, yaw)
+            time.sleep(1 / ORIENTATION_MAX_HZ)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        emu.close()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
