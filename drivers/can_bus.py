@@ -77,7 +77,10 @@ class SyncProducer:
             self._count += 1
             count = self._count
             data = bytes([self.wire_counter(count)]) if self.overflow else b""
-            self.network.send_message(SYNC_COB_ID, data)
+            try:
+                self.network.send_message(SYNC_COB_ID, data)
+            except (can.CanError, OSError, RuntimeError) as exc:
+                raise DeviceError(f"sending SYNC {count} failed: {exc}") from exc
         return count
 
 

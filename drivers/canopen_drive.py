@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import can
 import canopen
 from canopen.objectdictionary import datatypes
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
@@ -326,8 +327,8 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
             try:
                 if self.state() in ("operation enabled", "quick stop active"):
                     self._command(CW_DISABLE_VOLTAGE)
-            except DeviceError:
-                pass  # the node no longer answers: nothing left to disable
+            except (DeviceError, RuntimeError, can.CanError, OSError):
+                pass  # the node or the bus no longer answers: nothing left to disable
         super().close()
 
     def set_mode(self, mode: int) -> None:
@@ -429,7 +430,10 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
             raise DeviceError(f"{self.name} (CAN node {self.node_id}) is not open")
         if self.operational:
             data = self._rpdo.pack(self.controlword, self.target_torque, self.target_velocity)
-            self.network.send_message(self._rpdo_cob, data)
+            try:
+                self.network.send_message(self._rpdo_cob, data)
+            except (can.CanError, OSError, RuntimeError) as exc:
+                raise DeviceError(f"{self.name} (CAN node {self.node_id}): sending RPDO1 failed: {exc}") from exc
 
     def _make_reading(self, t, seq, sync_count, values):
         raw = values[0x6064]

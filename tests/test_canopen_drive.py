@@ -364,3 +364,15 @@ def test_wrong_device_type_is_rejected():
             drv.open()
     finally:
         rig.close()
+
+
+def test_lost_bus_is_a_device_error(rig):
+    drv = rig.winch()
+    drv.enable()
+    rig.master.disconnect()
+    with pytest.raises(DeviceError, match=r"winch drive 1 \(CAN node 1\): sending RPDO1 failed"):
+        drv.set_torque(0.1)
+    with pytest.raises(DeviceError, match="sending SYNC 1 failed"):
+        rig.sync.send_sync()
+    drv.close()  # safe on a lost bus
+    assert drv.node is None and not drv.operational
