@@ -112,6 +112,7 @@ class LineDecoder:
 
     bad_lines: int = 0
     bytes_discarded: int = 0
+    resyncs: int = 0  # good lines found after garbage
     _buf: bytearray = field(default_factory=bytearray, repr=False)
 
     def feed(self, data: bytes) -> list[SampleLine | InfoLine]:
@@ -130,6 +131,7 @@ class LineDecoder:
             else:
                 start = line.rfind(b"$")
                 self.bytes_discarded += start
+                self.resyncs += start > 0
                 out.append(msg)
         if len(self._buf) > MAX_LINE:  # no newline for too long: keep only from the last '$'
             start = self._buf.rfind(b"$")
@@ -217,6 +219,7 @@ class LoadCellDriver(LoadCellBase):
                 self._on_sample(msg, t)
         self._stats.checksum_errors = self._decoder.bad_lines
         self._stats.bytes_discarded = self._decoder.bytes_discarded
+        self._stats.resyncs = self._decoder.resyncs
 
     def _on_sample(self, s: SampleLine, t: float) -> None:
         if len(s.tau) != self.config.channels:

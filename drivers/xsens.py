@@ -132,11 +132,13 @@ class XsensMti(AhrsBase):
                 continue
             if msg.mid == MID.ERROR:
                 code = xbus.decode_error(msg.payload)
+                del self._errors[:-16]
                 self._errors.append(f"Xsens MTi on {self.config.port} reported Error 0x{(code or 0):02X} "
                                     f"({xbus.error_text(code) if code is not None else 'no code'}).")
                 self._stats.extra["device_errors"] = len(self._errors)
             with self._reply_cond:
                 self._replies.append(msg)
+                del self._replies[:-32]  # only the latest answers matter to a waiting request
                 self._reply_cond.notify_all()
         c = self._decoder.counts
         self._stats.checksum_errors, self._stats.bytes_discarded = c.checksum_errors, c.bytes_discarded

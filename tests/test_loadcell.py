@@ -65,6 +65,7 @@ def test_garbage_before_a_line_is_skipped_and_counted():
     assert [m.seq for m in out] == [7]
     assert dec.bad_lines == 1  # the "junk" line
     assert dec.bytes_discarded == len(b"\x00\xff$LC,3,1.0") + len(b"junk\r\n")
+    assert dec.resyncs == 1
 
 
 values = st.lists(st.one_of(st.floats(-1000, 1000, allow_nan=False).map(lambda v: round(v, 2)),
