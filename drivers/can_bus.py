@@ -3,6 +3,8 @@
 One :class:`canopen.Network` per bus carries every CANopen node (winch drives and swivel encoders); the
 drivers share it. :class:`SyncProducer` sends the SYNC frames of the control loop and remembers the
 counter of the last one, so that each driver can stamp the TPDOs that answer it with that counter.
+:func:`open_can_devices` builds the whole CAN side of a :class:`drivers.config.DeviceConfig` (bus, network,
+SYNC producer, one driver per drive and encoder) for the acquisition and ``cdpr devices check``.
 """
 
 from __future__ import annotations
