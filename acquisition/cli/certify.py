@@ -156,7 +156,8 @@ def format_result(result: CertifyResult) -> str:
             warnings.append(f"cable {a.cable}: empty enclosure: fewer than {result.required} measurements are "
                             "consistent; lower --q or add measurements.")
         else:
-            lines.append(f"{'':>5} outlier poses (0-based rows): {', '.join(map(str, a.outliers)) if a.outliers else 'none'}")
+            named = ", ".join(map(str, a.outliers)) if a.outliers else "none"
+            lines.append(f"{'':>5} outlier poses (0-based rows): {named}")
             if a.uncontracted:
                 warnings.append(f"cable {a.cable}: {', '.join(a.uncontracted)} not contracted (identifiability: the "
                                 "poses do not constrain these directions; spread them over the workspace).")
