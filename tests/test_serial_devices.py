@@ -12,6 +12,8 @@ import time
 import numpy as np
 import pytest
 import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from calib.kinematics import rotation, rotation_to_euler
 from drivers import xbus
@@ -212,6 +214,27 @@ def test_xsens_emulator_accuracy_and_mounting_tilt(pty_pair):
     assert abs(m[0, 2]) < math.radians(0.5)  # yaw 0 at start-up (noise only)
     assert np.all(np.abs(m[:, 2]) < math.radians(1.0))  # within 1 deg over 30 s of drift and noise
     assert np.std(m[:, 2]) > math.radians(0.05)  # and it is noisy, not constant
+
+
+def test_xsens_emulator_answers_any_host_message_with_one_valid_frame(pty_pair):
+    master, _ = pty_pair
+    emu = XsensEmulator(master, np.random.default_rng(0))
+    answers = {MID.GO_TO_CONFIG_ACK, MID.GO_TO_MEASUREMENT_ACK, MID.DEVICE_ID, MID.PRODUCT_CODE, MID.ERROR,
+               MID.OUTPUT_CONFIGURATION, MID.RESET_ACK}
+
+    @settings(max_examples=300, deadline=None)
+    @given(st.integers(0, 255), st.binary(max_size=64))
+    def check(mid, payload):
+        reply = emu.handle(xbus.Message(mid, payload))
+        if reply:
+            msgs, used = xbus.split_frames(reply)
+            assert used == len(reply) and len(msgs) == 1 and msgs[0].mid in answers
+        if mid == MID.SET_OUTPUT_CONFIGURATION and reply and msgs[0].mid == MID.OUTPUT_CONFIGURATION and payload:
+            assert xbus.decode_output_configuration(msgs[0].payload) == emu.config
+
+    check()
+    assert emu.handle(xbus.Message(MID.GO_TO_CONFIG)) == bytes.fromhex("FA FF 31 00 D0")
+    assert emu.handle(xbus.Message(0x7A)) == bytes.fromhex("FA FF 42 01 04 BA")  # FF+42+01+04 = 0x146
 
 
 # ---- load-cell amplifier ----
