@@ -1,0 +1,50 @@
+"""False alarms of `cdpr diagnose` on effect-free simulated runs (not collected by pytest).
+
+For each seed: the simulated prototype with no hidden effect (calib.effects.simdata: its static equilibria
+at the planned poses of --grid, window-average noise), diagnosed with the default settings; counts the seeds
+where some effect is reported significant at the 1% level (family-wise over the library). The target is at
+most 2 of 100. Also reports how often the rigid model's own chi2 test rejects at 1% (expected ~1%).
+
+    python benchmarks/bench_diagnose_false_alarms.py [--seeds 100] [--grid 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import Counter
+
+from calib.diagnose import diagnose
+from calib.effects.simdata import simulated_rows
+from calib.planning import plan_poses
+from calib.robot import load_robot
+from sim_backend.config import SimConfig
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=100)
+    ap.add_argument("--grid", type=int, default=2)
+    ap.add_argument("--alpha", type=float, default=0.01)
+    args = ap.parse_args()
+    robot = load_robot("irma4u")
+    plan = plan_poses(robot, args.grid)
+    alarms, chi2_reject, which = 0, 0, Counter()
+    t0 = time.perf_counter()
+    for seed in range(args.seeds):
+        d = simulated_rows(robot, SimConfig(), seed=seed, plan=plan)
+        diag = diagnose(robot, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, alpha=args.alpha)
+        sig = [c.effect for c in diag.ranking if c.significant]
+        if sig:
+            alarms += 1
+            which.update(sig)
+        chi2_reject += diag.p_value < args.alpha
+    dt = time.perf_counter() - t0
+    print(f"grid {args.grid}: {len(plan.poses)} poses + reference, {args.seeds} effect-free seeds, alpha {args.alpha}")
+    print(f"seeds with an effect reported significant: {alarms} / {args.seeds}  {dict(which)}")
+    print(f"seeds where the rigid model's chi2 test rejects: {chi2_reject} / {args.seeds}")
+    print(f"time: {dt:.1f} s ({1000 * dt / args.seeds:.0f} ms per diagnosis)")
+
+
+if __name__ == "__main__":
+    main()
