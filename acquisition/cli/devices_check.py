@@ -108,31 +108,54 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
                 round_trip.append(elapsed)
             if not lockstep and elapsed < period:
                 time.sleep(period - elapsed)
-        time.sleep(0.02 if lockstep else 2 * period)
-        results = []
-        for kind, group in (("winch drive", devices.drives), ("swivel encoder", devices.encoders)):
-            for drv in group:
-                where = f"CAN node {drv.node_id}"
-                if drv.name in errors:
-                    results.append(DeviceCheck(drv.name, kind, where, False, errors[drv.name]))
-                    continue
-                fault = drv.fault()
-                if fault is None and drv.latest() is None:
-                    fault = f"{drv.name} ({where}) sent no PDO in {syncs} SYNC cycles"
-                if fault is None and drv.heartbeat is not None and drv.heartbeat.count == 0 \
-                        and drv.heartbeat_period > 0 and syncs * period >= 2 * drv.heartbeat_period:
-                    fault = f"{drv.name} ({where}) sent no heartbeat"
-                results.append(DeviceCheck(drv.name, kind, where, fault is None,
+        def can_results() -> list[DeviceCheck]:
+            out = []
+            for kind, group in (("winch drive", devices.drives), ("swivel encoder", devices.encoders)):
+                for drv in group:
+                    where = f"CAN node {drv.node_id}"
+                    if drv.name in errors:
+                        out.append(DeviceCheck(drv.name, kind, where, False, errors[drv.name]))
+                        continue
+                    fault = drv.fault()
+                    if fault is None and drv.latest() is None:
+                        fault = f"{drv.name} ({where}) sent no PDO in {syncs} SYNC cycles"
+                    if fault is None and drv.heartbeat is not None and drv.heartbeat.count == 0 \
+                            and drv.heartbeat_period > 0 and syncs * period >= 2 * drv.heartbeat_period:
+                        fault = f"{drv.name} ({where}) sent no heartbeat"
+                    out.append(DeviceCheck(drv.name, kind, where, fault is None,
                                            drv.status() if fault is None else fault))
-        for name, kind, port, dev in serial:
-            if name in errors:
-                results.append(DeviceCheck(name, kind, port, False, errors[name]))
-                continue
-            fault = dev.fault()
-            if fault is None and dev.latest() is None:
-                fault = f"{kind} on {port}: no sample during the check"
-            results.append(DeviceCheck(name, kind, port, fault is None, dev.status() if fault is None else fault))
-        return CheckResult(results, round_trip)
+            return out
+
+        def serial_results() -> list[DeviceCheck]:
+            out = []
+            for name, kind, port, dev in serial:
+                if name in errors:
+                    out.append(DeviceCheck(name, kind, port, False, errors[name]))
+                    continue
+                if lockstep:  # one more tick, and judge the device right after its fresh sample
+                    before = dev.latest()
+                    count = devices.send_sync()
+                    for drv in opened:
+                        try:
+                            drv.wait_for_sync(count, 0.5)
+                        except DeviceError:
+                            pass
+                    deadline = time.monotonic() + 0.5
+                    while dev.latest() is before and time.monotonic() < deadline:
+                        time.sleep(0.0005)
+                fault = dev.fault()
+                if fault is None and dev.latest() is None:
+                    fault = f"{kind} on {port}: no sample during the check"
+                out.append(DeviceCheck(name, kind, port, fault is None, dev.status() if fault is None else fault))
+            return out
+
+        if lockstep:
+            results = can_results()
+            return CheckResult(results + serial_results(), round_trip)
+        # on wall time the serial devices stream on their own: judge them now, the CAN nodes a little later
+        later = serial_results()
+        time.sleep(2 * period)  # let the last PDOs and heartbeats in
+        return CheckResult(can_results() + later, round_trip)
     finally:
         devices.close()
         for _, _, _, dev in serial:
