@@ -8,11 +8,11 @@ always that codac count.
 
 The paving then looks for the six faces of the hull of the solution set: for each axis and side, a
 best-first search pops the box with the lowest (highest) bound, contracts it and bisects it, until a box of
-the paving resolution, or a box whose every point is a solution, reaches the top of the queue; every
-solution lies in a queued box, so the popped bound is a guaranteed outer bound and tightens the box for the
-next searches. Each box first classifies the measurements by the exact range of |a - c_k| over the box
-(floating point with a margin far above rounding): spheres that contain the whole box or miss it entirely
-are counted, and only the undecided ones are contracted, with the number of failures still allowed.
+the paving resolution, or a box whose every point is a solution, reaches the top of the queue. Every
+solution lies in a queued box, so that bound is a guaranteed outer bound; the next search starts from the
+queue the previous one left. Each box first classifies the measurements by the exact range of |a - c_k|
+over the box (floating point with a margin far above rounding): spheres that contain the whole box or miss
+it entirely are counted, and only the undecided ones are contracted, with the failures still allowed.
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ def _distance_range(shells: Shells, lo: np.ndarray, hi: np.ndarray) -> tuple[np.
     return np.linalg.norm(near, axis=1), np.linalg.norm(far, axis=1)
 
 
-def _node(shells: Shells, ctcs: list, n_fail: int, x: codac.IntervalVector, resolution: float,
+def _node(shells: Shells, ctcs: list, full, n_fail: int, x: codac.IntervalVector, resolution: float,
           ratio: float) -> tuple[str, codac.IntervalVector]:
     """Contract one paving box: ('empty' | 'inner' | 'leaf' | 'split', contracted box)."""
     b = _to_array(x)
@@ -103,38 +103,43 @@ def _node(shells: Shells, ctcs: list, n_fail: int, x: codac.IntervalVector, reso
     undecided = np.flatnonzero(~failed & ~holds)
     if len(undecided) <= allowed:
         return "inner", x  # every point of the box satisfies enough measurements
-    x = fixpoint(_qinter_step([ctcs[k] for k in undecided], allowed), x, ratio)
+    if 2 * len(undecided) > len(ctcs):
+        # the prebuilt QInter over all measurements is equivalent (decided ones give x or the empty box)
+        # and cheaper than contracting the undecided ones one by one from Python
+        x = fixpoint(full.contract, x, ratio)
+    else:
+        x = fixpoint(_qinter_step([ctcs[k] for k in undecided], allowed), x, ratio)
     if x.is_empty():
         return "empty", x
     return ("leaf" if x.max_diam() <= resolution else "split"), x
 
 
-def _extreme(shells: Shells, ctcs: list, n_fail: int, box: np.ndarray, j: int, side: int, resolution: float,
-             budget: int, ratio: float) -> tuple[float | None, int, bool]:
+def _extreme(shells: Shells, ctcs: list, full, n_fail: int, cover: list[tuple[codac.IntervalVector, bool]],
+             j: int, side: int, resolution: float, budget: int,
+             ratio: float) -> tuple[float | None, list[tuple[codac.IntervalVector, bool]], int, bool]:
     """Best-first search of the lowest (side 0) or highest (side 1) value of axis j over the solution set.
 
-    Every solution lies in some box of the queue, so the queue's best bound is always a valid outer bound;
-    the search stops at the first inner or resolution-sized box reaching the top of the queue. Returns
-    (bound or None when the set is empty, boxes contracted, budget exhausted).
+    ``cover`` is a list of (box, final) whose union contains every solution; final boxes (inner or of the
+    resolution) are not bisected further. The queue always covers the solution set, so its best bound is a
+    valid outer bound; the search stops when a final box reaches the top. Returns (bound or None when the
+    set is empty, the remaining cover for the next search, boxes contracted, budget exhausted).
     """
     sign = 1.0 if side == 0 else -1.0
 
     def key(x: codac.IntervalVector) -> float:
         return sign * (x[j].lb() if side == 0 else x[j].ub())
 
-    heap: list[tuple[float, int, codac.IntervalVector, bool]] = []
-    counter = 0
-    heapq.heappush(heap, (key(codac.IntervalVector([[float(lo), float(hi)] for lo, hi in box])), counter,
-                          codac.IntervalVector([[float(lo), float(hi)] for lo, hi in box]), False))
+    heap = [(key(x), i, x, final) for i, (x, final) in enumerate(cover)]
+    heapq.heapify(heap)
+    counter = len(heap)
     used = 0
     while heap:
-        k, _, x, final = heapq.heappop(heap)
-        if final:
-            return sign * k, used, False
-        if used >= budget:
-            return sign * k, used, True
+        k, _, x, final = heap[0]
+        if final or used >= budget:
+            return sign * k, [(item[2], item[3]) for item in heap], used, not final
+        heapq.heappop(heap)
         used += 1
-        status, x = _node(shells, ctcs, n_fail, x, resolution, ratio)
+        status, x = _node(shells, ctcs, full, n_fail, x, resolution, ratio)
         if status == "empty":
             continue
         if status in ("inner", "leaf"):
@@ -145,7 +150,7 @@ def _extreme(shells: Shells, ctcs: list, n_fail: int, box: np.ndarray, j: int, s
         for part in x.bisect(int(np.argmax(width)), 0.5):
             counter += 1
             heapq.heappush(heap, (key(part), counter, part, False))
-    return None, used, False
+    return None, [], used, False
 
 
 def solve_cable(
@@ -172,23 +177,24 @@ def _solve_cable(shells: Shells, box: np.ndarray, n_fail: int, resolution: float
     n = len(shells.r_lo)
     ctcs = shell_contractors(shells)
     x0 = codac.IntervalVector([[float(lo), float(hi)] for lo, hi in box])
-    root = fixpoint(codac.CtcQInter(n_fail, ctcs).contract, x0, ratio)
+    full = codac.CtcQInter(n_fail, ctcs)
+    root = fixpoint(full.contract, x0, ratio)
     contracted = _to_array(root)
     if contracted is None:
         return CableSolution(None, None, (), 1, False)
 
-    box_now = contracted.copy()
+    hull = contracted.copy()
+    cover = [(root, False)]
     visited, exhausted = 0, False
     for j in range(3):
         for side in (0, 1):
-            bound, used, out_of_budget = _extreme(shells, ctcs, n_fail, box_now, j, side, resolution,
-                                                  max_boxes - visited, paving_ratio)
+            bound, cover, used, out_of_budget = _extreme(shells, ctcs, full, n_fail, cover, j, side, resolution,
+                                                         max_boxes - visited, paving_ratio)
             visited += used
             exhausted |= out_of_budget
             if bound is None:
                 return CableSolution(contracted, None, (), visited, exhausted)
-            box_now[j, side] = bound
-    hull = box_now
+            hull[j, side] = bound
     final = codac.IntervalVector([[float(lo), float(hi)] for lo, hi in hull])
     outliers = tuple(k for k in range(n) if ctcs[k].contract(codac.IntervalVector(final)).is_empty())
     return CableSolution(contracted, hull, outliers, visited, exhausted)
