@@ -460,7 +460,9 @@ def diagnose(
             break
         rank_now = _rank_round(current, rest, alpha_each, min(refits, 2))
     p_fit = float(stats.chi2.sf(fit0.chi2, max(fit0.dof, 1)))
-    verdict = _verdict(fit0, ranking, selected, current, alpha)
+    more = bool(selected) and len(selected) >= max_effects and any(
+        c.significant for c in rank_now if c.effect not in selected)
+    verdict = _verdict(fit0, ranking, selected, current, alpha, more)
     return Diagnosis(fit0, fit0.chi2, fit0.dof, p_fit, noise_source, channels, cables, rows, ranking, selected,
                      steps, verdict, alpha, res0, current)
 
@@ -474,7 +476,8 @@ def _step(f: Fit, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
     return out
 
 
-def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fit, alpha: float) -> str:
+def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fit, alpha: float,
+             more: bool = False) -> str:
     dof = max(fit0.dof, 1)
     excess = fit0.chi2 - dof
     p0 = stats.chi2.sf(fit0.chi2, dof)
@@ -493,8 +496,9 @@ def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fi
     text += f"; refit with --effects {','.join(selected)}"
     if pf < alpha:
         left = final.chi2 - max(final.dof, 1)
-        text += (f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): "
-                 f"{100.0 * left / excess:.0f}% of the excess is not explained by the library")
+        text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {100.0 * left / excess:.0f}% "
+        text += ("of the excess is left and further effects are significant (allow more with --max-effects)"
+                 if more else "of the excess is not explained by the library")
     return text
 
 
