@@ -205,3 +205,15 @@ def test_sync_producer_counter_wraps_at_the_overflow_value():
     assert [m.data[0] for m in wire[-3:]] == [240, 1, 2]
     with pytest.raises(ValueError, match="overflow"):
         SyncProducer(net, overflow=1)
+
+
+def test_devices_check_shows_a_simulated_drive_fault(tmp_path, capsys):
+    pytest.importorskip("sim_backend.backend", reason="the simulator backend is not in this checkout")
+    faults = tmp_path / "fault.yaml"
+    faults.write_text("faults:\n  - {kind: drive_fault, t: 0.1, drive: 3}\n")
+    status = main(["devices", "check", "--backend", "sim", "--sim-config", str(faults), "--syncs", "40"])
+    captured = capsys.readouterr()
+    assert status == 1
+    line = next(ln for ln in captured.out.splitlines() if ln.startswith("winch 3"))
+    assert "FAIL" in line and "emergency 0x2310" in line
+    assert "1 of 10 devices failed the check: winch 3." in captured.err

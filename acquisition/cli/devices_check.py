@@ -48,6 +48,7 @@ def register(devsub) -> None:
     p.add_argument("--syncs", type=int, default=40, help="SYNC cycles to run for the check (default 40)")
     p.add_argument("--period", type=float, default=0.005, help="SYNC period, s (default 0.005)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed (--backend sim)")
+    p.add_argument("--sim-config", help="simulation YAML: hidden effects and faults (--backend sim)")
     p.add_argument("--json", action="store_true", help="print a JSON list of devices on stdout")
     p.set_defaults(func=run)
 
@@ -190,7 +191,13 @@ def _sim_check(args, robot) -> CheckResult:
             raise OperationError("the simulator backend (sim_backend/backend.py) is not available in this "
                                  "checkout.") from exc
         raise
-    with SimBackend(robot, None, args.seed, args.period) as sim:
+    from sim_backend.config import SimConfigError
+
+    try:
+        sim = SimBackend(robot, args.sim_config, args.seed, args.period)
+    except SimConfigError as exc:
+        raise UsageError(str(exc)) from exc
+    with sim:
         config = getattr(sim, "device_config", None) or sim.devices
         return check_devices(config, robot, args.syncs, args.period, lockstep=True)
 
@@ -198,6 +205,8 @@ def _sim_check(args, robot) -> CheckResult:
 def run(args) -> int:
     from calib.robot import RobotDescriptionError, load_robot
 
+    if args.sim_config and args.backend != "sim":
+        raise UsageError("--sim-config applies to --backend sim only.")
     if args.syncs < 1:
         raise UsageError(f"--syncs must be at least 1, got {args.syncs}.")
     if not args.period > 0:
