@@ -488,15 +488,19 @@ def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fi
         return (f"the model does not fit (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}) but nothing in the "
                 "library explains what is left: look for an effect outside it")
     best = ranking[0]
-    share = 100.0 * min(1.0, best.delta_chi2 / excess) if excess > 0 else 100.0
-    text = f"{best.effect} explains {share:.0f}% of the excess"
+    if excess > 0:
+        text = f"{best.effect} explains {100.0 * min(1.0, best.delta_chi2 / excess):.0f}% of the excess"
+    else:
+        text = (f"{best.effect} explains a significant part (delta chi2 {best.delta_chi2:.1f}, p = "
+                f"{best.p_value:.2g}) although chi2 is within the noise")
     if best.confused_with:
         text += f" (cannot be told apart from {', '.join(best.confused_with)} with this data)"
     pf = stats.chi2.sf(final.chi2, max(final.dof, 1))
     text += f"; refit with --effects {','.join(selected)}"
     if pf < alpha:
         left = final.chi2 - max(final.dof, 1)
-        text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {100.0 * left / excess:.0f}% "
+        share = f"{100.0 * left / excess:.0f}% " if excess > 0 else ""
+        text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {share}"
         text += ("of the excess is left and further effects are significant (allow more with --max-effects)"
                  if more else "of the excess is not explained by the library")
     return text
