@@ -14,6 +14,8 @@ import threading
 import can
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from drivers.can_bus import SyncProducer, open_network
 from drivers.canopen_drive import (
@@ -162,6 +164,20 @@ def test_statusword_decoding_and_counter_wrap():
     assert wrap_delta(5, 0xFFFFFFFB, 32) == 10
     assert wrap_delta(0x7FFFFFFF, -0x80000000 & 0xFFFFFFFF, 32) == -1
     assert wrap_delta(10, 65530, 16) == 16
+
+
+@given(bits=st.sampled_from([16, 32]), start=st.integers(0, 2**32 - 1), steps=st.lists(st.integers(-30000, 30000),
+       max_size=50))
+def test_unwrapping_recovers_the_motion_from_wrapped_counters(bits, start, steps):
+    """Any motion whose steps stay under half the counter range is recovered exactly from the wrapped counter."""
+    mod = 1 << bits
+    true, raw, unwrapped = start % mod, start % mod, start % mod
+    for d in steps:
+        true += d
+        new_raw = true % mod
+        unwrapped += wrap_delta(new_raw, raw, bits)
+        raw = new_raw
+    assert unwrapped == true
 
 
 def test_configuration_by_sdo(rig):
