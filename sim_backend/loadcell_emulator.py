@@ -39,7 +39,7 @@ class LoadCellEmulator:
         full_scale: float = FULL_SCALE,
         accuracy: float = 0.0002,
         rate_hz: float = 100.0,
-        model: str = "LC4-SIM",
+        model: str | None = None,
     ) -> None:
         self.fd = master_fd
         self.rng = rng
@@ -51,7 +51,7 @@ class LoadCellEmulator:
         self.noise_std = noise_std
         self.full_scale = full_scale
         self.rate_hz = rate_hz
-        self.model = model
+        self.model = model or f"LC{channels}-SIM"
         self._accuracy_error = rng.uniform(-accuracy * full_scale, accuracy * full_scale, channels)
         self.seq = -1
         self._last = np.zeros(channels)
