@@ -22,8 +22,7 @@ from sim_backend.xsens_emulator import XsensEmulator
 
 
 def cdpr(*args: str) -> subprocess.CompletedProcess:
-    """Run the console script in its own process, as an operator does (it also keeps codac, which the
-    certify command imports and which leaves the FPU rounding upward, out of the test process)."""
+    """Run the console script in its own process, as an operator does."""
     exe = shutil.which("cdpr")
     head = [exe] if exe else [sys.executable, "-c", "import sys; from acquisition.cli import main; "
                                                     "sys.exit(main(sys.argv[1:]))"]
