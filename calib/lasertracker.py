@@ -77,17 +77,12 @@ def model_lengths(robot: Robot, anchors: np.ndarray, poses: np.ndarray) -> np.nd
     return np.linalg.norm(pts - anchors[None], axis=-1)
 
 
-def _draw_true_poses(robot: Robot, n_poses: int, rng: np.random.Generator, clustered: bool,
-                     cluster_size: float, angle_range: float) -> np.ndarray:
-    lo, hi = np.asarray(robot.workspace_lower), np.asarray(robot.workspace_upper)
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise ValueError(f"robot '{robot.name}': field 'workspace' is missing; cannot draw poses.")
-    if clustered:
-        half = np.minimum(cluster_size / 2.0, (hi - lo) / 2.0)
-        centre = rng.uniform(lo + half, hi - half)
-        lo, hi = centre - half, centre + half
+def _feasible_poses(robot: Robot, n_poses: int, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray,
+                    angle_range: float, tries: int = 50) -> np.ndarray | None:
+    """Up to n_poses poses uniform in [lo, hi] x [-angle_range, angle_range]^3 keeping the platform inside the
+    frame, or None when fewer are found after ``tries`` batches."""
     out = np.zeros((0, 6))
-    for _ in range(200):
+    for _ in range(tries):
         batch = np.concatenate(
             [rng.uniform(lo, hi, (4 * n_poses, 3)), rng.uniform(-angle_range, angle_range, (4 * n_poses, 3))], 1
         )
@@ -96,6 +91,26 @@ def _draw_true_poses(robot: Robot, n_poses: int, rng: np.random.Generator, clust
         out = np.concatenate([out, batch[_inside_frame(robot, pts)]])
         if len(out) >= n_poses:
             return out[:n_poses]
+    return None
+
+
+def _draw_true_poses(robot: Robot, n_poses: int, rng: np.random.Generator, clustered: bool,
+                     cluster_size: float, angle_range: float) -> np.ndarray:
+    lo, hi = np.asarray(robot.workspace_lower), np.asarray(robot.workspace_upper)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ValueError(f"robot '{robot.name}': field 'workspace' is missing; cannot draw poses.")
+    for _ in range(20):
+        if clustered:  # a cube of side cluster_size about a feasible pose, kept inside the workspace
+            seed_pose = _feasible_poses(robot, 1, rng, lo, hi, angle_range)
+            if seed_pose is None:
+                break
+            half = np.minimum(cluster_size / 2.0, (hi - lo) / 2.0)
+            centre = np.clip(seed_pose[0, :3], lo + half, hi - half)
+            poses = _feasible_poses(robot, n_poses, rng, centre - half, centre + half, angle_range)
+        else:
+            poses = _feasible_poses(robot, n_poses, rng, lo, hi, angle_range)
+        if poses is not None:
+            return poses
     raise ValueError(f"robot '{robot.name}': no pose of the workspace keeps the platform inside the frame.")
 
 
