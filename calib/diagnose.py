@@ -476,6 +476,9 @@ def _step(f: Fit, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
     return out
 
 
+PARTIAL = 0.9  # a single effect explaining less than this share of the excess only explains part of it
+
+
 def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fit, alpha: float,
              more: bool = False) -> str:
     dof = max(fit0.dof, 1)
@@ -488,8 +491,9 @@ def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fi
         return (f"the model does not fit (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}) but nothing in the "
                 "library explains what is left: look for an effect outside it")
     best = ranking[0]
+    share = best.delta_chi2 / excess if excess > 0 else 1.0
     if excess > 0:
-        text = f"{best.effect} explains {100.0 * min(1.0, best.delta_chi2 / excess):.0f}% of the excess"
+        text = f"{best.effect} explains {100.0 * min(1.0, share):.0f}% of the excess"
     else:
         text = (f"{best.effect} explains a significant part (delta chi2 {best.delta_chi2:.1f}, p = "
                 f"{best.p_value:.2g}) although chi2 is within the noise")
@@ -499,10 +503,17 @@ def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fi
     text += f"; refit with --effects {','.join(selected)}"
     if pf < alpha:
         left = final.chi2 - max(final.dof, 1)
-        share = f"{100.0 * left / excess:.0f}% " if excess > 0 else ""
-        text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {share}"
-        text += ("of the excess is left and further effects are significant (allow more with --max-effects)"
-                 if more else "of the excess is not explained by the library")
+        pct = f"{100.0 * left / excess:.0f}% of the excess" if excess > 0 else "part of the misfit"
+        text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {pct} is not explained"
+        text += f" by {', '.join(selected)}"
+        if more:
+            text += " (other library effects still test significant: raise --max-effects"
+            text += ", but no single one explains most of the misfit: it may lie outside the library)" if (
+                share < PARTIAL) else ")"
+        else:
+            text += " nor by anything else in the library"
+    elif share < PARTIAL and len(selected) > 1:
+        text += f" (no single effect explains most of the misfit: {best.effect} alone {100.0 * share:.0f}%)"
     return text
 
 
