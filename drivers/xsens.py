@@ -31,14 +31,29 @@ class XsensConfig:
     stale_periods: float = 3.0
 
 
+FRAME_BYTES = 32  # our MTData2 on the wire: 4 header + 5 + 7 + 15 item bytes + 1 checksum
+
+
+def config_problem(config: XsensConfig) -> str | None:
+    """Why ``config`` cannot work, in one sentence, or None."""
+    if not (0 < config.rate_hz <= 400 and 400 % config.rate_hz == 0):
+        return f"Xsens output rate {config.rate_hz} Hz is not a divisor of 400 Hz."
+    need = config.rate_hz * FRAME_BYTES * 10  # 8N1: 10 bits per byte
+    if need > config.baud:
+        return (f"Xsens output rate {config.rate_hz} Hz needs {need} bit/s, more than {config.baud} baud "
+                f"carry.")
+    return None
+
+
 class XsensMti(AhrsBase):
     """An MTi-630 on a serial port; implements :class:`drivers.interfaces.Ahrs`."""
 
     name = "ahrs"
 
     def __init__(self, config: XsensConfig) -> None:
-        if not (0 < config.rate_hz <= 400 and 400 % config.rate_hz == 0):
-            raise ValueError(f"Xsens output rate {config.rate_hz} Hz is not a divisor of 400 Hz")
+        problem = config_problem(config)
+        if problem:
+            raise ValueError(problem)
         self.config = config
         self.device_id: int | None = None
         self._port = None

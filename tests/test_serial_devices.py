@@ -183,6 +183,12 @@ def test_xsens_open_fails_clearly_without_a_device(pty_pair):
         drv.open()
     with pytest.raises(DeviceError, match="cannot open serial port /nonexistent/tty"):
         XsensMti(XsensConfig("/nonexistent/tty")).open()
+    # 32-byte frames at 400 Hz are 128000 bit/s: more than 115200 baud carry, fine at 230400
+    with pytest.raises(ValueError, match="400 Hz needs 128000 bit/s, more than 115200 baud"):
+        XsensMti(XsensConfig(path, rate_hz=400))
+    with pytest.raises(ValueError, match="not a divisor of 400 Hz"):
+        XsensMti(XsensConfig(path, rate_hz=30))
+    XsensMti(XsensConfig(path, baud=230400, rate_hz=400))
 
 
 def test_xsens_emulator_same_seed_same_bytes(pty_pair):

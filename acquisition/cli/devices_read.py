@@ -40,6 +40,12 @@ def _check(args) -> None:
         raise UsageError(f"--channels must be at least 1, got {args.channels}.")
     if args.device == "ahrs" and not (0 < args.rate <= 400 and 400 % args.rate == 0):
         raise UsageError(f"--rate {args.rate} Hz is not an MTi output rate (a divisor of 400 Hz).")
+    if args.device == "ahrs":
+        from drivers.xsens import XsensConfig, config_problem
+
+        problem = config_problem(XsensConfig(port=args.port, baud=args.baud, rate_hz=args.rate))
+        if problem:
+            raise UsageError(f"--rate {args.rate} with --baud {args.baud}: {problem}")
     if args.device == "loadcells" and args.rate <= 0:
         raise UsageError(f"--rate must be positive, got {args.rate}.")
     if not os.path.exists(args.port):
