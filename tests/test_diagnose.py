@@ -126,10 +126,11 @@ def test_unexplained_misfit_is_said_so():
 
 # ---- the real run ---------------------------------------------------------------------------------------
 
-@pytest.fixture(scope="module")
-def real_run(irma_data, tmp_path_factory):
+@pytest.fixture(scope="module", params=["sc_8_final_parsed.mat", "sc_8_final.log"])
+def real_run(request, irma_data, tmp_path_factory):
+    """The real run imported from the authors' parsed file and from the raw controller log."""
     out = tmp_path_factory.mktemp("irma") / "run"
-    assert cdpr(["import", "irma", str(irma_data / "sc_8_final_parsed.mat"), "-o", str(out)]) == 0
+    assert cdpr(["import", "irma", str(irma_data / request.param), "-o", str(out)]) == 0
     ws = scipy.io.loadmat(irma_data / "ws_selfcalibration_8_final.mat", squeeze_me=True, struct_as_record=False)
     return out, np.asarray(ws["zeta_0_real"], float)
 
