@@ -5,7 +5,7 @@ at the planned poses of --grid, window-average noise), diagnosed with the defaul
 where some effect is reported significant at the 1% level (family-wise over the library). The target is at
 most 2 of 100. Also reports how often the rigid model's own chi2 test rejects at 1% (expected ~1%).
 
-    python benchmarks/bench_diagnose_false_alarms.py [--seeds 100] [--grid 2]
+    python benchmarks/bench_diagnose_false_alarms.py [--seeds 100] [--first 0] [--grid 2]
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from sim_backend.config import SimConfig
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=100)
+    ap.add_argument("--first", type=int, default=0, help="first seed")
     ap.add_argument("--grid", type=int, default=2)
     ap.add_argument("--alpha", type=float, default=0.01)
     args = ap.parse_args()
@@ -31,7 +32,7 @@ def main() -> None:
     plan = plan_poses(robot, args.grid)
     alarms, chi2_reject, which = 0, 0, Counter()
     t0 = time.perf_counter()
-    for seed in range(args.seeds):
+    for seed in range(args.first, args.first + args.seeds):
         d = simulated_rows(robot, SimConfig(), seed=seed, plan=plan)
         diag = diagnose(robot, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, alpha=args.alpha)
         sig = [c.effect for c in diag.ranking if c.significant]
@@ -40,7 +41,8 @@ def main() -> None:
             which.update(sig)
         chi2_reject += diag.p_value < args.alpha
     dt = time.perf_counter() - t0
-    print(f"grid {args.grid}: {len(plan.poses)} poses + reference, {args.seeds} effect-free seeds, alpha {args.alpha}")
+    print(f"grid {args.grid}: {len(plan.poses)} poses + reference, seeds {args.first}..{args.first + args.seeds - 1} "
+          f"(effect-free), alpha {args.alpha}")
     print(f"seeds with an effect reported significant: {alarms} / {args.seeds}  {dict(which)}")
     print(f"seeds where the rigid model's chi2 test rejects: {chi2_reject} / {args.seeds}")
     print(f"time: {dt:.1f} s ({1000 * dt / args.seeds:.0f} ms per diagnosis)")

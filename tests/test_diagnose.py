@@ -166,3 +166,25 @@ def test_cli_errors_name_the_value(real_run, tmp_path, capsys):
     assert "nope.py" in capsys.readouterr().err
     assert cdpr(["solve", str(run), "--effects", "warp_drive"]) == 2
     assert "warp_drive" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["mass_scale", "pulley_position", "com_offset", "pulley_radius"])
+def test_simulated_rows_are_rest_states_of_the_simulator_physics(name):
+    """The rows' true poses are static equilibria of sim_backend's own physics (true robot, true tensions):
+    started there with the brakes on, the simulated platform stays put, the cells read the tensions and the
+    swivel encoders see the same angles."""
+    from calib.kinematics import inverse_kinematics
+    from sim_backend.physics import CablePhysics
+
+    cfg = sim_config_from_dict({"effects": HIDDEN[name]})
+    d = simulated_rows(ROBOT, cfg, seed=0, noise={"tension": 0.0, "length": 0.0, "swivel": 0.0,
+                                                    "orientation": 0.0})
+    truth = cfg.true_robot(ROBOT)
+    tau = d.meas.tau[2]  # readings = true tensions here (no load-cell effect, no noise)
+    sim = CablePhysics(truth, cfg.physics_params(), cfg.true_transmission(ROBOT), d.poses[2], tau, brakes=True)
+    for _ in range(200):
+        sim.step(0.005)
+    assert np.abs(sim.pose() - d.poses[2]).max() < 1e-8  # (the nominal robot's equilibrium drifts 1e-5 m)
+    assert np.abs(sim.cable_tension() - tau).max() < 1e-6  # (and its tensions are 5 N off)
+    kin = inverse_kinematics(truth, d.poses[[2]])
+    assert np.allclose(sim.swivel_angle(), kin.swivel[0], atol=1e-5)
