@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from calib.certify import CertifyConfig, certify_anchors
-from calib.certify._pulley import pulley_length_bound
+from calib.certify._pulley import pulley_length_bound, workspace_region
 from calib.lasertracker import simulate_tracker_dataset
 from calib.robot import load_robot
 
@@ -56,22 +56,25 @@ def main() -> None:
         ("paper tolerances, q=1, no outliers", CertifyConfig(q=1.0), 0.0),
         ("angle tol 1 mrad, q=1, no outliers", CertifyConfig(q=1.0, angle_tol=0.001), 0.0),
         ("pose 0.1 mm, 1 mrad, q=1, no outliers", CertifyConfig(q=1.0, pose_tol=1e-4, angle_tol=0.001), 0.0),
+        ("exact poses ([dL] only), q=1", CertifyConfig(q=1.0, pose_tol=0.0, angle_tol=0.0), 0.0),
         ("naive rotation, paper tol, q=1", CertifyConfig(q=1.0, rotation_bound="naive"), 0.0),
         ("paper tol, +-5 cm start, q=1", CertifyConfig(q=1.0, anchor_tol=0.05), 0.0),
         ("naive rotation, +-5 cm start, q=1", CertifyConfig(q=1.0, anchor_tol=0.05, rotation_bound="naive"), 0.0),
     ]
     print(f"{'Table 2 of the paper':40s}", " ".join(f"{w[0]:3.0f}/{w[1]:3.0f}/{w[2]:3.0f}" for w in PAPER_WIDTHS))
     for label, cfg, out in settings:
-        widths = []
+        widths, fixp = [], []
         for seed in range(args.datasets):
             ds = simulate_tracker_dataset(reelax8, 42, seed=700 + seed, outliers=out,
                                           pose_tol=cfg.pose_tol, angle_tol=cfg.angle_tol)
             res = certify_anchors(reelax8, ds.poses, ds.lengths, cfg)
             widths.append([a.widths for a in res.anchors])
+            fixp.append([a.contracted[:, 1] - a.contracted[:, 0] for a in res.anchors])
         w = np.mean(widths, axis=0) * 1e3
-        print(f"{label:40s}", " ".join(f"{x[0]:3.0f}/{x[1]:3.0f}/{x[2]:3.0f}" for x in w), f" mean {w.mean():.1f}")
+        print(f"{label:40s}", " ".join(f"{x[0]:3.0f}/{x[1]:3.0f}/{x[2]:3.0f}" for x in w),
+              f" mean {w.mean():.1f} (FixP(QInter) alone {np.mean(fixp) * 1e3:.1f})")
 
-    bound = pulley_length_bound(irma4u, 0.1)
+    bound = pulley_length_bound(irma4u, *workspace_region(irma4u, 0.1))
     print(f"\n== IRMA4U pulley effect |B - d| - l over the workspace (Euler angles +-0.1 rad) ==\n"
           f"[{bound.interval[0] * 1e3:.1f}, {bound.interval[1] * 1e3:.1f}] mm including a {bound.margin * 1e3:.1f} mm "
           f"sampling margin; max |.| = {max(abs(bound.interval[0]), abs(bound.interval[1])) * 1e3:.1f} mm")

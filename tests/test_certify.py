@@ -11,7 +11,7 @@ import pytest
 
 from calib.certify import CertifyConfig, certify_anchors, n_allowed_failures
 from calib.certify._bounds import cable_shells
-from calib.certify._pulley import pulley_length_bound
+from calib.certify._pulley import pulley_length_bound, workspace_region
 from calib.certify._rounding import codac, codac_rounding
 from calib.certify._solver import solve_cable
 from calib.kinematics import inverse_kinematics, rotation
@@ -241,7 +241,7 @@ def test_nwls_is_inside_without_outliers_and_pulled_out_by_them(reelax8):
 
 
 def test_pulley_bound_encloses_random_poses_of_the_workspace(irma4u):
-    bound = pulley_length_bound(irma4u, angle_range=0.1)
+    bound = pulley_length_bound(irma4u, *workspace_region(irma4u, 0.1))
     rng = np.random.default_rng(7)
     lo, hi = irma4u.workspace_lower, irma4u.workspace_upper
     poses = np.concatenate([rng.uniform(lo, hi, (4000, 3)), rng.uniform(-0.1, 0.1, (4000, 3))], 1)

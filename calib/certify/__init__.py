@@ -3,7 +3,7 @@
 Each cable's fixed point A_i (the anchor of a straight cable, the pulley entry point d_i of a robot with
 swivel pulleys) is enclosed by a box guaranteed to contain it under bounded errors: laser-tracker poses
 (+-pose_tol m, +-angle_tol rad), the cable model error [dL] (distance - length, m), the platform geometry
-(+-platform_tol m) and, for pulley robots, the pulley's effect on length bounded over the workspace. The
+(+-platform_tol m) and, for pulley robots, the pulley's effect on length bounded over the measured poses. The
 programme is the paper's FixP(QInter(q, hc4r(F_1..F_N))) on codac, followed by a paving; measurements whose
 thick sphere misses the final box are named as outliers. ``q`` is the fraction of measurements that must
 hold (the paper's meaning); codac 2 is given the number allowed to fail.
@@ -43,7 +43,7 @@ class CertifyConfig:
     fixpoint_ratio: the fixpoint stops when no dimension shrinks by more than this fraction (root box);
     paving_ratio: the same criterion inside the paving.
     uncontracted_ratio: a dimension whose final width exceeds this fraction of the initial one is reported
-    as not contracted. pulley_angle_range: Euler angles (rad) over which the pulley effect is bounded.
+    as not contracted.
     nwls_loss: scipy robust loss of the least-squares comparison ('linear' is plain NWLS).
     """
 
@@ -59,7 +59,6 @@ class CertifyConfig:
     fixpoint_ratio: float = 0.01
     paving_ratio: float = 0.1
     uncontracted_ratio: float = 0.9
-    pulley_angle_range: float = 0.1
     nwls_loss: str = "linear"
 
     def validate(self) -> None:
@@ -192,8 +191,9 @@ def certify_anchors(
     n_fail = n_allowed_failures(config.q, n)
     model_error = tuple(config.model_error)
     pulley = None
-    if robot.has_pulleys:
-        bound = pulley_length_bound(robot, config.pulley_angle_range)
+    if robot.has_pulleys:  # over the measured poses, widened by the pose and anchor tolerances
+        widen = np.r_[[config.pose_tol + config.anchor_tol] * 3, [config.angle_tol] * 3]
+        bound = pulley_length_bound(robot, poses.min(axis=0) - widen, poses.max(axis=0) + widen)
         pulley = bound.interval
         model_error = (model_error[0] + pulley[0], model_error[1] + pulley[1])
     results = []
