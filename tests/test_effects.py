@@ -184,3 +184,12 @@ def test_user_effect_from_a_file(tmp_path):
         load_effect_file(bad)
     with pytest.raises(EffectLoadError, match="not found"):
         load_effect_file(tmp_path / "missing.py")
+
+
+def test_absolute_lengths_are_what_the_encoders_count():
+    m = EffectModel(ROBOT, make_effects(["cable_elasticity", "mass_scale"]))
+    theta = m.initial_params(POSES[0], [1 / 20000.0, 0.02])
+    ph = m._physical(theta, POSES[[0]])[1]
+    absolute = m.absolute_readings(theta)
+    assert np.allclose(absolute["length"], ph.L[0] / (1 + ph.tau[0] / 20000.0))
+    assert np.all(ph.L[0] - absolute["length"] > 0.005)  # ~1-2 cm of stretch at 100-170 N, 20 kN

@@ -122,6 +122,11 @@ class Effect:
         """Reading stage: change ``preds`` in place (values, d_pose, d_theta; fill d_theta[..., ctx.cols])."""
         raise NotImplementedError
 
+    def absolute_length(self, ref: Physical, values: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        """Reading stage: the absolute length (n,) the encoders count at zeta_0, given the geometric (or
+        previously transformed) one; default unchanged."""
+        return lengths
+
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
         """Reported parameters, e.g. ``{"EA": 15020.0}`` (default: the parameters by name)."""
         return {s.name: float(v) for s, v in zip(self.params(robot), values, strict=True)}
@@ -261,10 +266,14 @@ class EffectModel:
         return out
 
     def absolute_readings(self, theta: np.ndarray) -> dict[str, np.ndarray]:
-        """Absolute geometric values of the relative sensors at the reference pose: cable lengths (n,) m,
-        swivel angles (n,) rad, yaw rad (robot effects applied)."""
+        """Absolute values of the relative sensors at the reference pose: cable lengths (n,) m as the
+        encoders count them (e.g. unstretched, with cable elasticity), swivel angles (n,) rad, yaw rad."""
         _, ref = self._physical(theta, theta[None, :6])
-        return {"length": ref.L[0], "swivel": ref.sigma[0], "yaw": float(theta[5])}
+        lengths = ref.L[0]
+        for i in sorted(range(len(self.effects)), key=lambda i: self.effects[i].order):
+            if self.effects[i].stage == "reading":
+                lengths = self.effects[i].absolute_length(ref, np.asarray(theta[self.slices[i]]), lengths)
+        return {"length": lengths, "swivel": ref.sigma[0], "yaw": float(theta[5])}
 
 
 class Projected(Effect):

@@ -60,6 +60,9 @@ class CableElasticity(Effect):
         )
         pr.d_theta[..., ctx.cols] = (a_c - b_c)[..., None]
 
+    def absolute_length(self, ref, values: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        return lengths / (1.0 + float(values[0]) * ref.tau[0])
+
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
         c = float(values[0])
         return {"EA": (1.0 / c) if c != 0 else math.inf, "compliance": c}
