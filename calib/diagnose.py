@@ -316,7 +316,8 @@ class Diagnosis:
             "dof": int(self.dof),
             "noise": self.noise_source,
             "p_value": float(self.p_value),
-            "channels": {c: {k: float(v) for k, v in d.items()} for c, d in self.channels.items()},
+            "channels": {c: {k: (int(v) if k == "n" else float(v)) for k, v in d.items()}
+                         for c, d in self.channels.items()},
             "cables": {c: [float(v) for v in vals] for c, vals in self.cables.items()},
             "rows": self.rows,
             "ranking": [c.to_json() for c in self.ranking],
