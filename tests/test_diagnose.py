@@ -188,3 +188,20 @@ def test_simulated_rows_are_rest_states_of_the_simulator_physics(name):
     assert np.abs(sim.cable_tension() - tau).max() < 1e-6  # (and its tensions are 5 N off)
     kin = inverse_kinematics(truth, d.poses[[2]])
     assert np.allclose(sim.swivel_angle(), kin.swivel[0], atol=1e-5)
+
+
+def test_plots_and_html_report(tmp_path):
+    from calib.diagnose import format_diagnosis, html_report, plot_residuals
+
+    d = _rows(HIDDEN["cable_elasticity"])
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=1, max_effects=1,
+                    reference_pose=d.zeta0)
+    pngs = plot_residuals(diag, tmp_path / "plots")
+    assert sorted(p.name for p in pngs) == sorted(
+        [f"residuals_vs_{q}.png" for q in ("tension", "length", "height", "swivel", "tilt")] + ["chi2_by_effect.png"])
+    assert all(p.stat().st_size > 5000 for p in pngs)
+    page = html_report(diag, pngs)
+    assert page.count("data:image/png;base64") == 6 and "cable_elasticity" in page
+    text = format_diagnosis(diag)
+    assert "verdict: cable_elasticity explains" in text
+    assert diag.steps[1]["eps_p"] < 0.2 * diag.steps[0]["eps_p"]  # the initial-pose error falls
