@@ -223,7 +223,7 @@ class SimBackend:
             )
         ph = CablePhysics(robot, params, k, self.initial_pose, tau, brakes=True)
         for _ in range(int(round(5.0 / self.control_period))):  # settle on the locked winches
-            ph.step(self.control_period)
+            ph.step(self.control_period, t_end=self.sync_count * self.control_period)
         ph.rezero()
         return ph
 
@@ -267,7 +267,7 @@ class SimBackend:
             for drive in self.drives:
                 drive.apply_targets()  # the drive also engages or releases its winch's brake with its state
             self._inject_due_faults()
-            ph.step(self.control_period)
+            ph.step(self.control_period, t_end=self.sync_count * self.control_period)
             for node in self.drives:
                 node.on_sync(self.sync_count)
             for node in self.encoders:

@@ -347,12 +347,18 @@ class CablePhysics:
         return [tau[i] + 0.5 * w * geo[i][6] if tau[i] > 0.0 else 0.0 for i in range(self.n)]
 
     # --- integration ----------------------------------------------------------------------------------
-    def step(self, dt: float) -> None:
-        """Advance the simulation by dt seconds (``params.substeps`` substeps)."""
+    def step(self, dt: float, t_end: float | None = None) -> None:
+        """Advance the simulation by dt seconds (``params.substeps`` substeps).
+
+        ``t_end``: the exact time to read afterwards (a lockstep caller passes count * period, so that the
+        clock does not drift off the grid by summing dt: sensors schedule samples on that grid).
+        """
         ns = self.params.substeps
         h = dt / ns
         for _ in range(ns):
             self._substep(h)
+        if t_end is not None:
+            self._t = float(t_end)
         if not all(math.isfinite(x) for x in self._xg) or not all(math.isfinite(x) for x in self._tau):
             raise SimulationError(f"the simulated platform diverged at t = {self._t:.3f} s (unstable commands?).")
 

@@ -276,3 +276,5 @@ def test_initial_pose_is_honoured_and_the_platform_rests_there():
         for _ in range(100):
             sim.tick()  # no driver: ticks straight from the backend, drives disabled, winches braked
         assert np.abs(sim.truth().pose - t.pose).max() < 1e-4
+        # the clock sits exactly on the SYNC grid (summing 0.005 s a hundred times would give 0.5000000000000002)
+        assert sim.time == 100 * 0.005
