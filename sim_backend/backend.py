@@ -11,10 +11,13 @@ master sends:
 3. every node transmits its TPDOs (``on_sync``), the load-cell amplifier writes the tick's line and the AHRS
    its sample.
 
-The simulated clock is the physics time: nothing here reads wall time, so a run costs far less wall time
-than robot time and the same seed gives the same frames and bytes. The drivers connect through
-:attr:`SimBackend.devices` (a ``drivers.config.DeviceConfig``); :meth:`SimBackend.truth` gives the true
-pose now or at an earlier tick.
+The simulated clock is the physics time, exactly ``count * control_period`` after SYNC ``count`` (0 at
+power-on); the load-cell line written at SYNC ``count`` has device sequence ``count - 1``, the AHRS samples
+on its own output-rate grid of that clock. Nothing here reads wall time, so a run costs far less wall time
+than robot time and the same seed gives the same frames and bytes. An exception inside the lockstep (it
+runs in the CAN notifier thread) is kept in :attr:`SimBackend.errors`; the nodes then stay silent. The
+drivers connect through :attr:`SimBackend.devices` (a ``drivers.config.DeviceConfig``);
+:meth:`SimBackend.truth` gives the true pose now or at an earlier tick.
 """
 
 from __future__ import annotations
