@@ -185,7 +185,7 @@ def test_substeps_theta_and_the_500_hz_step_agree_with_the_default_step():
             far = max(far, float(np.abs(ph.pose()[:3] - pose[:3]).max()))
         finals.append(ph.pose())
         swing.append(far)
-    assert min(swing) > 5e-3  # the kick swings the platform by several mm
+    assert min(swing) > 2e-3  # the kick swings the platform by millimetres
     for other in finals[1:]:
         assert np.abs(other[:3] - finals[0][:3]).max() < 5e-4
         assert np.abs(other[3:] - finals[0][3:]).max() < 1e-3
