@@ -287,7 +287,8 @@ class Rig:
             prev.roll, prev.pitch, prev.yaw, prev.ahrs_time)
         a = self.ahrs.latest()
         if self.lockstep and "AHRS" not in self.dead:
-            due = int(round(math.floor(t / self.ahrs_period + 1e-9) * self.ahrs_period * 1e4))
+            sim_t = count * self.period  # the simulated prototype steps one period per SYNC from power-on
+            due = int(round(math.floor(sim_t / self.ahrs_period + 1e-9) * self.ahrs_period * 1e4))
             if a is None or a.sample_time_fine < due:
                 a = _wait_ahrs(self.ahrs, due, timeout)
         if a is not None and a.sample_time_fine != stf:

@@ -8,8 +8,9 @@ kinematic method, a constant-speed path through the workspace logged throughout 
 report. The safety supervisor watches every tick; any stop ends in a safe stop (hold, then ramp down to a safe
 pretension), an event in run.yaml and a :class:`StartupStopped` with one sentence.
 
-Setpoint 0 of the run is tau0 itself (ideal pose: the home pose), so the solver's reference sample lies in
-the tau0 window where the paper takes zeta0; the planned setpoints follow as 1..k.
+The run log starts at rest under tau0 (phase ``pretension``, ``hold_time`` seconds), then the planned
+setpoints 0..k-1 (run.yaml ``setpoints``/``ideal_poses``, as ``cdpr poses`` plans them); the return to tau0
+is logged as phase ``return``; the final rest under tau0 is not logged.
 """
 
 from __future__ import annotations
@@ -92,8 +93,8 @@ class Plan:
         plan = plan_poses(robot, grid)
         if method == "kinematic":
             path = kinematic_path(robot, grid, speed=speed, spacing=spacing)
-            return cls(plan.tau0[None], plan.home_pose[None], plan.tau0, path.tensions, path.times)
-        return cls(np.vstack([plan.tau0, plan.setpoints]), np.vstack([plan.home_pose, plan.poses]), plan.tau0)
+            return cls(np.empty((0, robot.n)), np.empty((0, 6)), plan.tau0, path.tensions, path.times)
+        return cls(plan.setpoints, plan.poses, plan.tau0)
 
 
 @dataclass
@@ -207,19 +208,19 @@ class StartupRoutine:
         for k in range(1, steps + 1):
             self._tick(traj.at(k * self.period))
 
-    def _settle(self, tau: np.ndarray, phase: str, setpoint: int = -1) -> bool:
+    def _settle(self, tau: np.ndarray, phase: str, setpoint: int = -1, log: bool = True) -> bool:
         """Hold ``tau`` until the detector says the platform rests; False on its timeout."""
         self._phase, self._setpoint = phase, setpoint
         det = EquilibriumDetector(self.cfg.log_period, self.cfg.detector)
         det.start(self.clock.now())
         while True:
-            _, state = self._tick(tau, detector=det)
+            _, state = self._tick(tau, log=log, detector=det)
             if state is not None and (state.settled or state.timed_out):
                 return state.settled
 
-    def _hold(self, tau: np.ndarray, setpoint: int) -> tuple[int, int]:
+    def _hold(self, tau: np.ndarray, setpoint: int, phase: str = "hold") -> tuple[int, int]:
         """Log the equilibrium window (phase hold); returns its [first, last] sample index."""
-        self._phase, self._setpoint = "hold", setpoint
+        self._phase, self._setpoint = phase, setpoint
         first = self.writer.count if self.writer else 0
         steps = int(round(self.cfg.hold_time / self.period))
         for _ in range(steps):
@@ -235,11 +236,11 @@ class StartupRoutine:
 
     # ---- the procedure ---------------------------------------------------------------------------------
     def _estimate_total(self) -> float:
-        sp = self.plan.setpoints
-        moves = np.abs(np.diff(np.vstack([sp, sp[:1]]), axis=0)).max(axis=1)
+        sp = np.vstack([self.plan.tau0, self.plan.setpoints, self.plan.tau0])
+        moves = np.abs(np.diff(sp, axis=0)).max(axis=1)
         tr = np.maximum(1.875 * moves / self.cfg.max_tension_rate, self.cfg.min_transition).sum()
         per = self.cfg.expected_settle + self.cfg.hold_time
-        total = tr + per * (len(sp) + 1) + 10.0
+        total = tr + per * (len(sp) - 1) + 10.0
         if self.plan.path_times is not None:
             total += float(self.plan.path_times[-1])
         return float(total)
@@ -276,8 +277,9 @@ class StartupRoutine:
                         "hold_time": self.cfg.hold_time},
         }
         self.writer = RunWriter(self.out, self.robot.name, self.cfg.method, self.cfg.log_period, self.source,
-                                setpoints=plan.setpoints, ideal_poses=plan.ideal_poses, extra_columns=("tick",),
-                                meta_extra=meta, overwrite=True)
+                                setpoints=plan.setpoints if len(plan.setpoints) else None,
+                                ideal_poses=plan.ideal_poses if len(plan.ideal_poses) else None,
+                                extra_columns=("tick",), meta_extra=meta, overwrite=True)
         self._t_run0 = self.clock.now()
 
     def run(self) -> StartupResult:
@@ -297,12 +299,12 @@ class StartupRoutine:
                 raise SafeStop("no_equilibrium", f"the platform did not come to rest under tau0 within "
                                f"{self.cfg.detector.timeout:g} s.")
             self.start_log()
-            self._windows.append(self._hold(tau0, 0))
+            self._hold(tau0, -1, "pretension")
             if self.cfg.method == "kinematic":
                 self._kinematic()
             else:
                 prev = tau0
-                for j in range(1, len(self.plan.setpoints)):
+                for j in range(len(self.plan.setpoints)):
                     sp = self.plan.setpoints[j]
                     self._move_to(prev, sp, self.cfg.max_tension_rate, "transition", -1)
                     self._settle(sp, "settle", -1)  # a timeout still gives a (quasi-static) window
@@ -343,7 +345,7 @@ class StartupRoutine:
         """After the run log ends: let the platform come to rest under tau0, then the drives off (brakes)."""
         self.writer.close()
         try:
-            self._settle(self.plan.tau0, "rest")
+            self._settle(self.plan.tau0, "rest", log=False)
         except SafeStop as stop:
             self._safe_stop(stop, log=False)
             raise StartupStopped(stop.kind, stop.message, self.out) from None

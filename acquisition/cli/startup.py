@@ -35,7 +35,7 @@ def register(sub) -> None:
     p.add_argument("--sim-config", help="simulation configuration YAML (hidden effects, faults)")
     p.add_argument("--truth", help="write the simulator's true initial pose here (JSON)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
-    p.add_argument("--rate", type=float, default=500.0, help="control rate, Hz, 200..500 (default 500)")
+    p.add_argument("--rate", type=float, default=200.0, help="control rate, Hz, 200..500 (default 200)")
     p.add_argument("--realtime", action="store_true", help="pace the simulated prototype in real time")
     p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file")
     p.add_argument("--max-rate", type=float, default=40.0, help="tension rate limit of the trajectories, N/s")
@@ -90,7 +90,6 @@ def _progress(args) -> ProgressBar:
 
 def _run_sim(args, robot, plan, cfg, out: Path) -> int:
     from sim_backend.backend import SimBackend
-
     from sim_backend.config import SimConfigError, load_sim_config
 
     try:
@@ -99,27 +98,22 @@ def _run_sim(args, robot, plan, cfg, out: Path) -> int:
         raise UsageError(str(exc)) from exc
     period = 1.0 / cfg.rate
     clock = RealClock(period, lockstep=True) if args.realtime else SimClock(period)
-    truth_at: dict[int, list[float]] = {}
     with SimBackend(robot, sim_config, args.seed, period) as sim:
-        rig = connect(sim.device_config, robot, clock, lockstep=True, period=period)
-
-        def record(snap) -> None:
-            if snap.tick % int(round(cfg.log_period * cfg.rate)) == 0:
-                truth_at[snap.sync] = [float(v) for v in sim.truth().pose]
-
-        routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
-                                 on_tick=record)
+        rig = connect(sim.devices, robot, clock, lockstep=True, period=period)
+        routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args))
         try:
             result = _acquire(routine, rig)
         finally:
             rig.close()
-    summary = _solve_and_report(args, robot, cfg, result, out)
-    if args.truth and summary.solution:
-        sample = int(summary.solution["reference_sample"])
-        tick = int(result.ticks[sample])
-        Path(args.truth).write_text(json.dumps({"initial_pose": truth_at[tick], "reference_sample": sample,
-                                                "sync": tick}) + "\n")
-        summary.files["truth"] = str(args.truth)
+        summary = _solve_and_report(args, robot, cfg, result, out)
+        if args.truth and summary.solution:
+            sample = int(summary.solution["reference_sample"])
+            tick = int(result.ticks[sample])
+            truth = sim.truth(sync_count=tick)
+            Path(args.truth).write_text(json.dumps({
+                "initial_pose": [float(v) for v in truth.pose], "reference_sample": sample, "sync_count": tick,
+                "sim_time": float(truth.time)}) + "\n")
+            summary.files["truth"] = str(args.truth)
     return _print(args, summary)
 
 

@@ -1,0 +1,114 @@
+"""`cdpr startup --backend sim` end to end: the real drivers against the simulated prototype, the run log,
+the solve and the report; each simulated fault and an operator's SIGINT end in a safe stop.
+"""
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from acquisition.cli import main
+from acquisition.runlog import read_run
+from sim_backend.config import example_path
+
+
+def _angle_errors_deg(a, b):
+    return np.degrees(np.abs((np.asarray(a[3:]) - np.asarray(b[3:]) + math.pi) % (2 * math.pi) - math.pi))
+
+
+def _check_pose(tmp_path, out, truth_file):
+    sol = json.loads((out / "solution.json").read_text())
+    truth = json.loads(truth_file.read_text())["initial_pose"]
+    est = np.array(sol["initial_pose"])
+    pos_mm = 1000 * np.linalg.norm(est[:3] - np.array(truth[:3]))
+    ang = _angle_errors_deg(est, truth)
+    assert pos_mm <= 3.0, f"position error {pos_mm:.2f} mm"
+    assert ang.max() <= 0.3, f"orientation errors {ang} deg"
+    return sol
+
+
+def test_grid2_equilibrium_lands_within_3mm_and_0_3deg(tmp_path, capsys):
+    out, truth = tmp_path / "run", tmp_path / "truth.json"
+    code = main(["startup", "--backend", "sim", "--grid", "2", "--out", str(out), "--truth", str(truth),
+                 "--json"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    summary = json.loads(cap.out)
+    assert summary["status"] == "ok" and summary["setpoints"] == 9
+    sol = _check_pose(tmp_path, out, truth)
+    run = read_run(out)
+    assert run.setpoints.shape == (9, 4) and run.method == "equilibrium"
+    assert len(summary["windows"]) == 9 and len(sol["windows"]) >= 9
+    # the windows the loop held are logged as phase 'hold' with their setpoint index
+    for j, (a, b) in enumerate(summary["windows"]):
+        assert set(run.phase[a : b + 1]) == {"hold"} and set(run.setpoint[a : b + 1]) == {j}
+        # at rest the tensions are at their setpoint within the load cells' uncertainty (averaged)
+        np.testing.assert_allclose(run.tau[a : b + 1].mean(axis=0), run.setpoints[j], atol=0.2)
+    off = yaml.safe_load((out / "offsets.yaml").read_text())
+    assert off["pose"] == sol["initial_pose"] and len(off["lengths"]) == 4
+    assert "data:image/png;base64," in (out / "report.html").read_text()
+    assert not run.events
+
+
+def _fault(tmp_path, capsys, name):
+    out = tmp_path / name
+    code = main(["startup", "--backend", "sim", "--grid", "2", "--out", str(out), "--sim-config",
+                 str(example_path(name))])
+    err = capsys.readouterr().err.strip()
+    run = read_run(out)  # complete and readable
+    return code, err, run
+
+
+@pytest.mark.parametrize(
+    "name, kind, words",
+    [
+        ("fault_can_frames_lost", "stale_sensor", "silent"),
+        ("fault_drive_fault", "drive_fault", "winch 2"),
+        ("fault_loadcell_stuck", "stuck_sensor", "load cell 3"),
+        ("fault_loadcell_disconnected", None, "load"),
+        ("fault_ahrs_corrupt", "corrupted_stream", "AHRS"),
+        ("fault_cable_slack", "slack", "cable 1"),
+    ],
+)
+def test_each_simulated_fault_ends_in_a_safe_stop(tmp_path, capsys, name, kind, words):
+    code, err, run = _fault(tmp_path, capsys, name)
+    assert code == 1
+    assert err.startswith("cdpr: safe stop: ") and err.count("\n") == 0 and words in err, err
+    assert len(run.events) == 1
+    ev = run.events[0]
+    if kind is not None:
+        assert ev["kind"] == kind, ev
+    # the fault is injected at 20 s of simulated time; the log goes on through the safe stop
+    assert "safe_stop" in set(run.phase)
+    stop = run.phase == "safe_stop"
+    assert np.all(np.diff(run.t) > 0)
+    # the stop ramps the references down towards the safe pretension
+    assert run.tau_ref[stop][-1].max() < run.tau_ref[stop][0].max() + 1e-9
+
+
+def test_sigint_during_the_run_ends_in_a_safe_stop(tmp_path):
+    out = tmp_path / "run"
+    env = dict(os.environ)
+    cmd = [sys.executable, "-c", "import sys; from acquisition.cli import main; sys.exit(main())",
+           "startup", "--backend", "sim", "--grid", "2", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+    deadline = time.monotonic() + 120
+    samples = out / "samples.csv"
+    while time.monotonic() < deadline:
+        if samples.exists() and samples.read_text().count("\n") > 40:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 1
+    assert stderr.strip() == f"cdpr: safe stop: stopped by the operator (SIGINT) (run log: {out})."
+    run = read_run(out)
+    assert [e["kind"] for e in run.events] == ["operator"]
+    assert run.phase[-1] == "safe_stop" and len(run) > 40
