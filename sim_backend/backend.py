@@ -40,7 +40,7 @@ from drivers.can_bus import SYNC_COB_ID, open_network
 from drivers.config import AhrsConfig, CanConfig, DeviceConfig, NodeConfig, SerialConfig
 from sim_backend.can_drive_emulator import CanDriveEmulator
 from sim_backend.can_encoder_emulator import CanEncoderEmulator
-from sim_backend.config import SimConfig, SimConfigError, load_sim_config
+from sim_backend.config import Fault, SimConfig, SimConfigError, load_sim_config
 from sim_backend.loadcell_emulator import LoadCellEmulator
 from sim_backend.physics import CablePhysics, pose_of
 from sim_backend.pty import open_pty_pair
@@ -118,7 +118,7 @@ class SimBackend:
         self.errors: list[str] = []  # exceptions raised inside the lockstep (the notifier thread)
         self._lock = threading.RLock()
         self._history: list[tuple[int, float, tuple, tuple, tuple]] = []
-        self._pending = []
+        self._pending: list[Fault] = []  # serial and cable faults, by time
         self._fds: list[int] = []
         self._bus: can.BusABC | None = None
         self._network = None
@@ -139,7 +139,7 @@ class SimBackend:
         n = self.robot.n
         if n > len(DRIVE_IDS):
             raise SimConfigError(f"robot '{self.robot.name}': the simulator handles at most {len(DRIVE_IDS)} cables.")
-        seeds = np.random.SeedSequence(self.seed).spawn(2 * n + 3)
+        seeds = np.random.SeedSequence(self.seed).spawn(2 * n + 2)  # drives, encoders, load cells, AHRS
         rngs = [np.random.default_rng(s) for s in seeds]
         self.physics = self._make_physics()
         channel = f"cdpr-sim-{os.getpid()}-{next(_channel_ids)}-{id(self):x}"
@@ -165,7 +165,7 @@ class SimBackend:
             self._fds.append(ahrs_fd)
             roll, pitch = self.config.ahrs_mounting()
             self.ahrs = XsensEmulator(ahrs_fd, rngs[2 * n + 1], mounting_roll=roll, mounting_pitch=pitch).start()
-            self._schedule_faults(rngs[2 * n + 2])
+            self._schedule_faults()
             self.devices = DeviceConfig(
                 can=CanConfig(interface="virtual", channel=channel, bitrate=1_000_000,
                               heartbeat_period=self.heartbeat_period),
@@ -231,7 +231,8 @@ class SimBackend:
         ph.rezero()
         return ph
 
-    def _schedule_faults(self, rng: np.random.Generator) -> None:
+    def _schedule_faults(self) -> None:
+        """CAN faults go to the nodes (they act on their own sim time); the others wait for their tick."""
         for f in self.config.faults:
             if f.kind == "can_frames_lost":
                 for node in self.drives + self.encoders:
@@ -241,7 +242,6 @@ class SimBackend:
             else:
                 self._pending.append(f)
         self._pending.sort(key=lambda x: x.t)
-        del rng
 
     def _inject_due_faults(self) -> None:
         t = self.physics.time
