@@ -96,30 +96,25 @@ class PhysicsState:
     cable_tension: np.ndarray
 
 
-def _solve(a: list[list[float]], b: list[float]) -> list[float]:
-    """Gaussian elimination with partial pivoting on a small dense system (lists, modified in place)."""
+def _solve_spd(a: list[list[float]], b: list[float]) -> list[float]:
+    """Solve a small symmetric positive definite system by elimination without pivoting (lists, in place)."""
     n = len(b)
     for c in range(n):
-        p = max(range(c, n), key=lambda r: abs(a[r][c]))
-        if p != c:
-            a[c], a[p] = a[p], a[c]
-            b[c], b[p] = b[p], b[c]
-        piv = a[c][c]
         row = a[c]
+        piv = row[c]
         for r in range(c + 1, n):
-            f = a[r][c] / piv
-            if f != 0.0:
-                ar = a[r]
-                for j in range(c, n):
-                    ar[j] -= f * row[j]
-                b[r] -= f * b[c]
+            ar = a[r]
+            f = ar[c] / piv
+            for j in range(c + 1, n):
+                ar[j] -= f * row[j]
+            b[r] -= f * b[c]
     x = [0.0] * n
     for c in range(n - 1, -1, -1):
-        s = b[c]
         row = a[c]
+        acc = b[c]
         for j in range(c + 1, n):
-            s -= row[j] * x[j]
-        x[c] = s / row[c]
+            acc -= row[j] * x[j]
+        x[c] = acc / row[c]
     return x
 
 
@@ -452,9 +447,10 @@ class CablePhysics:
             if not idx:
                 tau = [0.0] * n
                 break
-            a = [[(1.0 if i == j else 0.0) + h * s[i] * dmat[i][j] for j in idx] for i in idx]
-            b = [kc[i] * e[i] + s[i] * ed[i] for i in idx]
-            x = _solve(a, b)
+            # (I + h S D) tau = K e + S J v*, divided by S row-wise: (S^-1 + h D) is symmetric positive definite
+            a = [[h * dmat[i][j] + (1.0 / s[i] if i == j else 0.0) for j in idx] for i in idx]
+            b = [kc[i] * e[i] / s[i] + ed[i] for i in idx]
+            x = _solve_spd(a, b)
             tau = [0.0] * n
             for c, i in enumerate(idx):
                 tau[i] = x[c]
