@@ -243,8 +243,13 @@ class Rig:
 
     def tick(self, tick_index: int, t: float, timeout: float | None = None) -> Snapshot:
         """Send SYNC, gather the readings of this tick; missing ones keep their previous value."""
-        timeout = self.timeout if timeout is None else timeout
+        budget = self.timeout if timeout is None else timeout
         count = int(self.send_sync() or 0)
+        deadline = _now() + budget  # one wall-time budget for all the tick's readings
+
+        def left() -> float:
+            return max(deadline - _now(), 1e-4)
+
         prev = self._last
         n = self.n
         missing = []
@@ -252,7 +257,7 @@ class Rig:
         dsigma = np.full(n, np.nan) if prev is None else prev.dsigma.copy()
         for i, d in enumerate(self.drives):
             name = self.drive_name(i)
-            r = self._wait_sync(name, d, count, timeout)
+            r = self._wait_sync(name, d, count, left())
             if r is not None and (not self.lockstep or r.sync_count >= count) and (
                     prev is None or r.seq != self._seq.get(name)):
                 dl[i] = r.delta_length
@@ -262,7 +267,7 @@ class Rig:
                 missing.append(name)
         for i, e in enumerate(self.encoders):
             name = self.encoder_name(i)
-            r = self._wait_sync(name, e, count, timeout)
+            r = self._wait_sync(name, e, count, left())
             if r is not None and (not self.lockstep or r.sync_count >= count) and (
                     prev is None or r.seq != self._seq.get(name)):
                 dsigma[i] = r.delta_angle
@@ -274,7 +279,7 @@ class Rig:
         r = self.loadcells.latest()
         if self.lockstep and "load cells" not in self.dead:
             try:
-                r = self.loadcells.wait_for(self._lc_seq + 1, timeout)
+                r = self.loadcells.wait_for(self._lc_seq + 1, left())
             except Exception:
                 r = self.loadcells.latest()
         if r is not None and r.device_seq != self._lc_seq:
@@ -290,7 +295,7 @@ class Rig:
             sim_t = count * self.period  # the simulated prototype steps one period per SYNC from power-on
             due = int(round(math.floor(sim_t / self.ahrs_period + 1e-9) * self.ahrs_period * 1e4))
             if a is None or a.sample_time_fine < due:
-                a = _wait_ahrs(self.ahrs, due, timeout)
+                a = _wait_ahrs(self.ahrs, due, left())
         if a is not None and a.sample_time_fine != stf:
             roll, pitch, yaw, stf = a.roll, a.pitch, a.yaw, a.sample_time_fine
             self._last_fresh["AHRS"] = t

@@ -127,7 +127,9 @@ class SafetySupervisor:
             raise SafeStop("operator", f"{self.requested}.")
         for name, fault in faults.items():
             if fault:
-                raise SafeStop("drive_fault", f"{name}: {fault.rstrip('.')}.")
+                kind = "drive_fault" if "drive" in name or "winch" in name else "sensor_fault"
+                lost = tuple(range(self.n)) if name.startswith("load") else ()
+                raise SafeStop(kind, f"{name}: {fault.rstrip('.')}.", lost)
         for name, (age, period) in ages.items():
             if age > self.limits.stale_periods * period:
                 raise SafeStop(

@@ -179,7 +179,7 @@ class StartupRoutine:
         bad = {k: v for k, v in self.rig.link_errors().items() if v > 0}
         if bad:
             name, count = next(iter(bad.items()))
-            raise SafeStop("corrupted_stream", f"the {name} stream is corrupted: {count} bad frames since the start.")
+            raise SafeStop("corrupted_stream", f"the {name} stream is corrupted: {count} bad frame(s) since the start.")
         if not np.all(np.isfinite(snap.tau)):
             i = int(np.flatnonzero(~np.isfinite(snap.tau))[0])
             raise SafeStop("sensor_fault", f"load cell {i + 1} gives no value (disconnected).", (i,))

@@ -41,11 +41,11 @@ def test_grid2_equilibrium_lands_within_3mm_and_0_3deg(tmp_path, capsys):
     cap = capsys.readouterr()
     assert code == 0, cap.err
     summary = json.loads(cap.out)
-    assert summary["status"] == "ok" and summary["setpoints"] == 9
+    assert summary["status"] == "ok" and summary["setpoints"] == 8
     sol = _check_pose(tmp_path, out, truth)
     run = read_run(out)
-    assert run.setpoints.shape == (9, 4) and run.method == "equilibrium"
-    assert len(summary["windows"]) == 9 and len(sol["windows"]) >= 9
+    assert run.setpoints.shape == (8, 4) and run.method == "equilibrium"
+    assert len(summary["windows"]) == 8 and len(sol["windows"]) >= 8
     # the windows the loop held are logged as phase 'hold' with their setpoint index
     for j, (a, b) in enumerate(summary["windows"]):
         assert set(run.phase[a : b + 1]) == {"hold"} and set(run.setpoint[a : b + 1]) == {j}
@@ -71,7 +71,7 @@ def _fault(tmp_path, capsys, name):
     [
         ("fault_can_frames_lost", "stale_sensor", "silent"),
         ("fault_drive_fault", "drive_fault", "winch 2"),
-        ("fault_loadcell_stuck", "stuck_sensor", "load cell 3"),
+        ("fault_loadcell_stuck", "sensor_fault", "load cell 3"),
         ("fault_loadcell_disconnected", None, "load"),
         ("fault_ahrs_corrupt", "corrupted_stream", "AHRS"),
         ("fault_cable_slack", "slack", "cable 1"),

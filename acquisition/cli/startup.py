@@ -40,6 +40,7 @@ def register(sub) -> None:
     p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file")
     p.add_argument("--max-rate", type=float, default=40.0, help="tension rate limit of the trajectories, N/s")
     p.add_argument("--hold", type=float, default=2.0, help="logged seconds of each equilibrium window")
+    p.add_argument("--speed", type=float, default=0.05, help="platform speed along the kinematic path, m/s")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.set_defaults(func=run)
@@ -50,7 +51,7 @@ def _config(args) -> StartupConfig:
         raise UsageError(f"--grid {args.grid} is out of range: give 2 to 6 grid points per axis.")
     try:
         return StartupConfig(method=args.method, rate=args.rate, max_tension_rate=args.max_rate,
-                             hold_time=args.hold)
+                             hold_time=args.hold, kinematic_speed=args.speed)
     except ValueError as exc:
         raise UsageError(f"invalid option: {exc}") from exc
 
@@ -60,8 +61,8 @@ def run(args) -> int:
     from calib.robot import RobotDescriptionError, load_robot
 
     cfg = _config(args)
-    if args.max_rate <= 0 or args.hold <= 0:
-        raise UsageError(f"--max-rate {args.max_rate} and --hold {args.hold} must be positive.")
+    if args.max_rate <= 0 or args.hold <= 0 or args.speed <= 0:
+        raise UsageError(f"--max-rate {args.max_rate}, --hold {args.hold} and --speed {args.speed} must be positive.")
     try:
         robot = load_robot(args.robot)
     except RobotDescriptionError as exc:
