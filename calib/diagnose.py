@@ -533,6 +533,35 @@ def reveal_quantities(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, meas: 
     return {"tension": tau, "length": kin.lengths, "height": Z[:, 2], "swivel": kin.swivel, "tilt": tilt}
 
 
+def window_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> dict[str, np.ndarray]:
+    """Per channel, the standard deviation of one sample inside the still equilibrium windows (pooled over
+    cables; roll and pitch pooled, yaw apart), floored only at the sensors' resolution (quantisation step
+    / sqrt 12), not at their accuracy class: a constant error within the accuracy class (a load-cell
+    offset, an AHRS tilt) is exactly what the diagnosis must be able to reveal."""
+    s = robot.sensors
+    n = robot.n
+    lpr = np.abs(np.asarray(s.length_per_motor_rev, float)) if s.length_per_motor_rev else np.full(n, 0.03)
+    q = math.sqrt(12.0)
+    floor = {
+        "tension": np.full(n, 0.01 / q),
+        "length": np.broadcast_to(lpr / 2.0**s.motor_encoder_bits / q, (n,)),
+        "swivel": np.full(n, 2 * math.pi / s.swivel_counts_per_rev / q),
+        "orientation": np.full(3, 1e-5),
+    }
+    still = [w for w in windows if not w.quasi] or list(windows)
+    dof = max(sum(w.size - 1 for w in still), 1)
+    out = {}
+    for c, x in (("tension", sig["tau"]), ("length", sig["dl"]), ("swivel", sig["dsigma"])):
+        dev = np.concatenate([x[w.slice] - x[w.slice].mean(0) for w in still])
+        out[c] = np.maximum(math.sqrt(float(np.sum(dev**2)) / (dof * n)), floor[c])
+    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
+    dev = np.concatenate([ori[w.slice] - ori[w.slice].mean(0) for w in still])
+    rp = math.sqrt(float(np.sum(dev[:, :2] ** 2)) / (2 * dof))
+    yaw = math.sqrt(float(np.sum(dev[:, 2] ** 2)) / dof)
+    out["orientation"] = np.maximum(np.array([rp, rp, yaw]), floor["orientation"])
+    return out
+
+
 def diagnose_run(
     run: Any,
     noise: str = "estimate",
@@ -543,7 +572,8 @@ def diagnose_run(
     reference_pose: np.ndarray | None = None,
 ) -> Diagnosis:
     """:func:`diagnose` on the equilibrium windows of a run (``acquisition.runlog.Run``): the windows,
-    rows, noise and initial guess are those of ``calib.selfcal.solve(method='tlse')``."""
+    rows and initial guess are those of ``calib.selfcal.solve(method='tlse')``; noise ``estimate`` is
+    :func:`window_noise`, ``paper`` the eq. 18 levels."""
     from calib.selfcal import solve
     from calib.selfcal._solve import _rows, _signals, noise_levels
 
@@ -551,7 +581,10 @@ def diagnose_run(
     sol = solve(robot, run, method="tlse", noise=noise)
     sig = _signals(robot, run)
     meas, _, _, _, _ = _rows(sig, sol.windows, "tlse", 1, sol.reference_sample)
-    sigma, source = noise_levels(robot, noise, sig, sol.windows)
+    if noise == "estimate":
+        sigma, source = window_noise(robot, sig, sol.windows), "estimate"
+    else:
+        sigma, source = noise_levels(robot, noise, sig, sol.windows)
     return diagnose(robot, meas, sigma, sol.theta[:6], sol.poses, candidates, included, alpha,
                     max_effects=max_effects, noise_source=source, reference_pose=reference_pose)
 

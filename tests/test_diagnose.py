@@ -205,3 +205,24 @@ def test_plots_and_html_report(tmp_path):
     text = format_diagnosis(diag)
     assert "verdict: cable_elasticity explains" in text
     assert diag.steps[1]["eps_p"] < 0.2 * diag.steps[0]["eps_p"]  # the initial-pose error falls
+
+
+def test_full_startup_run_on_the_simulator_with_a_hidden_effect(tmp_path, capsys):
+    """End to end: `cdpr startup --backend sim` with the shipped cable_elasticity example (EA 20 kN), then
+    `cdpr diagnose`: elasticity ranks first with EA near 20 kN and its refit brings zeta_0 to the truth."""
+    from sim_backend.config import example_path
+
+    run, truth = tmp_path / "run", tmp_path / "truth.json"
+    code = cdpr(["startup", "--backend", "sim", "--grid", "2", "--sim-config", str(example_path("cable_elasticity")),
+                 "--truth", str(truth), "--out", str(run)])
+    assert code == 0, capsys.readouterr().err
+    zeta = json.loads(truth.read_text())["initial_pose"]
+    capsys.readouterr()
+    assert cdpr(["diagnose", str(run), "--json", "--max-effects", "1",
+                 "--reference", ",".join(repr(v) for v in zeta)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    top = doc["ranking"][0]
+    assert top["effect"] == "cable_elasticity" and top["significant"]
+    assert 15000 < top["params"]["EA"] < 25000
+    assert doc["steps"][1]["chi2"] < 0.2 * doc["steps"][0]["chi2"]
+    assert doc["steps"][1]["eps_p"] < 1.5e-3
