@@ -35,6 +35,7 @@ class ControllerConfig:
     min_command: float = 5.0  # N, lowest tension command (cables only pull)
     max_command: float = 400.0  # N, highest tension command
     max_command_rate: float = 1500.0  # N/s, rate limit of the torque command expressed in tension
+    integral_deadband: float = 1.5  # N, errors smaller than this are not integrated (no friction hunting)
 
     def __post_init__(self) -> None:
         if not 50.0 <= self.rate <= 2000.0:
@@ -94,7 +95,7 @@ class TensionController:
         high = (limited < raw) & (err > 0)
         low = (limited > raw) & (err < 0)
         self.saturated = high | low
-        integrate = ~self.saturated & self.feedback
+        integrate = ~self.saturated & self.feedback & (np.abs(err) > c.integral_deadband)
         self.integral = np.where(integrate, self.integral + c.ki * err * dt, self.integral)
         np.clip(self.integral, -c.integral_limit, c.integral_limit, out=self.integral)
         self.command = limited

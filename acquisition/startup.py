@@ -15,6 +15,7 @@ is logged as phase ``return``; the final rest under tau0 is not logged.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -58,6 +59,7 @@ class StartupConfig:
     initial_rate: float = 20.0  # N/s, rate of the first transition from the power-on tensions to tau0
     hold_time: float = 2.0  # s logged in each equilibrium window after detection
     detector: DetectorConfig = field(default_factory=DetectorConfig)
+    pretension_timeout: float = 60.0  # s to come to rest under tau0 before the run log starts
     controller: ControllerConfig | None = None
     safety: SafetyLimits | None = None
     kinematic_speed: float = 0.05  # m/s along the kinematic path
@@ -208,10 +210,12 @@ class StartupRoutine:
         for k in range(1, steps + 1):
             self._tick(traj.at(k * self.period))
 
-    def _settle(self, tau: np.ndarray, phase: str, setpoint: int = -1, log: bool = True) -> bool:
-        """Hold ``tau`` until the detector says the platform rests; False on its timeout."""
+    def _settle(self, tau: np.ndarray, phase: str, setpoint: int = -1, log: bool = True,
+                timeout: float | None = None) -> bool:
+        """Hold ``tau`` until the detector says the platform rests; False on its timeout (s)."""
         self._phase, self._setpoint = phase, setpoint
-        det = EquilibriumDetector(self.cfg.log_period, self.cfg.detector)
+        dcfg = self.cfg.detector if timeout is None else dataclasses.replace(self.cfg.detector, timeout=timeout)
+        det = EquilibriumDetector(self.cfg.log_period, dcfg)
         det.start(self.clock.now())
         while True:
             _, state = self._tick(tau, log=log, detector=det)
@@ -289,15 +293,15 @@ class StartupRoutine:
         if self.progress is not None:
             self.progress.total = self._total_estimate
         try:
-            self.zero()
+            self._supervise(self.zero())  # a stop asked for while connecting ends here, drives still off
             self.rig.mark_links()
             self.enable()
             tau0 = self.plan.tau0
             self._move_to(self._tau_init, tau0, self.cfg.initial_rate, "pretension")
             self._armed = True
-            if not self._settle(tau0, "pretension"):
+            if not self._settle(tau0, "pretension", timeout=self.cfg.pretension_timeout):
                 raise SafeStop("no_equilibrium", f"the platform did not come to rest under tau0 within "
-                               f"{self.cfg.detector.timeout:g} s.")
+                               f"{self.cfg.pretension_timeout:g} s.")
             self.start_log()
             self._hold(tau0, -1, "pretension")
             if self.cfg.method == "kinematic":
@@ -345,7 +349,7 @@ class StartupRoutine:
         """After the run log ends: let the platform come to rest under tau0, then the drives off (brakes)."""
         self.writer.close()
         try:
-            self._settle(self.plan.tau0, "rest", log=False)
+            self._settle(self.plan.tau0, "rest", log=False, timeout=self.cfg.pretension_timeout)
         except SafeStop as stop:
             self._safe_stop(stop, log=False)
             raise StartupStopped(stop.kind, stop.message, self.out) from None
@@ -355,7 +359,7 @@ class StartupRoutine:
     def _safe_stop(self, stop: SafeStop, log: bool = True) -> None:
         """Hold, ramp down to the safe pretension, drives off; the event and every sample in the run log."""
         t_now = self.clock.now()
-        if log and self.writer is None:  # stopped before the run log started: keep what was seen
+        if log and self.writer is None and self._zero:  # stopped before the run log started: keep what was seen
             self.start_log()
             self._t_run0 = self._prerun[0][0] if self._prerun else t_now
             for row in self._prerun:

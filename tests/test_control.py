@@ -60,7 +60,7 @@ def test_transmission_radius_sign_and_size_for_irma4u():
 
 def test_pi_tracks_a_quintic_and_removes_the_friction_offset():
     radius = transmission_radius(load_robot("irma4u"))
-    cfg = ControllerConfig(rate=500.0)
+    cfg = ControllerConfig(rate=500.0, integral_deadband=0.0)
     ctl = TensionController(radius, cfg)
     plant = Winch(radius)
     ctl.reset(plant.tension())
@@ -77,9 +77,19 @@ def test_pi_tracks_a_quintic_and_removes_the_friction_offset():
     assert np.abs(ref2 - tau2)[-1].max() > 2.0
 
 
+def test_integral_deadband_ignores_small_errors():
+    """Errors inside the deadband (load-cell noise, friction's stick band) are not integrated, so the
+    winch is not made to creep in stick-slip at rest; larger errors are."""
+    ctl = TensionController(np.array([0.005, 0.005]), ControllerConfig(ki=30.0, integral_deadband=1.5))
+    ctl.reset(np.array([100.0, 100.0]))
+    for _ in range(100):
+        ctl.update(np.array([100.0, 100.0]), np.array([98.8, 97.0]), 0.002)
+    np.testing.assert_allclose(ctl.integral, [0.0, 30.0 * 3.0 * 0.2])
+
+
 def test_torque_rate_limit_and_anti_windup():
     radius = np.array([0.0046])
-    cfg = ControllerConfig(rate=500.0, max_command=120.0, max_command_rate=300.0)
+    cfg = ControllerConfig(rate=500.0, max_command=120.0, max_command_rate=300.0, integral_deadband=0.0)
     ctl = TensionController(radius, cfg)
     plant = Winch(radius, pretension=50.0)
     ctl.reset(plant.tension())

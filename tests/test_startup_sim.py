@@ -49,8 +49,8 @@ def test_grid2_equilibrium_lands_within_3mm_and_0_3deg(tmp_path, capsys):
     # the windows the loop held are logged as phase 'hold' with their setpoint index
     for j, (a, b) in enumerate(summary["windows"]):
         assert set(run.phase[a : b + 1]) == {"hold"} and set(run.setpoint[a : b + 1]) == {j}
-        # at rest the tensions are at their setpoint within the load cells' uncertainty (averaged)
-        np.testing.assert_allclose(run.tau[a : b + 1].mean(axis=0), run.setpoints[j], atol=0.2)
+        # at rest the tensions are at their setpoint within the integral deadband (averaged)
+        np.testing.assert_allclose(run.tau[a : b + 1].mean(axis=0), run.setpoints[j], atol=1.6)
     off = yaml.safe_load((out / "offsets.yaml").read_text())
     assert off["pose"] == sol["initial_pose"] and len(off["lengths"]) == 4
     assert "data:image/png;base64," in (out / "report.html").read_text()

@@ -20,7 +20,9 @@ import numpy as np
 
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.clock import RealClock, SimClock
+from acquisition.equilibrium import DetectorConfig
 from acquisition.report import ProgressBar, StartupSummary, render_text, write_html, write_offsets
+from acquisition.safety import SafetyLimits, SafetySupervisor
 from acquisition.startup import Plan, StartupConfig, StartupRoutine, StartupStopped, connect
 
 
@@ -41,6 +43,8 @@ def register(sub) -> None:
     p.add_argument("--max-rate", type=float, default=40.0, help="tension rate limit of the trajectories, N/s")
     p.add_argument("--hold", type=float, default=2.0, help="logged seconds of each equilibrium window")
     p.add_argument("--speed", type=float, default=0.05, help="platform speed along the kinematic path, m/s")
+    p.add_argument("--settle-timeout", type=float, default=40.0,
+                   help="s to wait for the platform to come to rest at each setpoint before holding anyway")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     p.set_defaults(func=run)
@@ -49,9 +53,13 @@ def register(sub) -> None:
 def _config(args) -> StartupConfig:
     if args.grid < 2 or args.grid > 6:
         raise UsageError(f"--grid {args.grid} is out of range: give 2 to 6 grid points per axis.")
+    if min(args.max_rate, args.hold, args.speed, args.settle_timeout) <= 0:
+        raise UsageError(f"--max-rate {args.max_rate}, --hold {args.hold}, --speed {args.speed} and "
+                         f"--settle-timeout {args.settle_timeout} must be positive.")
     try:
         return StartupConfig(method=args.method, rate=args.rate, max_tension_rate=args.max_rate,
-                             hold_time=args.hold, kinematic_speed=args.speed)
+                             hold_time=args.hold, kinematic_speed=args.speed,
+                             detector=DetectorConfig(timeout=args.settle_timeout))
     except ValueError as exc:
         raise UsageError(f"invalid option: {exc}") from exc
 
@@ -61,8 +69,6 @@ def run(args) -> int:
     from calib.robot import RobotDescriptionError, load_robot
 
     cfg = _config(args)
-    if args.max_rate <= 0 or args.hold <= 0 or args.speed <= 0:
-        raise UsageError(f"--max-rate {args.max_rate}, --hold {args.hold} and --speed {args.speed} must be positive.")
     try:
         robot = load_robot(args.robot)
     except RobotDescriptionError as exc:
@@ -99,22 +105,28 @@ def _run_sim(args, robot, plan, cfg, out: Path) -> int:
         raise UsageError(str(exc)) from exc
     period = 1.0 / cfg.rate
     clock = RealClock(period, lockstep=True) if args.realtime else SimClock(period)
-    with SimBackend(robot, sim_config, args.seed, period) as sim:
-        rig = connect(sim.devices, robot, clock, lockstep=True, period=period)
-        routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args))
-        try:
-            result = _acquire(routine, rig)
-        finally:
-            rig.close()
-        summary = _solve_and_report(args, robot, cfg, result, out)
-        if args.truth and summary.solution:
-            sample = int(summary.solution["reference_sample"])
-            tick = int(result.ticks[sample])
-            truth = sim.truth(sync_count=tick)
-            Path(args.truth).write_text(json.dumps({
-                "initial_pose": [float(v) for v in truth.pose], "reference_sample": sample, "sync_count": tick,
-                "sim_time": float(truth.time)}) + "\n")
-            summary.files["truth"] = str(args.truth)
+    supervisor = _supervisor(robot, cfg)
+    try:
+        with SimBackend(robot, sim_config, args.seed, period) as sim:
+            rig = _connect(sim.devices, robot, clock, True, period)
+            routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
+                                     supervisor=supervisor)
+            try:
+                result = _acquire(routine)
+            finally:
+                rig.close()
+                supervisor.restore_signals()
+            summary = _solve_and_report(args, robot, cfg, result, out)
+            if args.truth and summary.solution:
+                sample = int(summary.solution["reference_sample"])
+                tick = int(result.ticks[sample])
+                truth = sim.truth(sync_count=tick)
+                Path(args.truth).write_text(json.dumps({
+                    "initial_pose": [float(v) for v in truth.pose], "reference_sample": sample,
+                    "sync_count": tick, "sim_time": float(truth.time)}) + "\n")
+                summary.files["truth"] = str(args.truth)
+    finally:
+        supervisor.restore_signals()
     return _print(args, summary)
 
 
@@ -128,19 +140,40 @@ def _run_hw(args, robot, plan, cfg, out: Path) -> int:
         raise UsageError(str(exc)) from exc
     period = 1.0 / cfg.rate
     clock = RealClock(period, lockstep=False)
-    rig = connect(devices, robot, clock, lockstep=False, period=period)
-    routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args))
+    supervisor = _supervisor(robot, cfg)
     try:
-        result = _acquire(routine, rig)
+        rig = _connect(devices, robot, clock, False, period)
+        routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args),
+                                 supervisor=supervisor)
+        try:
+            result = _acquire(routine)
+        finally:
+            rig.close()
     finally:
-        rig.close()
+        supervisor.restore_signals()
     return _print(args, _solve_and_report(args, robot, cfg, result, out))
 
 
-def _acquire(routine: StartupRoutine, rig):
+def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
+    """The safety supervisor, its signal handlers installed now: Ctrl-C from here on is a safe stop."""
+    sup = SafetySupervisor(cfg.safety or SafetyLimits.for_robot(robot), robot.n)
+    sup.install_signals()
+    return sup
+
+
+def _connect(devices, robot, clock, lockstep: bool, period: float):
     from drivers.interfaces import DeviceError
 
-    routine.supervisor.install_signals()
+    try:
+        return connect(devices, robot, clock, lockstep=lockstep, period=period)
+    except DeviceError as exc:
+        raise OperationError(f"device check failed: {str(exc).rstrip('.')}.") from exc
+
+
+def _acquire(routine: StartupRoutine):
+    """Run the routine; a safe stop or a device error becomes one sentence (exit status 1)."""
+    from drivers.interfaces import DeviceError
+
     try:
         return routine.run()
     except StartupStopped as stop:
@@ -148,8 +181,6 @@ def _acquire(routine: StartupRoutine, rig):
         raise OperationError(f"safe stop: {stop.message.rstrip('.')}{where}.") from stop
     except DeviceError as exc:
         raise OperationError(f"device error: {str(exc).rstrip('.')}.") from exc
-    finally:
-        routine.supervisor.restore_signals()
 
 
 def _solve_and_report(args, robot, cfg, result, out: Path) -> StartupSummary:
