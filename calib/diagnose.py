@@ -231,6 +231,7 @@ class Candidate:
     channels: dict[str, float] = field(default_factory=dict)
     confused_with: list[str] = field(default_factory=list)
     significant: bool = False
+    refit_failed: bool = False
     refit: Fit | None = None
 
     def to_json(self) -> dict[str, Any]:
@@ -246,6 +247,7 @@ class Candidate:
             "score_dof": int(self.score_dof),
             "score_p": float(self.score_p),
             "refitted": self.delta_chi2 is not None,
+            "refit_failed": bool(self.refit_failed),
             "delta_aic": None if self.delta_aic is None else float(self.delta_aic),
             "delta_bic": None if self.delta_bic is None else float(self.delta_bic),
             "significant": bool(self.significant),
@@ -404,7 +406,9 @@ def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refi
             c: (per_channel0[c] - float(np.sum(r1.r[r1.channel == c] ** 2))) / per_channel0[c]
             for c in CHANNELS if per_channel0[c] > 0
         }
-        cand.significant = cand.p_value < alpha_each and f1.converged
+        # a refit that recovers almost nothing of a large score failed to move (an ill-conditioned start)
+        cand.refit_failed = (not f1.converged) or (cand.score > 25.0 and d < 0.1 * cand.score)
+        cand.significant = cand.p_value < alpha_each and not cand.refit_failed
     for a in out:
         if a.score_dof == 0 or np.linalg.norm(dirs[a.effect]) == 0:
             continue
@@ -573,16 +577,19 @@ def diagnose_run(
 ) -> Diagnosis:
     """:func:`diagnose` on the equilibrium windows of a run (``acquisition.runlog.Run``): the windows,
     rows and initial guess are those of ``calib.selfcal.solve(method='tlse')``; noise ``estimate`` is
-    :func:`window_noise`, ``paper`` the eq. 18 levels."""
+    :func:`window_noise`, ``accuracy`` the same scatter floored at the sensors' accuracy class (what
+    ``cdpr solve --noise estimate`` uses), ``paper`` the eq. 18 levels."""
     from calib.selfcal import solve
     from calib.selfcal._solve import _rows, _signals, noise_levels
 
     robot = run.robot
-    sol = solve(robot, run, method="tlse", noise=noise)
+    sol = solve(robot, run, method="tlse", noise="estimate" if noise == "accuracy" else noise)
     sig = _signals(robot, run)
     meas, _, _, _, _ = _rows(sig, sol.windows, "tlse", 1, sol.reference_sample)
     if noise == "estimate":
         sigma, source = window_noise(robot, sig, sol.windows), "estimate"
+    elif noise == "accuracy":  # the window scatter floored at the sensors' accuracy (solve's 'estimate')
+        sigma, source = noise_levels(robot, "estimate", sig, sol.windows)[0], "accuracy"
     else:
         sigma, source = noise_levels(robot, noise, sig, sol.windows)
     return diagnose(robot, meas, sigma, sol.theta[:6], sol.poses, candidates, included, alpha,
@@ -696,6 +703,7 @@ def format_diagnosis(diag: Diagnosis) -> str:
         par = ", ".join(f"{k}={v:.4g}" for k, v in list(c.params.items())[:6])
         flag = "*" if c.significant else " "
         conf = f"  ~ {', '.join(c.confused_with)}" if c.confused_with else ""
+        conf += "  (refit failed to move)" if c.refit_failed else ""
         lines.append(f" {flag}{c.effect:<17} {c.score:>8.1f} ({c.score_dof:>2})  {d:>10}  {p:>9.2g}  {aic:>8}  "
                      f"{par}{conf}")
     if len(diag.steps) > 1:

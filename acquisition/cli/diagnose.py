@@ -26,8 +26,9 @@ def register(sub) -> None:
     p.add_argument("run", type=Path, metavar="RUN", help="run folder")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON (spec/cli.md)")
     p.add_argument(
-        "--noise", choices=("estimate", "paper"), default="estimate",
-        help="noise units: estimate (scatter inside the equilibrium windows, default) or paper (eq. 18)",
+        "--noise", choices=("estimate", "accuracy", "paper"), default="estimate",
+        help="noise units: estimate (scatter inside the equilibrium windows, default), accuracy (that scatter "
+        "floored at the sensors' accuracy class) or paper (eq. 18)",
     )
     p.add_argument("--plots", type=Path, default=None, metavar="DIR", help="write PNG plots of the residuals here")
     p.add_argument("--html", type=Path, default=None, metavar="FILE", help="write an HTML report (plots embedded)")
