@@ -57,6 +57,47 @@ def test_grid2_equilibrium_lands_within_3mm_and_0_3deg(tmp_path, capsys):
     assert not run.events
 
 
+def test_kinematic_method_lands_within_3mm_and_0_3deg(tmp_path, capsys):
+    out, truth = tmp_path / "run", tmp_path / "truth.json"
+    code = main(["startup", "--backend", "sim", "--grid", "2", "--method", "kinematic", "--speed", "0.15",
+                 "--out", str(out), "--truth", str(truth), "--json", "--no-html"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    sol = _check_pose(tmp_path, out, truth)
+    assert sol["method"] == "lse"
+    run = read_run(out)
+    assert run.method == "kinematic" and run.setpoints is None
+    moving = run.phase == "motion"
+    assert moving.sum() * run.sample_period > 30.0  # the path is logged throughout
+    assert np.ptp(run.dl[moving], axis=0).min() > 0.3  # m: every cable length changed along the path
+
+
+def test_grid3_equilibrium_at_the_fastest_acceptable_settings(tmp_path, capsys):
+    out, truth = tmp_path / "run", tmp_path / "truth.json"
+    code = main(["startup", "--backend", "sim", "--grid", "3", "--max-rate", "80", "--hold", "1",
+                 "--out", str(out), "--truth", str(truth), "--json", "--no-html"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    summary = json.loads(cap.out)
+    assert summary["setpoints"] == 27 and len(summary["windows"]) == 27
+    _check_pose(tmp_path, out, truth)
+
+
+def test_sigint_early_ends_with_one_sentence_and_a_readable_log_if_any(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-c", "import sys; from acquisition.cli import main; sys.exit(main())",
+           "startup", "--backend", "sim", "--grid", "2", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(2.5)  # connecting the devices, zeroing or the first transition: in general not yet logging
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 1 and stderr.count("\n") == 1, stderr
+    assert "SIGINT" in stderr or "interrupted by the operator" in stderr
+    if (out / "run.yaml").exists():
+        run = read_run(out)
+        assert [e["kind"] for e in run.events] == ["operator"]
+
+
 def _fault(tmp_path, capsys, name):
     out = tmp_path / name
     code = main(["startup", "--backend", "sim", "--grid", "2", "--out", str(out), "--sim-config",
