@@ -4,7 +4,7 @@ The YAML file (every section optional; nothing is on by default)::
 
     effects:                                   # what the controller and the run log never see
       cable_elasticity: {EA: 20000.0}          # N, axial stiffness of every cable (nominal: rigid-like 2e6 N)
-      length_scale: {k: [0.01, 0, 0, -0.01]}   # relative error of each winch's transmission ratio
+      length_scale: {k: [0.01, 0, 0, -0.01]}   # per winch: reported length change = (1 + k) x true change
       tension_offset: {offset: [2, 0, -1, 0]}  # N, per load-cell channel
       tension_gain: {gain: [0.02, 0, 0, 0]}    # relative, per channel: reading = (1 + gain) tau + offset
       pulley_radius: {delta: 0.002}            # m, added to every pulley radius (or a list, one per pulley)
@@ -118,10 +118,14 @@ class SimConfig:
         return robot.replace(**changes) if changes else robot
 
     def true_transmission(self, robot: Robot) -> np.ndarray:
-        """(n,) true m of cable per rad of motor: the nominal ratio times (1 + length_scale)."""
+        """(n,) true m of cable per rad of motor: the nominal ratio divided by (1 + length_scale).
+
+        So the length change the drives report (nominal ratio x motor angle) is (1 + k) times the true one,
+        the convention of the diagnosis' ``length_scale`` effect.
+        """
         k = transmission_of(robot)
         if self.effects.length_scale is not None:
-            k = k * (1.0 + np.asarray(self.effects.length_scale))
+            k = k / (1.0 + np.asarray(self.effects.length_scale))
         return k
 
     def physics_params(self) -> PhysicsParams:

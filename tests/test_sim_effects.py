@@ -81,14 +81,14 @@ def test_cable_elasticity_motor_length_lags_geometry_by_tau_l_over_ea():
     assert np.abs(dlen0 - k_nominal * dth0).max() < 1e-4
 
 
-def test_length_scale_motor_length_is_the_true_change_over_one_plus_k():
+def test_length_scale_motor_length_is_one_plus_k_times_the_true_change():
     scale = np.array([0.02, -0.01, 0.0, 0.015])
     cfg = _config({"length_scale": {"k": scale.tolist()}}, NO_COULOMB)
     _, dth, dlen, _, _ = _tension_step(cfg)
     k_nominal = np.asarray(ROBOT.sensors.length_per_motor_rev) / (2 * math.pi)
     motor_dl = k_nominal * dth
     elastic = (TAU_B - TAU_A) * 2.3 / cfg.physics_params().ea  # < 0.1 mm, allowed for in the tolerance
-    np.testing.assert_allclose(motor_dl, dlen / (1 + scale), atol=np.abs(elastic).max() + 2e-5)
+    np.testing.assert_allclose(motor_dl, dlen * (1 + scale), atol=np.abs(elastic).max() + 2e-5)
     assert np.abs(dlen).max() > 0.05  # the step moved the cables by centimetres
     assert np.abs(motor_dl - dlen)[0] > 1e-3 and np.abs(motor_dl - dlen)[2] < 1e-4
 
