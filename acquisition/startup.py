@@ -259,6 +259,7 @@ class StartupRoutine:
             raise SafeStop("sensor_fault", f"the sensors did not all answer at power-on (missing: "
                            f"{', '.join(snap.missing) or 'values'}).")
         self._zero = {"dl": snap.dl.copy(), "dsigma": snap.dsigma.copy(), "yaw": snap.yaw}
+        self._statuses = self.rig.statuses()
         self._tau_init = snap.tau.copy()
         self._last = snap
         return snap
@@ -279,6 +280,7 @@ class StartupRoutine:
                         "note": "power-on readings of the relative sensors; the run logs deltas since then"},
             "control": {"rate": self.cfg.rate, "max_tension_rate": self.cfg.max_tension_rate,
                         "hold_time": self.cfg.hold_time},
+            "devices": list(getattr(self, "_statuses", [])),
         }
         self.writer = RunWriter(self.out, self.robot.name, self.cfg.method, self.cfg.log_period, self.source,
                                 setpoints=plan.setpoints if len(plan.setpoints) else None,

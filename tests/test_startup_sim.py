@@ -134,6 +134,18 @@ def test_each_simulated_fault_ends_in_a_safe_stop(tmp_path, capsys, name, kind, 
     assert run.tau_ref[stop][-1].max() < run.tau_ref[stop][0].max() + 1e-9
 
 
+def test_same_seed_same_run_log_byte_for_byte(tmp_path, capsys):
+    logs = []
+    for k in range(2):
+        out = tmp_path / f"run{k}"
+        code = main(["startup", "--backend", "sim", "--seed", "3", "--out", str(out), "--sim-config",
+                     str(example_path("fault_cable_slack"))])
+        assert code == 1
+        logs.append((out / "samples.csv").read_bytes())
+    capsys.readouterr()
+    assert logs[0] == logs[1] and logs[0].count(b"\n") > 100
+
+
 def test_sigint_during_the_run_ends_in_a_safe_stop(tmp_path):
     out = tmp_path / "run"
     env = dict(os.environ)
