@@ -22,6 +22,11 @@ class DetectorConfig:
     timeout: float = 40.0  # s after start
     min_wait: float = 0.0  # s after start before a detection counts
 
+    @classmethod
+    def for_robot(cls, robot, length_ripple: float = 2.0e-4, **changes) -> DetectorConfig:
+        """Tension threshold = the robot's load-cell uncertainty (accuracy x full scale), N."""
+        return cls(thresholds=(("tau", float(robot.sensors.load_cell_uncertainty)), ("dl", length_ripple)), **changes)
+
     def threshold(self, name: str) -> float:
         return dict(self.thresholds)[name]
 

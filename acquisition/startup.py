@@ -19,7 +19,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +58,7 @@ class StartupConfig:
     min_transition: float = 1.0  # s, shortest transition
     initial_rate: float = 20.0  # N/s, rate of the first transition from the power-on tensions to tau0
     hold_time: float = 2.0  # s logged in each equilibrium window after detection
-    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    detector: DetectorConfig | None = None  # default: DetectorConfig.for_robot (load-cell uncertainty)
     pretension_timeout: float = 60.0  # s to come to rest under tau0 before the run log starts
     controller: ControllerConfig | None = None
     safety: SafetyLimits | None = None
@@ -214,7 +214,8 @@ class StartupRoutine:
                 timeout: float | None = None) -> bool:
         """Hold ``tau`` until the detector says the platform rests; False on its timeout (s)."""
         self._phase, self._setpoint = phase, setpoint
-        dcfg = self.cfg.detector if timeout is None else dataclasses.replace(self.cfg.detector, timeout=timeout)
+        base = self.cfg.detector or DetectorConfig.for_robot(self.robot)
+        dcfg = base if timeout is None else dataclasses.replace(base, timeout=timeout)
         det = EquilibriumDetector(self.cfg.log_period, dcfg)
         det.start(self.clock.now())
         while True:

@@ -50,7 +50,7 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _config(args) -> StartupConfig:
+def _config(args, robot) -> StartupConfig:
     if args.grid < 2 or args.grid > 6:
         raise UsageError(f"--grid {args.grid} is out of range: give 2 to 6 grid points per axis.")
     if min(args.max_rate, args.hold, args.speed, args.settle_timeout) <= 0:
@@ -59,7 +59,7 @@ def _config(args) -> StartupConfig:
     try:
         return StartupConfig(method=args.method, rate=args.rate, max_tension_rate=args.max_rate,
                              hold_time=args.hold, kinematic_speed=args.speed,
-                             detector=DetectorConfig(timeout=args.settle_timeout))
+                             detector=DetectorConfig.for_robot(robot, timeout=args.settle_timeout))
     except ValueError as exc:
         raise UsageError(f"invalid option: {exc}") from exc
 
@@ -68,11 +68,11 @@ def run(args) -> int:
     from calib.planning import PlanningError
     from calib.robot import RobotDescriptionError, load_robot
 
-    cfg = _config(args)
     try:
         robot = load_robot(args.robot)
     except RobotDescriptionError as exc:
         raise UsageError(str(exc)) from exc
+    cfg = _config(args, robot)
     try:
         plan = Plan.for_robot(robot, args.grid, args.method, cfg.kinematic_speed, cfg.kinematic_spacing)
     except PlanningError as exc:
