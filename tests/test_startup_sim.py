@@ -165,3 +165,24 @@ def test_sigint_during_the_run_ends_in_a_safe_stop(tmp_path):
     run = read_run(out)
     assert [e["kind"] for e in run.events] == ["operator"]
     assert run.phase[-1] == "safe_stop" and len(run) > 40
+
+
+def test_bad_options_and_absent_devices_end_with_one_sentence(tmp_path, capsys):
+    assert main(["startup", "--backend", "sim", "--grid", "9"]) == 2
+    assert capsys.readouterr().err == "cdpr: --grid 9 is out of range: give 2 to 6 grid points per axis.\n"
+    assert main(["startup", "--backend", "sim", "--rate", "1000"]) == 2
+    assert "control rate must be within 200..500 Hz, got 1000.0" in capsys.readouterr().err
+    assert main(["startup", "--backend", "hw"]) == 2
+    assert capsys.readouterr().err == "cdpr: --backend hw needs --config FILE (the device configuration YAML).\n"
+    cfg = tmp_path / "devices.yaml"
+    nodes = lambda base: [{"name": f"n{i}", "node_id": base + i} for i in range(1, 5)]  # noqa: E731
+    cfg.write_text(yaml.safe_dump({
+        "can": {"interface": "virtual", "channel": f"nobody-{os.getpid()}", "bitrate": 1000000},
+        "drives": nodes(0), "encoders": nodes(10),
+        "loadcells": {"port": str(tmp_path / "no-port"), "baud": 115200},
+        "ahrs": {"port": str(tmp_path / "no-port-2"), "baud": 115200, "rate": 100},
+    }))
+    assert main(["startup", "--backend", "hw", "--config", str(cfg), "--out", str(tmp_path / "run")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("cdpr: device check failed: n1 (CAN node 1): ") and err.count("\n") == 1, err
+    assert not (tmp_path / "run").exists()

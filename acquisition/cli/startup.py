@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import logging
 import sys
 from pathlib import Path
 
@@ -68,6 +69,8 @@ def run(args) -> int:
     from calib.planning import PlanningError
     from calib.robot import RobotDescriptionError, load_robot
 
+    if not args.debug:  # the canopen library logs SDO aborts itself; the CLI says what failed in one sentence
+        logging.getLogger("canopen").setLevel(logging.CRITICAL)
     try:
         robot = load_robot(args.robot)
     except RobotDescriptionError as exc:
