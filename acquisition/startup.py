@@ -145,6 +145,7 @@ class StartupRoutine:
         self._armed = False
         self._phase = "pretension"
         self._setpoint = -1
+        self._target = -1  # the setpoint being approached or held, for the progress line
         self._compute: list[float] = []
         self._total_estimate = 1.0
 
@@ -167,7 +168,7 @@ class StartupRoutine:
             if detector is not None:
                 state = detector.push(tk.t, tau=snap.tau, dl=snap.dl)
             if self.progress is not None:
-                self.progress.update(tk.t, self._phase, self._setpoint, len(self.plan.setpoints))
+                self.progress.update(tk.t, self._phase, self._target, len(self.plan.setpoints))
         if self.on_tick is not None:
             self.on_tick(snap)
         return snap, state
@@ -313,6 +314,7 @@ class StartupRoutine:
                 prev = tau0
                 for j in range(len(self.plan.setpoints)):
                     sp = self.plan.setpoints[j]
+                    self._target = j
                     self._move_to(prev, sp, self.cfg.max_tension_rate, "transition", -1)
                     self._settle(sp, "settle", -1)  # a timeout still gives a (quasi-static) window
                     self._windows.append(self._hold(sp, j))
@@ -324,6 +326,9 @@ class StartupRoutine:
             raise StartupStopped(stop.kind, stop.message, self.out if self.writer else None) from None
         finally:
             if self.progress is not None:
+                done = self._phase == "return"  # the sequence went through
+                self.progress.update(self.progress.total if done else self.clock.now(), "done" if done else "stopped",
+                                     -1, len(self.plan.setpoints), force=True)
                 self.progress.close()
         self._finish_unlogged()
         comp = np.array(self._compute) if self._compute else np.zeros(1)
