@@ -142,7 +142,7 @@ class StartupRoutine:
         self._tau_init = np.zeros(self.n)
         self._last: Snapshot | None = None
         self._ref = np.zeros(self.n)
-        self._armed = False
+        self._armed = True  # slack is judged only where the reference keeps a cable taut (safety.py)
         self._phase = "pretension"
         self._setpoint = -1
         self._target = -1  # the setpoint being approached or held, for the progress line
@@ -302,7 +302,6 @@ class StartupRoutine:
             self.enable()
             tau0 = self.plan.tau0
             self._move_to(self._tau_init, tau0, self.cfg.initial_rate, "pretension")
-            self._armed = True
             if not self._settle(tau0, "pretension", timeout=self.cfg.pretension_timeout):
                 raise SafeStop("no_equilibrium", f"the platform did not come to rest under tau0 within "
                                f"{self.cfg.pretension_timeout:g} s.")
