@@ -179,6 +179,27 @@ def write_offsets(path: str | Path, solution: Mapping[str, Any], robot_name: str
     return path
 
 
+def read_offsets(path: str | Path) -> dict[str, Any]:
+    """Read an offsets file written by :func:`write_offsets`; ValueError naming file, field and value."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read the sensor offsets ({exc}).") from exc
+    if not isinstance(doc, dict) or doc.get("format") != "cdpr-offsets/1":
+        got = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise ValueError(f"{path}: field 'format' = {got!r} is not 'cdpr-offsets/1'.")
+    for key, size in (("lengths", None), ("swivels", None), ("pose", 6)):
+        v = doc.get(key)
+        if not isinstance(v, list) or (size and len(v) != size) or not all(isinstance(x, int | float) for x in v):
+            raise ValueError(f"{path}: field '{key}' = {v!r} must be a list of {size or 'n'} numbers.")
+    if len(doc["swivels"]) != len(doc["lengths"]):
+        raise ValueError(f"{path}: field 'swivels' has {len(doc['swivels'])} values, 'lengths' {len(doc['lengths'])}.")
+    if not isinstance(doc.get("yaw"), int | float):
+        raise ValueError(f"{path}: field 'yaw' = {doc.get('yaw')!r} must be a number.")
+    return doc
+
+
 def _png(fig) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")

@@ -117,7 +117,7 @@ class StartupRoutine:
     def __init__(self, robot: Robot, rig: Rig, clock: Clock, plan: Plan, out: Path, config: StartupConfig,
                  source: str = "sim", progress: ProgressBar | None = None,
                  supervisor: SafetySupervisor | None = None,
-                 on_tick: Callable[[Snapshot], None] | None = None):
+                 on_tick: Callable[[Snapshot], None] | None = None, meta: dict[str, Any] | None = None):
         self.robot = robot
         self.rig = rig
         self.clock = clock
@@ -131,6 +131,7 @@ class StartupRoutine:
         self.controller = TensionController(transmission_radius(robot), ctl_cfg)
         self.supervisor = supervisor or SafetySupervisor(config.safety or SafetyLimits.for_robot(robot), robot.n)
         self.on_tick = on_tick
+        self.meta = dict(meta or {})  # extra run.yaml keys (e.g. the previous calibration)
         self.period = 1.0 / config.rate
         self.log_every = int(round(config.log_period * config.rate))
         self.writer: RunWriter | None = None
@@ -283,6 +284,7 @@ class StartupRoutine:
             "control": {"rate": self.cfg.rate, "max_tension_rate": self.cfg.max_tension_rate,
                         "hold_time": self.cfg.hold_time},
             "devices": list(getattr(self, "_statuses", [])),
+            **self.meta,
         }
         self.writer = RunWriter(self.out, self.robot.name, self.cfg.method, self.cfg.log_period, self.source,
                                 setpoints=plan.setpoints if len(plan.setpoints) else None,

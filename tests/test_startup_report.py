@@ -7,9 +7,18 @@ import math
 import re
 
 import numpy as np
+import pytest
 import yaml
 
-from acquisition.report import ProgressBar, StartupSummary, offsets_document, render_html, render_text, write_offsets
+from acquisition.report import (
+    ProgressBar,
+    StartupSummary,
+    offsets_document,
+    read_offsets,
+    render_html,
+    render_text,
+    write_offsets,
+)
 
 SOLUTION = {
     "method": "tlse",
@@ -43,6 +52,11 @@ def test_offsets_file_reads_back_with_every_field(tmp_path):
     assert doc["lengths"] == [2.0, 2.01, 2.02, 2.03] and doc["yaw"] == 0.0031
     assert doc["pose"][2] == 1.0651 and doc["created"] == "2026-11-22T03:00:00Z"
     assert not (tmp_path / "offsets.yaml.tmp").exists()
+    assert read_offsets(p) == doc
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(p.read_text().replace("swivels:", "swivels_:"))
+    with pytest.raises(ValueError, match=r"bad.yaml: field 'swivels' = None must be a list of n numbers"):
+        read_offsets(bad)
 
 
 def test_html_is_self_contained_with_png_plots():

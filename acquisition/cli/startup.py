@@ -22,7 +22,7 @@ import numpy as np
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.clock import RealClock, SimClock
 from acquisition.equilibrium import DetectorConfig
-from acquisition.report import ProgressBar, StartupSummary, render_text, write_html, write_offsets
+from acquisition.report import ProgressBar, StartupSummary, read_offsets, render_text, write_html, write_offsets
 from acquisition.safety import SafetyLimits, SafetySupervisor
 from acquisition.startup import Plan, StartupConfig, StartupRoutine, StartupStopped, connect
 
@@ -80,6 +80,13 @@ def run(args) -> int:
         plan = Plan.for_robot(robot, args.grid, args.method, cfg.kinematic_speed, cfg.kinematic_spacing)
     except PlanningError as exc:
         raise UsageError(str(exc)) from exc
+    meta = {}
+    if args.offsets and Path(args.offsets).exists():  # the last calibration, for the record of this run
+        try:
+            meta["previous_offsets"] = read_offsets(args.offsets)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from exc
+    args.run_meta = meta
     out = Path(args.out or f"run-{_dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} exists and is not a folder.")
@@ -113,7 +120,7 @@ def _run_sim(args, robot, plan, cfg, out: Path) -> int:
         with SimBackend(robot, sim_config, args.seed, period) as sim:
             rig = _connect(sim.devices, robot, clock, True, period)
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
-                                     supervisor=supervisor)
+                                     supervisor=supervisor, meta=args.run_meta)
             try:
                 result = _acquire(routine)
             finally:
@@ -147,7 +154,7 @@ def _run_hw(args, robot, plan, cfg, out: Path) -> int:
     try:
         rig = _connect(devices, robot, clock, False, period)
         routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args),
-                                 supervisor=supervisor)
+                                 supervisor=supervisor, meta=args.run_meta)
         try:
             result = _acquire(routine)
         finally:
