@@ -64,7 +64,7 @@ class StartupConfig:
     safety: SafetyLimits | None = None
     kinematic_speed: float = 0.05  # m/s along the kinematic path
     kinematic_spacing: float = 0.05  # m between path waypoints
-    device_timeout: float = 0.5  # s (wall) to wait for a tick's readings in lockstep
+    device_timeout: float = 1.0  # s (wall) to wait for a tick's readings in lockstep
     expected_settle: float = 8.0  # s, for the time-left estimate
 
     def __post_init__(self) -> None:
