@@ -135,6 +135,7 @@ class StartupRoutine:
         self.period = 1.0 / config.rate
         self.log_every = int(round(config.log_period * config.rate))
         self.writer: RunWriter | None = None
+        self._log_open = False
         self._prerun: list[tuple] = []  # samples logged before the run log starts (written on a stop)
         self._t_run0: float | None = None
         self._ticks: list[int] = []
@@ -291,6 +292,12 @@ class StartupRoutine:
                                 ideal_poses=plan.ideal_poses if len(plan.ideal_poses) else None,
                                 extra_columns=("tick",), meta_extra=meta, overwrite=True)
         self._t_run0 = self.clock.now()
+        self._log_open = True
+
+    def _close_log(self) -> None:
+        if self._log_open:
+            self.writer.close()
+            self._log_open = False
 
     def run(self) -> StartupResult:
         """The whole procedure; raises :class:`StartupStopped` after a safe stop."""
@@ -356,7 +363,7 @@ class StartupRoutine:
 
     def _finish_unlogged(self) -> None:
         """After the run log ends: let the platform come to rest under tau0, then the drives off (brakes)."""
-        self.writer.close()
+        self._close_log()
         try:
             self._settle(self.plan.tau0, "rest", log=False, timeout=self.cfg.pretension_timeout)
         except SafeStop as stop:
@@ -373,7 +380,7 @@ class StartupRoutine:
             self._t_run0 = self._prerun[0][0] if self._prerun else t_now
             for row in self._prerun:
                 self._write(row)
-        if log and self.writer is not None and self.writer._fh is not None:
+        if log and self._log_open:
             self.writer.add_event(t_now - (self._t_run0 or 0.0), stop.kind, stop.message)
         self._mark_dead(stop)
         if stop.channels:
@@ -381,11 +388,11 @@ class StartupRoutine:
         plan = self.supervisor.plan(self._ref.copy(), power_on=self._tau_init)
         self._phase, self._setpoint = "safe_stop", -1
         steps = int(math.ceil(plan.duration / self.period))
-        logging = log and self.writer is not None and self.writer._fh is not None
+        logging = log and self._log_open
         for k in range(1, steps + 1):
             try:
                 tk = self.clock.advance()
-                snap = self.rig.tick(tk.index, tk.t, min(self.cfg.device_timeout, 0.05))
+                snap = self.rig.tick(tk.index, tk.t, self.cfg.device_timeout)  # dead devices are not awaited
                 self._last = snap
                 self._ref = plan.reference(k * self.period)
                 meas = np.where(np.isfinite(snap.tau), snap.tau, self._ref)
@@ -397,7 +404,7 @@ class StartupRoutine:
         self._disable()
         if logging:
             self.writer.sync()
-            self.writer.close()
+            self._close_log()
 
     def _mark_dead(self, stop: SafeStop) -> None:
         faults = self.rig.faults()
