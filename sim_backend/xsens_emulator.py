@@ -151,13 +151,15 @@ class XsensEmulator:
         :class:`drivers.xsens.XsensMti` gives the reading (when it was connected before the first wrap), so
         the acquisition can ``wait_for`` it.
         """
-        ang = self.measured_angles(sim_time, roll, pitch, yaw)  # drawn every tick: same seed, same bytes
         with self._lock:
             if not self.measuring or self._silent:
                 return None
             items = self._due_items(sim_time)
             if not items:
                 return None
+            # computed (and the noise drawn) only for samples sent: the due ticks follow from the simulated
+            # time alone, so the same seed still gives the same bytes
+            ang = self.measured_angles(sim_time, roll, pitch, yaw)
             number = self.packet_counter
             pc = number & 0xFFFF
             deg = tuple(math.degrees(a) for a in ang)
