@@ -14,19 +14,20 @@ Channels are 0-based in this API and 1-based in sentences for the operator.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Sequence
 
 import numpy as np
 
 from drivers import loadcell
-from sim_backend.pty import read_master, write_master
+from sim_backend.pty import PtyEmulator, read_master
 
 FULL_SCALE = 100.0 * 9.81  # N, the prototype's 100 kg cells
 
 
-class LoadCellEmulator:
+class LoadCellEmulator(PtyEmulator):
     """One emulated amplifier on ``master_fd``; start the command thread with :meth:`start`."""
+
+    thread_name = "loadcell-emulator"
 
     def __init__(
         self,
@@ -41,8 +42,7 @@ class LoadCellEmulator:
         rate_hz: float = 100.0,
         model: str | None = None,
     ) -> None:
-        self.fd = master_fd
-        self.rng = rng
+        super().__init__(master_fd, rng)
         self.n = channels
         self.offsets = np.zeros(channels) if offsets is None else np.asarray(offsets, dtype=float)
         self.gains = np.ones(channels) if gains is None else np.asarray(gains, dtype=float)
@@ -57,35 +57,7 @@ class LoadCellEmulator:
         self._last = np.zeros(channels)
         self._stuck = np.zeros(channels, dtype=bool)
         self._open = np.zeros(channels, dtype=bool)
-        self._silent = False
-        self._corrupt_left = 0
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._decoder = loadcell.LineDecoder()
-        self.bytes_written = 0
-        self.bytes_dropped = 0
-
-    # ---- life cycle ----
-    def start(self) -> LoadCellEmulator:
-        if self._thread is None:
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._serve, name="loadcell-emulator", daemon=True)
-            self._thread.start()
-        return self
-
-    def close(self) -> None:
-        """Stop answering the host (the pty master stays open: its owner closes it)."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc):
-        self.close()
 
     # ---- faults ----
     def stick(self, channel: int) -> None:
@@ -107,11 +79,6 @@ class LoadCellEmulator:
             self._silent = False
         else:
             self._open[channel] = False
-
-    def corrupt(self, n_bytes: int) -> None:
-        """Damage the next ``n_bytes`` bytes sent (bit flips)."""
-        with self._lock:
-            self._corrupt_left += int(n_bytes)
 
     # ---- the simulator's clock ----
     def measure(self, true_tensions: np.ndarray) -> np.ndarray:
@@ -140,22 +107,6 @@ class LoadCellEmulator:
                     fields.append(float(v))
             self._write(self._maybe_corrupt(loadcell.encode_sample(self.seq, fields)))
             return self.seq
-
-    def _maybe_corrupt(self, data: bytes) -> bytes:
-        if self._corrupt_left <= 0:
-            return data
-        k = min(self._corrupt_left, len(data))
-        self._corrupt_left -= k
-        b = bytearray(data)
-        for i, x in zip(self.rng.choice(len(b), size=k, replace=False), self.rng.integers(1, 256, size=k),
-                        strict=True):
-            b[int(i)] ^= int(x)
-        return bytes(b)
-
-    def _write(self, data: bytes) -> None:
-        n = write_master(self.fd, data)
-        self.bytes_written += n
-        self.bytes_dropped += len(data) - n
 
     def info_line(self) -> bytes:
         return loadcell.frame(f"INFO,{self.model},{self.n},{self.full_scale:.3f},{self.rate_hz:g}")

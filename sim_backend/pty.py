@@ -11,7 +11,10 @@ from __future__ import annotations
 import errno
 import os
 import select
+import threading
 import tty
+
+import numpy as np
 
 
 def open_pty_pair() -> tuple[int, str]:
@@ -58,3 +61,69 @@ def read_master(fd: int, timeout: float) -> bytes:
             select.select([], [], [], timeout)
             return b""
         raise
+
+
+class PtyEmulator:
+    """What every emulated serial device shares: the pty master it owns, a thread answering the host's
+    commands (``_serve``, implemented by the device), injected corruption (bit flips drawn from the
+    device's seeded generator) and byte counters."""
+
+    thread_name = "pty-emulator"
+
+    def __init__(self, master_fd: int, rng: np.random.Generator) -> None:
+        self.fd = master_fd
+        self.rng = rng
+        self._corrupt_left = 0
+        self._silent = False
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.bytes_written = 0
+        self.bytes_dropped = 0
+
+    # ---- life cycle ----
+    def start(self):
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._serve, name=self.thread_name, daemon=True)
+            self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop answering the host (the pty master stays open: its owner closes it)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def _serve(self) -> None:
+        raise NotImplementedError
+
+    # ---- the line ----
+    def corrupt(self, n_bytes: int) -> None:
+        """Damage the next ``n_bytes`` bytes sent (bit flips)."""
+        with self._lock:
+            self._corrupt_left += int(n_bytes)
+
+    def _maybe_corrupt(self, data: bytes) -> bytes:
+        if self._corrupt_left <= 0:
+            return data
+        k = min(self._corrupt_left, len(data))
+        self._corrupt_left -= k
+        b = bytearray(data)
+        idx = self.rng.choice(len(b), size=k, replace=False)
+        flips = self.rng.integers(1, 256, size=k)
+        for i, x in zip(idx, flips, strict=True):
+            b[int(i)] ^= int(x)
+        return bytes(b)
+
+    def _write(self, data: bytes) -> None:
+        n = write_master(self.fd, data)
+        self.bytes_written += n
+        self.bytes_dropped += len(data) - n

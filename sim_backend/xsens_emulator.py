@@ -17,7 +17,6 @@ rate within +-0.001 deg/s and white noise 0.1 deg (within +-1 deg over a start-u
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +24,7 @@ import numpy as np
 from calib.kinematics import rotation, rotation_to_euler
 from drivers import xbus
 from drivers.xbus import MID, XDI
-from sim_backend.pty import read_master, write_master
+from sim_backend.pty import PtyEmulator, read_master
 
 ORIENTATION_MAX_HZ = 400  # MTi-600 series orientation outputs
 TIMESTAMP_MAX_HZ = 2000
@@ -58,8 +57,10 @@ def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, f
     return mul(mul(hx, hy), hz)
 
 
-class XsensEmulator:
+class XsensEmulator(PtyEmulator):
     """One emulated MTi-630 on ``master_fd`` (see the module docstring). Start with :meth:`start`."""
+
+    thread_name = "xsens-emulator"
 
     def __init__(
         self,
@@ -71,8 +72,7 @@ class XsensEmulator:
         device_id: int = 0x0630_2A17,
         product_code: str = "MTi-630-2A8G4",
     ) -> None:
-        self.fd = master_fd
-        self.rng = rng
+        super().__init__(master_fd, rng)
         self.noise = noise or XsensNoise()
         self.device_id = device_id
         self.product_code = product_code
@@ -88,42 +88,9 @@ class XsensEmulator:
                                               (XDI.SAMPLE_TIME_FINE, XDI.MAX_RATE), (XDI.QUATERNION, 100)]
         self.packet_counter = 0
         self._last_slot: dict[int, int] = {}
-        self._corrupt_left = 0
-        self._silent = False
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._decoder = xbus.XbusDecoder()
-        self.bytes_written = 0
-        self.bytes_dropped = 0
-
-    # ---- life cycle ----
-    def start(self) -> XsensEmulator:
-        if self._thread is None:
-            self._stop.clear()
-            self._thread = threading.Thread(target=self._serve, name="xsens-emulator", daemon=True)
-            self._thread.start()
-        return self
-
-    def close(self) -> None:
-        """Stop answering the host (the pty master stays open: its owner closes it)."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc):
-        self.close()
 
     # ---- faults the backend injects ----
-    def corrupt(self, n_bytes: int) -> None:
-        """Flip bits in the next ``n_bytes`` bytes of the MTData2 stream (a noisy line)."""
-        with self._lock:
-            self._corrupt_left += int(n_bytes)
-
     def disconnect(self) -> None:
         """Stop sending anything (cable pulled); the host sees a silent port."""
         self._silent = True
@@ -193,23 +160,6 @@ class XsensEmulator:
         if not due:
             return []
         return [xdi for xdi, rate in self.config if xdi in due or rate in (0, XDI.MAX_RATE)]
-
-    def _maybe_corrupt(self, frame: bytes) -> bytes:
-        if self._corrupt_left <= 0:
-            return frame
-        k = min(self._corrupt_left, len(frame))
-        self._corrupt_left -= k
-        b = bytearray(frame)
-        idx = self.rng.choice(len(b), size=k, replace=False)
-        b_idx = self.rng.integers(1, 256, size=k)
-        for i, x in zip(idx, b_idx, strict=True):
-            b[int(i)] ^= int(x)
-        return bytes(b)
-
-    def _write(self, data: bytes) -> None:
-        n = write_master(self.fd, data)
-        self.bytes_written += n
-        self.bytes_dropped += len(data) - n
 
     # ---- host commands ----
     def _serve(self) -> None:
