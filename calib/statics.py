@@ -67,7 +67,11 @@ class GeneralisedStatics:
 
 
 def generalised_statics(
-    robot: Robot, kin: Kinematics, jac: KinematicJacobians | None = None, tau: np.ndarray | None = None
+    robot: Robot,
+    kin: Kinematics,
+    jac: KinematicJacobians | None = None,
+    tau: np.ndarray | None = None,
+    base: GeneralisedStatics | None = None,
 ) -> GeneralisedStatics:
     """The equilibrium in Euler-axis coordinates: forces, then moments projected on H's columns.
 
@@ -77,20 +81,25 @@ def generalised_statics(
       sum tau_i da'_i x t_i  = (S - tr(S) I) H        with S = sum tau_i a'_i t_i^T,
       sum tau_i a'_i x dt_i  = [sum c_i a'_i]x | (sum c_i |a'_i|^2 I - sum c_i a'_i a'_i^T) H
                                - sum c_i (a'_i x t_i) dl_i^T - sum e_i (a'_i x w_i) dsigma_i^T.
+    ``base``: A and b already computed for these poses (they are reused).
     """
     k, n = kin.lengths.shape
     H = kin.H
+    Ht = H.transpose(0, 2, 1)
     a = kin.a_rel
     m_cab = cross(a, kin.t)  # (k, n, 3)
     g = gravity_vector(robot)
     s = np.einsum("kab,b->ka", kin.R, robot.com)
     m_g = cross(s, g)  # (k, 3)
-    A = np.empty((k, 6, n))
-    A[:, :3] = kin.t.transpose(0, 2, 1)
-    A[:, 3:] = np.matmul(H.transpose(0, 2, 1), m_cab.transpose(0, 2, 1))
-    b = np.empty((k, 6))
-    b[:, :3] = g
-    b[:, 3:] = np.einsum("kaj,ka->kj", H, m_g)
+    if base is None:
+        A = np.empty((k, 6, n))
+        A[:, :3] = kin.t.transpose(0, 2, 1)
+        A[:, 3:] = np.matmul(Ht, m_cab.transpose(0, 2, 1))
+        b = np.empty((k, 6))
+        b[:, :3] = g
+        b[:, 3:] = np.einsum("kaj,ka->kj", H, m_g)
+    else:
+        A, b = base.A, base.b
     if tau is None:
         return GeneralisedStatics(A, b)
     if jac is None:
@@ -98,36 +107,42 @@ def generalised_statics(
     tau = np.broadcast_to(np.atleast_2d(tau), (k, n))
     c = tau / kin.rho_norm
     e = c * robot.r[None, :] * (1.0 + np.cos(kin.psi))
-    eye = np.eye(3)
-    # forces: sum tau_i dt_i  (k, 3, 6)
-    G = np.zeros((k, 6, 6))
+    # the terms that go through dl and dsigma, forces and moments at once: (k, 2n, 6)^T (k, 2n, 6)
+    lhs = np.empty((k, 2 * n, 6))
+    lhs[:, :n, :3] = c[..., None] * kin.t
+    lhs[:, n:, :3] = e[..., None] * kin.w
+    lhs[:, :n, 3:] = c[..., None] * m_cab
+    lhs[:, n:, 3:] = e[..., None] * cross(a, kin.w)
+    rhs = np.concatenate([jac.lengths, jac.swivel], axis=1)
+    G = -np.matmul(lhs.transpose(0, 2, 1), rhs)  # rows: forces (3), moments about P (3), not yet on H
     ca = np.einsum("kn,kna->ka", c, a)
-    G[:, :3, :3] = c.sum(1)[:, None, None] * eye
-    G[:, :3, 3:] = cross(H.transpose(0, 2, 1), ca[:, None, :]).transpose(0, 2, 1)
-    G[:, :3] -= np.einsum("kna,knj->kaj", c[..., None] * kin.t, jac.lengths)
-    G[:, :3] -= np.einsum("kna,knj->kaj", e[..., None] * kin.w, jac.swivel)
-    # moments about P: d(sum tau_i a'_i x t_i)  (k, 3, 6)
-    S = np.einsum("kn,kna,knb->kab", tau, a, kin.t)
-    dM = np.zeros((k, 3, 6))
-    dM[:, :, 3:] = np.matmul(S - np.trace(S, axis1=1, axis2=2)[:, None, None] * eye, H)
-    skew = np.zeros((k, 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -ca[:, 2], ca[:, 1], -ca[:, 0]
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = ca[:, 2], -ca[:, 1], ca[:, 0]
-    dM[:, :, :3] += skew
-    c2 = np.einsum("kn,kna,kna->k", c, a, a)
-    caa = np.einsum("kn,kna,knb->kab", c, a, a)
-    dM[:, :, 3:] += np.matmul(c2[:, None, None] * eye - caa, H)
-    dM -= np.einsum("kna,knj->kaj", c[..., None] * m_cab, jac.lengths)
-    dM -= np.einsum("kna,knj->kaj", e[..., None] * cross(a, kin.w), jac.swivel)
+    csum = c.sum(1)
+    for j in range(3):
+        G[:, j, j] += csum
+    G[:, :3, 3:] += cross(Ht, ca[:, None, :]).transpose(0, 2, 1)
+    # moments about P: skew(sum c a') on the translations, a 3x3 matrix times H on the rotations
+    G[:, 3, 1] -= ca[:, 2]
+    G[:, 3, 2] += ca[:, 1]
+    G[:, 4, 0] += ca[:, 2]
+    G[:, 4, 2] -= ca[:, 0]
+    G[:, 5, 0] -= ca[:, 1]
+    G[:, 5, 1] += ca[:, 0]
+    ta = tau[..., None] * a
+    ca3 = c[..., None] * a
+    M = np.matmul(ta.transpose(0, 2, 1), kin.t) - np.matmul(ca3.transpose(0, 2, 1), a)  # S - sum c a a^T
+    diag = np.einsum("kna,kna->k", ca3, a) - np.einsum("kna,kna->k", ta, kin.t)  # sum c |a|^2 - tr(S)
+    for j in range(3):
+        M[:, j, j] += diag
+    G[:, 3:, 3:] += np.matmul(M, H)
     m_tau = np.einsum("kn,kna->ka", tau, m_cab)
     dH = euler_axes_derivative(kin.poses[:, 3:], robot.orientation)  # (k, 3 comp, 3 axes j, 3 angles m)
-    G[:, 3:] = np.matmul(H.transpose(0, 2, 1), dM)
+    G[:, 3:] = np.matmul(Ht, G[:, 3:])
     G[:, 3:, 3:] += np.einsum("kajm,ka->kjm", dH, m_tau)
     # gravity: d(H^T (s x g)) with ds/d(angle_m) = h_m x s
-    ds = cross(H.transpose(0, 2, 1), s[:, None, :])  # (k, 3 angles, 3)
+    ds = cross(Ht, s[:, None, :])  # (k, 3 angles, 3)
     dm_g = cross(ds, g).transpose(0, 2, 1)  # (k, 3, 3 angles)
     db = np.zeros((k, 6, 6))
-    db[:, 3:, 3:] = np.matmul(H.transpose(0, 2, 1), dm_g) + np.einsum("kajm,ka->kjm", dH, m_g)
+    db[:, 3:, 3:] = np.matmul(Ht, dm_g) + np.einsum("kajm,ka->kjm", dH, m_g)
     return GeneralisedStatics(A, b, G, db)
 
 
@@ -160,7 +175,7 @@ def tension_model(
     tau = np.linalg.solve(Ac, st.b[:, c, None])[..., 0]
     if not derivatives:
         return TensionModel(tau, None)
-    st = generalised_statics(robot, kin, jac, tau)
+    st = generalised_statics(robot, kin, jac, tau, base=st)
     return TensionModel(tau, np.linalg.solve(Ac, st.db[:, c, :] - st.G[:, c, :]))
 
 
