@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.robot import Robot
+from drivers.interfaces import DeviceError
 
 
 @dataclass(frozen=True)
@@ -281,7 +282,7 @@ class Rig:
         if self.lockstep and "load cells" not in self.dead:
             try:
                 r = self.loadcells.wait_for(self._lc_seq + 1, left())
-            except Exception:
+            except DeviceError:  # no sample this tick: the staleness supervision judges the silence
                 r = self.loadcells.latest()
         if r is not None and r.device_seq != self._lc_seq:
             tau = np.asarray(r.tau, dtype=float).copy()
@@ -318,7 +319,7 @@ def _wait_ahrs(ahrs, stf: int, timeout: float):
             return ahrs.latest()
         try:
             r = ahrs.wait_for((r.seq if r is not None else -1) + 1, left)
-        except Exception:
+        except DeviceError:
             return ahrs.latest()
     return r
 
