@@ -86,6 +86,15 @@ def test_fitted_parameters_match_the_injected_ones():
     assert 0 < s["tension_offset"]["o_1"] < 0.5
 
 
+def test_length_scale_is_recovered_with_the_simulators_sign():
+    # simulator and effect share one convention: the drives report (1 + k) times the true length change
+    k = HIDDEN["length_scale"]["length_scale"]["k"]
+    d = _rows(HIDDEN["length_scale"])
+    f = fit(ROBOT, d.meas, d.sigma, make_effects(["length_scale"]), d.guess_zeta0, d.guess_poses)
+    p = f.params()["length_scale"]
+    np.testing.assert_allclose([p[f"k_{i + 1}"] for i in range(4)], k, atol=5e-4)
+
+
 def test_no_effect_is_reported_on_an_effect_free_run(clean):
     d, _ = clean
     diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=1, max_effects=1)

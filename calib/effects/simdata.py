@@ -68,8 +68,9 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
     kin = inverse_kinematics(truth, Z)
     ea = config.physics_params().ea
     l0 = kin.lengths / (1.0 + tau / ea)
+    # the drives report (1 + k) times the true change (the simulator's and the effect's convention)
     scale = 1.0 if e.length_scale is None else 1.0 + np.asarray(e.length_scale)
-    dl = (l0[1:] - l0[0]) / scale
+    dl = (l0[1:] - l0[0]) * scale
     dsig = np.angle(np.exp(1j * (kin.swivel[1:] - kin.swivel[0])))
     mr, mp = config.ahrs_mounting()
     M = rotation(np.array([[mr, mp, 0.0]]), "xyz")[0]
