@@ -75,6 +75,39 @@ def test_hidden_effect_ranks_first_and_its_refit_recovers_the_initial_pose(name,
     assert "explains" in diag.verdict and name in diag.verdict
 
 
+@pytest.fixture(scope="module")
+def clean_over_seeds():
+    """Ten effect-free runs (seeds 0..9) and their rigid-model initial-position errors, m."""
+    runs = [simulated_rows(ROBOT, sim_config_from_dict({"effects": {}}), seed=s) for s in range(10)]
+    errors = [pose_error(fit(ROBOT, d.meas, d.sigma, [], d.guess_zeta0, d.guess_poses).theta, d.zeta0) for d in runs]
+    return runs, np.array(errors)
+
+
+@pytest.mark.parametrize("name", list(HIDDEN))
+def test_refit_removes_the_bias_over_ten_seeds(name, clean_over_seeds):
+    """RMS over ten seeds, so that no single lucky seed decides: the refit with the injected effect is as
+    good as the same estimator on the effect-free runs (the bias is gone), and within 2x of the rigid model
+    on the effect-free runs, except for an AHRS tilt, whose fit turns absolute roll and pitch into relative
+    readings (information lost, measured 2.7x at grid 2)."""
+    runs, rigid_clean = clean_over_seeds
+    effects = make_effects([name])
+    refit, same_clean = [], []
+    for seed, d0 in enumerate(runs):
+        d = simulated_rows(ROBOT, sim_config_from_dict({"effects": HIDDEN[name]}), seed=seed)
+        refit.append(pose_error(fit(ROBOT, d.meas, d.sigma, effects, d.guess_zeta0, d.guess_poses).theta, d.zeta0))
+        same_clean.append(pose_error(fit(ROBOT, d0.meas, d0.sigma, effects, d0.guess_zeta0, d0.guess_poses).theta,
+                                     d0.zeta0))
+
+    def rms(x):
+        return float(np.sqrt(np.mean(np.square(x))))
+
+    assert rms(refit) <= 1.15 * rms(same_clean)
+    if name == "ahrs_mounting":
+        assert 2.0 * rms(rigid_clean) < rms(refit) < 4.0 * rms(rigid_clean)
+    else:
+        assert rms(refit) <= 2.0 * rms(rigid_clean)
+
+
 def test_fitted_parameters_match_the_injected_ones():
     d = _rows({**HIDDEN["cable_elasticity"], **HIDDEN["tension_offset"]})
     f = fit(ROBOT, d.meas, d.sigma, make_effects(["cable_elasticity", "tension_offset"]), d.guess_zeta0,
