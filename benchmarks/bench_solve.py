@@ -15,6 +15,7 @@ Targets: tlse 8 poses <= 20 ms, 27 poses <= 60 ms, lse 1000 samples <= 1 s, time
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import statistics
@@ -27,7 +28,7 @@ from types import SimpleNamespace
 import numpy as np
 import scipy.io
 
-from calib.kinematics import inverse_kinematics
+from calib.kinematics import convert_euler, inverse_kinematics
 from calib.robot import load_robot
 from calib.selfcal import Measurements, sensor_noise, solve
 from calib.statics import tension_model
@@ -46,7 +47,7 @@ def synthetic(robot, poses, rng, static=True):
     sig = sensor_noise(robot)
     kin = inverse_kinematics(robot, poses)
     tau = tension_model(robot, poses, derivatives=False).tau if static else np.full((len(poses), robot.n), np.nan)
-    ori = poses[:, 3:].copy()
+    ori = convert_euler(poses[:, 3:], robot.orientation, robot.ahrs_convention)[0]  # what the AHRS reads
     ori[:, 2] -= ori[0, 2]
     noise = {c: rng.normal(0, 1, s) * sig[c] for c, s in
              (("tension", tau.shape), ("length", kin.lengths.shape), ("swivel", kin.swivel.shape),
@@ -90,7 +91,8 @@ def main() -> int:
                             np.c_[w["roll_meas"], w["pitch_meas"], w["delta_yaw_meas"]],
                             np.full(4, np.nan), np.full(2, np.nan))
         x = w["X_guess"]
-        t, sol = timed(lambda: solve(robot, meas, guess=(x[:6], x[6:].reshape(-1, 6)),
+        authors = robot.replace(sensors=dataclasses.replace(robot.sensors, ahrs_convention="xyz"))  # their model
+        t, sol = timed(lambda: solve(authors, meas, guess=(x[:6], x[6:].reshape(-1, 6)),
                                      reference_pose=w["zeta_0_real"]), R)
         rows.append(("tlse, 8 poses, authors' samples (LM)", t, f"eps_p {sol.reference.eps_p * 1e3:.2f} mm, "
                      f"eps_r {math.degrees(sol.reference.eps_r):.3f} deg, {sol.iterations} it"))

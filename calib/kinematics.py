@@ -123,6 +123,19 @@ def rotation_to_euler(rot: np.ndarray, convention: str = "xyz") -> np.ndarray:
     return np.stack([roll, pitch, yaw], -1)
 
 
+def convert_euler(angles: np.ndarray, source: str, target: str) -> tuple[np.ndarray, np.ndarray]:
+    """The same rotations (k, 3 angles in ``source``) in the ``target`` convention, and d(target)/d(source).
+
+    The Jacobian (k, 3, 3) is H_target^-1 H_source: both map angle rates to the same angular velocity.
+    """
+    a = np.atleast_2d(np.asarray(angles, dtype=float))
+    if source == target:
+        return a.copy(), np.broadcast_to(np.eye(3), (len(a), 3, 3)).copy()
+    out = rotation_to_euler(rotation(a, source), target)
+    jac = np.linalg.solve(euler_axes(out, target), euler_axes(a, source))
+    return out, jac
+
+
 @dataclass(frozen=True)
 class Kinematics:
     """Inverse-kinematic quantities at k poses for n cables (arrays (k, n) or (k, n, 3)), SI units.

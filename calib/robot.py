@@ -41,6 +41,8 @@ class SensorSpec:
     load_cell_accuracy: float = 0.0002  # fraction of full scale
     ahrs_roll_pitch_accuracy: float = math.radians(0.2)  # rad
     ahrs_yaw_accuracy: float = math.radians(1.0)  # rad
+    # Euler convention of the angles the AHRS reports ("" = the robot's own); an Xsens MTi reports "zyx"
+    ahrs_convention: str = ""
 
     @property
     def load_cell_uncertainty(self) -> float:
@@ -104,6 +106,11 @@ class Robot:
     def n(self) -> int:
         """Number of cables."""
         return int(self.d.shape[0])
+
+    @property
+    def ahrs_convention(self) -> str:
+        """Euler convention of the AHRS readings (the sensor's own, else the robot's)."""
+        return self.sensors.ahrs_convention or self.orientation
 
     @property
     def has_pulleys(self) -> bool:
@@ -173,6 +180,7 @@ def _sensors_to_dict(s: SensorSpec) -> dict[str, Any]:
         "load_cell_accuracy": s.load_cell_accuracy,
         "ahrs_roll_pitch_accuracy_deg": math.degrees(s.ahrs_roll_pitch_accuracy),
         "ahrs_yaw_accuracy_deg": math.degrees(s.ahrs_yaw_accuracy),
+        **({"ahrs_convention": s.ahrs_convention} if s.ahrs_convention else {}),
     }
 
 
@@ -344,6 +352,9 @@ def _sensors_from_dict(rd: _Reader, s: Any, n: int) -> SensorSpec:
         x = rd.number(v, f"sensors.{key}", **kw)
         return math.radians(x) if deg else x
 
+    conv = s.get("ahrs_convention", "")
+    if conv not in ("", *ORIENTATIONS):
+        raise rd.fail("sensors.ahrs_convention", conv, f"must be one of {', '.join(ORIENTATIONS)}")
     lpr = s.get("length_per_motor_rev")
     if lpr is None or lpr == []:
         lpr_t: tuple[float, ...] = ()
@@ -364,6 +375,7 @@ def _sensors_from_dict(rd: _Reader, s: Any, n: int) -> SensorSpec:
             "ahrs_roll_pitch_accuracy_deg", base.ahrs_roll_pitch_accuracy, deg=True, nonneg=True
         ),
         ahrs_yaw_accuracy=num("ahrs_yaw_accuracy_deg", base.ahrs_yaw_accuracy, deg=True, nonneg=True),
+        ahrs_convention=conv,
     )
 
 

@@ -164,7 +164,9 @@ class SimBackend:
             ahrs_fd, ahrs_path = open_pty_pair()
             self._fds.append(ahrs_fd)
             roll, pitch = self.config.ahrs_mounting()
-            self.ahrs = XsensEmulator(ahrs_fd, rngs[2 * n + 1], mounting_roll=roll, mounting_pitch=pitch).start()
+            self.ahrs = XsensEmulator(ahrs_fd, rngs[2 * n + 1], mounting_roll=roll, mounting_pitch=pitch,
+                                      input_convention=self.robot.orientation,
+                                      output_convention=self.robot.ahrs_convention).start()
             self._schedule_faults()
             self.devices = DeviceConfig(
                 can=CanConfig(interface="virtual", channel=channel, bitrate=1_000_000,

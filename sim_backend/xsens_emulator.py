@@ -42,11 +42,14 @@ class XsensNoise:
     yaw_std: float = 0.1
 
 
-def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    """Unit quaternion (q0 scalar first) of R = Rx(roll) Ry(pitch) Rz(yaw)."""
+def euler_to_quaternion(roll: float, pitch: float, yaw: float, convention: str = "xyz") -> tuple[float, ...]:
+    """Unit quaternion (q0 scalar first) of R = Rx(roll) Ry(pitch) Rz(yaw) (``xyz``) or
+    R = Rz(yaw) Ry(pitch) Rx(roll) (``zyx``)."""
     hx = (math.cos(roll / 2), math.sin(roll / 2), 0.0, 0.0)
     hy = (math.cos(pitch / 2), 0.0, math.sin(pitch / 2), 0.0)
     hz = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+    if convention == "zyx":
+        hx, hz = hz, hx
 
     def mul(a, b):
         return (a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
@@ -71,8 +74,14 @@ class XsensEmulator(PtyEmulator):
         noise: XsensNoise | None = None,
         device_id: int = 0x0630_2A17,
         product_code: str = "MTi-630-2A8G4",
+        input_convention: str = "xyz",
+        output_convention: str = "xyz",
     ) -> None:
+        """``input_convention``: Euler convention of the true angles given to :meth:`emit` (the robot's);
+        ``output_convention``: the one the device reports in (a real MTi reports ``zyx``)."""
         super().__init__(master_fd, rng)
+        self.input_convention = input_convention
+        self.output_convention = output_convention
         self.noise = noise or XsensNoise()
         self.device_id = device_id
         self.product_code = product_code
@@ -101,8 +110,8 @@ class XsensEmulator(PtyEmulator):
     # ---- the simulator's clock ----
     def measured_angles(self, sim_time: float, roll: float, pitch: float, yaw: float) -> np.ndarray:
         """What the sensor reports for the platform's true angles (rad): mounting, bias, drift, noise."""
-        r = rotation(np.array([roll, pitch, yaw]))[0] @ self._mount
-        ang = rotation_to_euler(r)[0]
+        r = rotation(np.array([roll, pitch, yaw]), self.input_convention)[0] @ self._mount
+        ang = rotation_to_euler(r, self.output_convention)[0]
         if self._yaw0 is None:
             self._yaw0, self._t0 = float(ang[2]), sim_time
         n = self.noise
@@ -130,7 +139,7 @@ class XsensEmulator(PtyEmulator):
             number = self.packet_counter
             pc = number & 0xFFFF
             deg = tuple(math.degrees(a) for a in ang)
-            q = euler_to_quaternion(*ang)
+            q = euler_to_quaternion(*ang, convention=self.output_convention)
             data = []
             for xdi in items:
                 if xdi == XDI.PACKET_COUNTER:

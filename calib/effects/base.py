@@ -30,7 +30,7 @@ import numpy as np
 
 from calib.kinematics import inverse_kinematics, kinematic_jacobians
 from calib.robot import Robot
-from calib.selfcal.model import CHANNELS, ChannelPrediction
+from calib.selfcal.model import CHANNELS, ChannelPrediction, orientation_prediction
 from calib.statics import tension_model
 
 
@@ -234,7 +234,6 @@ class EffectModel:
         """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)
-        k, p = z.shape[0], theta.shape[0]
         robot, at = self._physical(theta, z)
         _, ref = self._physical(theta, theta[None, :6])
         for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta
@@ -248,13 +247,7 @@ class EffectModel:
             elif name == "swivel":
                 out[name] = ChannelPrediction(wrap(at.sigma - ref.sigma), at.dsigma.copy(), at.tsigma - ref.tsigma)
             elif name == "orientation":
-                val = z[:, 3:].copy()
-                val[:, 2] -= theta[5]
-                dp = np.zeros((k, 3, 6))
-                dp[:, 0, 3] = dp[:, 1, 4] = dp[:, 2, 5] = 1.0
-                dth = np.zeros((k, 3, p))
-                dth[:, 2, 5] = -1.0
-                out[name] = ChannelPrediction(val, dp, dth)
+                out[name] = orientation_prediction(robot, z, theta)
             else:
                 raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
         readers = sorted(

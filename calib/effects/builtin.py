@@ -136,12 +136,14 @@ class AhrsMounting(Effect):
         return [ParamSpec("roll", "rad", 0.0, -0.5, 0.5, 0.01), ParamSpec("pitch", "rad", 0.0, -0.5, 0.5, 0.01)]
 
     @staticmethod
-    def _read(conv: str, angles: np.ndarray, a: float, b: float):
-        """Measured angles (k, 3), d(measured)/d(angles) (k, 3, 3) and d(measured)/d(a, b) (k, 3, 2)."""
+    def _read(conv: str, angles: np.ndarray, a: float, b: float, sensor: str | None = None):
+        """Measured angles (k, 3) in the sensor's convention, d(measured)/d(angles) (k, 3, 3) and
+        d(measured)/d(a, b) (k, 3, 2); ``conv`` is the robot's convention of ``angles``."""
+        sensor = sensor or conv
         R = rotation(angles, conv)
         M = rotation(np.array([[a, b, 0.0]]), "xyz")[0]
-        meas = rotation_to_euler(R @ M, conv)
-        Hinv = np.linalg.inv(euler_axes(meas, conv))
+        meas = rotation_to_euler(R @ M, sensor)
+        Hinv = np.linalg.inv(euler_axes(meas, sensor))
         d_ang = Hinv @ euler_axes(angles, conv)
         ex, ey = np.array([1.0, 0, 0]), np.array([0, math.cos(a), math.sin(a)])
         w = np.stack([R @ ex, R @ ey], axis=-1)  # (k, 3, 2): world rotation axes of d a and d b
@@ -150,10 +152,10 @@ class AhrsMounting(Effect):
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         if "orientation" not in preds:
             return
-        conv = ctx.robot.orientation
+        conv, sensor = ctx.robot.orientation, ctx.robot.ahrs_convention
         a, b = float(values[0]), float(values[1])
-        meas, d_ang, d_ab = self._read(conv, ctx.poses[:, 3:], a, b)
-        m0, d0, d0ab = self._read(conv, ctx.theta[None, 3:6], a, b)
+        meas, d_ang, d_ab = self._read(conv, ctx.poses[:, 3:], a, b, sensor)
+        m0, d0, d0ab = self._read(conv, ctx.theta[None, 3:6], a, b, sensor)
         pr = preds["orientation"]
         val = meas.copy()
         val[:, 2] = np.angle(np.exp(1j * (meas[:, 2] - m0[0, 2])))

@@ -74,7 +74,7 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
     dsig = np.angle(np.exp(1j * (kin.swivel[1:] - kin.swivel[0])))
     mr, mp = config.ahrs_mounting()
     M = rotation(np.array([[mr, mp, 0.0]]), "xyz")[0]
-    ang = rotation_to_euler(rotation(Z[:, 3:], robot.orientation) @ M, robot.orientation)
+    ang = rotation_to_euler(rotation(Z[:, 3:], robot.orientation) @ M, robot.ahrs_convention)
     ori = ang[1:].copy()
     ori[:, 2] = np.angle(np.exp(1j * (ori[:, 2] - ang[0, 2])))
     read_tau = gain * tau + offset

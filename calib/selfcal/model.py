@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.kinematics import inverse_kinematics, kinematic_jacobians
+from calib.kinematics import convert_euler, inverse_kinematics, kinematic_jacobians
 from calib.robot import Robot
 from calib.statics import tension_model
 
@@ -39,6 +39,23 @@ class ChannelPrediction:
     value: np.ndarray
     d_pose: np.ndarray
     d_theta: np.ndarray
+
+
+def orientation_prediction(robot: Robot, poses: np.ndarray, theta: np.ndarray) -> ChannelPrediction:
+    """What the AHRS reads at poses (k, 6): its roll and pitch (absolute) and its yaw relative to the one at
+    zeta_0 = theta[:6], all in the AHRS's own Euler convention (``robot.ahrs_convention``: a heading
+    reference offset is then a pure yaw offset), with derivatives (k, 3, 6) and (k, 3, len(theta))."""
+    conv = robot.ahrs_convention
+    z = np.asarray(poses, dtype=float)
+    k, p = z.shape[0], theta.shape[0]
+    val, dang = convert_euler(z[:, 3:], robot.orientation, conv)
+    ref, dref = convert_euler(theta[None, 3:6], robot.orientation, conv)
+    val[:, 2] = np.angle(np.exp(1j * (val[:, 2] - ref[0, 2])))
+    dp = np.zeros((k, 3, 6))
+    dp[:, :, 3:] = dang
+    dth = np.zeros((k, 3, p))
+    dth[:, 2, 3:6] = -dref[0, 2]
+    return ChannelPrediction(val, dp, dth)
 
 
 class MeasurementModel:
@@ -94,13 +111,7 @@ class MeasurementModel:
                 dth[:, :, :6] = -dref
                 out[name] = ChannelPrediction(val, dcur, dth)
             elif name == "orientation":
-                val = z[:, 3:].copy()
-                val[:, 2] -= theta[5]
-                dp = np.zeros((k, 3, 6))
-                dp[:, 0, 3] = dp[:, 1, 4] = dp[:, 2, 5] = 1.0
-                dth = np.zeros((k, 3, p))
-                dth[:, 2, 5] = -1.0
-                out[name] = ChannelPrediction(val, dp, dth)
+                out[name] = orientation_prediction(robot, z, theta)
             else:
                 raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
         return out
@@ -108,4 +119,5 @@ class MeasurementModel:
     def absolute_readings(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         """Absolute values of the relative sensors at the reference pose: lengths (n,), swivels (n,), yaw."""
         kin0 = inverse_kinematics(self.robot, theta[None, :6])
-        return {"length": kin0.lengths[0], "swivel": kin0.swivel[0], "yaw": float(theta[5])}
+        yaw0 = convert_euler(theta[None, 3:6], self.robot.orientation, self.robot.ahrs_convention)[0][0, 2]
+        return {"length": kin0.lengths[0], "swivel": kin0.swivel[0], "yaw": float(yaw0)}
