@@ -420,10 +420,12 @@ def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refi
             if ab > OVERLAP and ba > OVERLAP:
                 a.confused_with.append(b.effect)
 
-    def key(c: Candidate):
-        if c.delta_chi2 is not None:
+    def key(c: Candidate):  # refitted first, by AIC; then those only scored; a refit that failed to move last
+        if c.delta_chi2 is not None and not c.refit_failed:
             return (0, -c.delta_aic)
-        return (1, c.score_p)
+        if c.delta_chi2 is None:
+            return (1, c.score_p)
+        return (2, -c.delta_aic)
 
     return sorted(out, key=key)
 
