@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from acquisition.cli.args import parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import RunFormatError, read_run
 from calib.effects import Effect, EffectLoadError, EffectModel, available_effects, make_effects
@@ -78,18 +79,6 @@ def parse_effects(text: str | None, classes: dict[str, type[Effect]], option: st
         return make_effects(names, classes)
     except EffectLoadError as exc:
         raise UsageError(f"{option} '{text}': {exc}") from exc
-
-
-def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
-    if text is None:
-        return None
-    try:
-        vals = [float(v) for v in text.split(",")]
-    except ValueError:
-        vals = []
-    if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
-        raise UsageError(f"{option} '{text}' must be six numbers x,y,z,roll,pitch,yaw (m, rad).")
-    return np.array(vals)
 
 
 def _read(path: Path):

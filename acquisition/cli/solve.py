@@ -7,8 +7,7 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
-
+from acquisition.cli.args import parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import RunFormatError, read_run
 from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, solve
@@ -37,18 +36,6 @@ def register(sub) -> None:
     p.set_defaults(func=_solve)
 
 
-def _parse_reference(text: str | None) -> np.ndarray | None:
-    if text is None:
-        return None
-    try:
-        vals = [float(v) for v in text.split(",")]
-    except ValueError:
-        vals = []
-    if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
-        raise UsageError(f"--reference '{text}' must be six numbers x,y,z,roll,pitch,yaw (m, rad).")
-    return np.array(vals)
-
-
 def _effects_model(robot, effects):
     """The measurement model with the effects named by ``--effects`` (an option the effect library adds to
     this command), or None for the rigid model."""
@@ -67,7 +54,7 @@ def _effects_model(robot, effects):
 
 
 def _solve(args) -> int:
-    reference = _parse_reference(args.reference)
+    reference = parse_pose(args.reference)
     if args.stride < 1:
         raise UsageError(f"--stride {args.stride} must be a positive integer.")
     try:
