@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from drivers import loadcell
-from sim_backend.pty import PtyEmulator, read_master
+from sim_backend.pty import PtyEmulator, free_run, read_master
 
 FULL_SCALE = 100.0 * 9.81  # N, the prototype's 100 kg cells
 
@@ -152,7 +152,6 @@ def main(argv: list[str] | None = None) -> int:
     emulator on wall time at 100 Hz until interrupted; the simulator itself never free-runs.
     """
     import sys
-    import time
 
     from sim_backend.pty import open_pty_pair
 
@@ -160,15 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     master, path = open_pty_pair()
     print(path, flush=True)
     emu = LoadCellEmulator(master, np.random.default_rng(0), channels=len(tau)).start()
-    t0 = time.monotonic()
-    try:
-        while True:
-            emu.emit(time.monotonic() - t0, tau)
-            time.sleep(1 / emu.rate_hz)
-    except KeyboardInterrupt:
-        return 0
-    finally:
-        emu.close()
+    return free_run(emu, lambda t: emu.emit(t, tau), emu.rate_hz)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,9 @@ import errno
 import os
 import select
 import threading
+import time
 import tty
+from collections.abc import Callable
 
 import numpy as np
 
@@ -127,3 +129,16 @@ class PtyEmulator:
         n = write_master(self.fd, data)
         self.bytes_written += n
         self.bytes_dropped += len(data) - n
+
+
+def free_run(emulator: PtyEmulator, emit: Callable[[float], object], rate_hz: float) -> int:
+    """Drive an emulator on wall time (the demos' ``python -m``): ``emit(t)`` every 1/rate_hz s until Ctrl-C."""
+    t0 = time.monotonic()
+    try:
+        while True:
+            emit(time.monotonic() - t0)
+            time.sleep(1.0 / rate_hz)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        emulator.close()

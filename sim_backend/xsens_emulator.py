@@ -24,7 +24,7 @@ import numpy as np
 from calib.kinematics import rotation, rotation_to_euler
 from drivers import xbus
 from drivers.xbus import MID, XDI
-from sim_backend.pty import PtyEmulator, read_master
+from sim_backend.pty import PtyEmulator, free_run, read_master
 
 ORIENTATION_MAX_HZ = 400  # MTi-600 series orientation outputs
 TIMESTAMP_MAX_HZ = 2000
@@ -236,7 +236,6 @@ def main(argv: list[str] | None = None) -> int:
     on wall time at 400 Hz until interrupted; the simulator itself never free-runs.
     """
     import sys
-    import time
 
     from sim_backend.pty import open_pty_pair
 
@@ -245,15 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     master, path = open_pty_pair()
     print(path, flush=True)
     emu = XsensEmulator(master, np.random.default_rng(0)).start()
-    t0 = time.monotonic()
-    try:
-        while True:
-            emu.emit(time.monotonic() - t0, roll, pitch, yaw)
-            time.sleep(1 / ORIENTATION_MAX_HZ)
-    except KeyboardInterrupt:
-        return 0
-    finally:
-        emu.close()
+    return free_run(emu, lambda t: emu.emit(t, roll, pitch, yaw), ORIENTATION_MAX_HZ)
 
 
 if __name__ == "__main__":
