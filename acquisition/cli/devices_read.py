@@ -63,17 +63,19 @@ def _device(args):
                                          rate_hz=float(args.rate)))
 
 
-def _line(device: str, r, as_json: bool) -> str:
+def _line(device: str, r, as_json: bool, t0: float = 0.0) -> str:
+    """One reading as text or JSON; ``t`` is seconds since the first reading printed (receive times)."""
+    t = r.t - t0
     if device == "ahrs":
         if as_json:
-            return json.dumps({"t": r.t, "roll": r.roll, "pitch": r.pitch, "yaw": r.yaw, "seq": r.seq})
-        return (f"t={r.t:.4f} s  seq={r.seq}  roll={math.degrees(r.roll):+.3f} deg  "
+            return json.dumps({"t": t, "roll": r.roll, "pitch": r.pitch, "yaw": r.yaw, "seq": r.seq})
+        return (f"t={t:.4f} s  seq={r.seq}  roll={math.degrees(r.roll):+.3f} deg  "
                 f"pitch={math.degrees(r.pitch):+.3f} deg  yaw={math.degrees(r.yaw):+.3f} deg")
     tau = [None if math.isnan(v) else float(v) for v in r.tau]
     if as_json:
-        return json.dumps({"t": r.t, "tau": tau, "seq": r.seq})
+        return json.dumps({"t": t, "tau": tau, "seq": r.seq})
     text = "  ".join("  --  " if v is None else f"{v:8.2f}" for v in tau)
-    return f"t={r.t:.4f} s  seq={r.seq}  tau=[{text}] N"
+    return f"t={t:.4f} s  seq={r.seq}  tau=[{text}] N"
 
 
 def run(args) -> int:
@@ -89,7 +91,7 @@ def run(args) -> int:
         for i in range(args.count):
             if i:
                 reading = dev.wait_for(reading.seq + 1, args.timeout)
-            sys.stdout.write(_line(args.device, reading, args.json) + "\n")
+            sys.stdout.write(_line(args.device, reading, args.json, first.t) + "\n")
             sys.stdout.flush()
         if not args.json:
             s = dev.stats
