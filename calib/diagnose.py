@@ -3,6 +3,10 @@
 Steps, on the equilibrium rows of a run (or any :class:`calib.selfcal.Measurements` with its noise):
 
 1. fit the current model (zeta_0, the row poses and the effects already included) by the block-arrow LM;
+   every fit also holds the devices' constant errors (load-cell bias per channel, AHRS roll/pitch bias)
+   with Gaussian priors of their datasheet accuracy (``DeviceAccuracy``): a real run always has such
+   errors, and without them the diagnosis would report the load cells' accuracy class as a missing effect
+   (measured on effect-free simulated runs: 74 of 100 seeds flagged, 1 of 100 with the priors);
 2. residuals in units of the noise, per channel, cable and row; chi2 with its p-value;
 3. a score (Lagrange multiplier) test of every candidate effect at that solution, no refit: with the
    weighted residual r and the candidate's Jacobian columns C, after projecting out the nuisance directions
@@ -32,6 +36,7 @@ from scipy import stats
 
 from calib.effects import BUILTIN, Effect, EffectModel
 from calib.effects.base import Projected
+from calib.effects.builtin import DeviceAccuracy
 from calib.kinematics import inverse_kinematics
 from calib.robot import Robot
 from calib.selfcal.lm import levenberg_marquardt
@@ -137,6 +142,16 @@ def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: 
                     blk[0, 6 * k :] = ev.g0[j]
                     As.append(blk)
         start += width
+    for j, col in enumerate(problem.prior_idx):  # prior pseudo-readings: channel "prior", row -2
+        rs.append(ev.r0[start + j : start + j + 1])
+        sis.append(ev.r0[start + j : start + j + 1] * problem.prior_sd[j])
+        ch.append("prior")
+        ix.append(int(col))
+        rw.append(-2)
+        if jacobian:
+            blk = np.zeros((1, 6 * k + p))
+            blk[0, 6 * k :] = ev.g0[start + j]
+            As.append(blk)
     A = np.vstack(As) if jacobian else np.zeros((0, 0))
     return Residuals(np.concatenate(rs), A, np.concatenate(sis), np.array(ch), np.array(ix), np.array(rw))
 
@@ -327,6 +342,7 @@ class Diagnosis:
             "steps": self.steps,
             "verdict": self.verdict,
             "alpha": self.alpha,
+            "device_errors": {k: _num(v) for k, v in self.fit.params().get("device_accuracy", {}).items()},
         }
 
 
@@ -350,7 +366,7 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements) -> tuple[dict, d
             for a in range(width)
         ]
     rows = []
-    for i in sorted(set(res.row.tolist())):
+    for i in sorted(set(res.row.tolist()) - {-2}):
         m = res.row == i
         z = res.r[m]
         worst = int(np.argmax(np.abs(z)))
@@ -443,10 +459,15 @@ def diagnose(
     max_effects: int = 2,
     noise_source: str = "given",
     reference_pose: np.ndarray | None = None,
+    device_priors: bool = True,
 ) -> Diagnosis:
-    """Fit, locate the misfit and rank the candidate effects (module doc). theta0/poses0: initial guess."""
+    """Fit, locate the misfit and rank the candidate effects (module doc). theta0/poses0: initial guess.
+    With ``device_priors`` every fit holds the devices' constant errors within their datasheet accuracy
+    (:class:`calib.effects.builtin.DeviceAccuracy`), so an effect must exceed those to be reported."""
     if candidates is None:
         candidates = [cls() for cls in BUILTIN.values()]
+    if device_priors and not any(isinstance(e, DeviceAccuracy) for e in included):
+        included = [DeviceAccuracy(), *included]
     inc_names = {e.name for e in included}
     cands = [c for c in candidates if c.name not in inc_names]
     alpha_each = alpha / max(len(cands), 1)
@@ -693,6 +714,11 @@ def format_diagnosis(diag: Diagnosis) -> str:
     for c, d in diag.channels.items():
         cab = "  ".join(f"{v:.2f}" for v in diag.cables.get(c, []))
         lines.append(f"  {c:<12} {d['rms_normalized']:>9.2f}  {d['max_normalized']:>9.2f}  {d['chi2']:>8.1f}  {cab}")
+    dev = diag.fit.params().get("device_accuracy")
+    if dev:
+        lines.append("devices' constant errors, fitted within their datasheet accuracy: " + ", ".join(
+            f"{k}={v:.3g} N" if not k.endswith(("roll", "pitch")) else f"{k}={math.degrees(v):.3g} deg"
+            for k, v in dev.items()))
     lines.append("row  sample  rms/sigma  max/sigma  worst")
     for r in diag.rows:
         lines.append(f"  {r['row']:>3} {r['sample']:>6}  {r['rms_normalized']:>9.2f}  {r['max_normalized']:>9.2f}  "

@@ -36,8 +36,9 @@ from calib.statics import tension_model
 
 @dataclass(frozen=True)
 class ParamSpec:
-    """One effect parameter: name, unit, the value meaning the effect is absent, bounds, and a typical size
-    (used for finite-difference steps and for reporting)."""
+    """One effect parameter: name, unit, the value meaning the effect is absent, bounds, a typical size
+    (used for finite-difference steps and for reporting) and, optionally, the standard deviation of a
+    Gaussian prior centred on ``absent`` (what a datasheet says of a device's constant error; None: free)."""
 
     name: str
     unit: str
@@ -45,6 +46,7 @@ class ParamSpec:
     lower: float = -np.inf
     upper: float = np.inf
     scale: float = 1.0
+    prior: float | None = None
 
 
 @dataclass
@@ -188,6 +190,17 @@ class EffectModel:
         """Global vector [zeta_0, effect values] (absent values unless given)."""
         v = self.absent_values() if values is None else np.asarray(values, float)
         return np.r_[np.asarray(zeta0, float), v]
+
+    def priors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Theta indices (q,) of the parameters with a prior, their prior means and standard deviations."""
+        idx, mean, sd = [], [], []
+        for sl, specs in zip(self.slices, self.specs, strict=True):
+            for j, s in enumerate(specs):
+                if s.prior is not None:
+                    idx.append(sl.start + j)
+                    mean.append(s.absent)
+                    sd.append(s.prior)
+        return np.array(idx, dtype=int), np.array(mean, dtype=float), np.array(sd, dtype=float)
 
     def effect_values(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         return {e.name: np.asarray(theta[sl]) for e, sl in zip(self.effects, self.slices, strict=True)}

@@ -292,6 +292,41 @@ class MassScale(Effect):
         return z, z.copy(), (tau / (1.0 + float(values[0])))[..., None]
 
 
+class DeviceAccuracy(Effect):
+    """The constant errors a datasheet allows every device, as parameters with a Gaussian prior: load cell
+    i reads tau_i + b_i (N), the AHRS reads roll + b_roll and pitch + b_pitch (rad). The prior standard
+    deviation is the accuracy bound over sqrt(3) (a uniform error within the bound, GUM type B): 0.02 % of
+    full scale for the cells, the roll/pitch accuracy for the AHRS (robot ``sensors``). Not a candidate
+    effect: the diagnosis keeps it in every fit, so that only what exceeds the devices' specifications is
+    reported as a missing effect."""
+
+    name = "device_accuracy"
+    order = 45
+    description = "per-device constant errors within the datasheet accuracy (load cells N, AHRS roll/pitch rad)"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        s = robot.sensors
+        cell = s.load_cell_uncertainty / math.sqrt(3.0)
+        ahrs = s.ahrs_roll_pitch_accuracy / math.sqrt(3.0)
+        return [ParamSpec(f"b_{i + 1}", "N", 0.0, -np.inf, np.inf, 0.1, prior=cell) for i in range(robot.n)] + [
+            ParamSpec("b_roll", "rad", 0.0, -np.inf, np.inf, 1e-3, prior=ahrs),
+            ParamSpec("b_pitch", "rad", 0.0, -np.inf, np.inf, 1e-3, prior=ahrs),
+        ]
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        n = ctx.robot.n
+        cols = np.arange(ctx.cols.start, ctx.cols.stop)
+        if "tension" in preds:
+            pr = preds["tension"]
+            pr.value = pr.value + values[None, :n]
+            pr.d_theta[:, range(n), cols[:n]] = 1.0
+        if "orientation" in preds:
+            pr = preds["orientation"]
+            pr.value = pr.value.copy()
+            pr.value[:, :2] += values[n:]
+            pr.d_theta[:, [0, 1], cols[n:]] = 1.0
+
+
 BUILTIN: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (

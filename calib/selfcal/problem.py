@@ -4,7 +4,9 @@ Unknowns: theta (p,) = [zeta_0, extra effect parameters] and one pose zeta_i (6,
 Residual of row i: w * (prediction(zeta_i, theta) - reading_i), with w = 1/sigma per channel (eq. 17).
 The rows whose tensions are given are static (tension channel included), the others kinematic. The reference
 row (the reading at zeta_0 itself) contributes, where given, its absolute tensions and roll/pitch; its
-relative readings are zero by construction and carry no information.
+relative readings are zero by construction and carry no information. Parameters with a Gaussian prior (a
+model's ``priors()``, e.g. a device's accuracy class) add one pseudo-reading each, (theta_j - mean_j) / sd_j,
+after the reference row: a residual and a parameter more, so the degrees of freedom do not change.
 """
 
 from __future__ import annotations
@@ -104,6 +106,9 @@ class Problem:
         self.ref_channels = tuple(ref_chans)
         self.ref_reading = np.concatenate(ref_read)
         self.ref_weight = np.concatenate(ref_w)
+        priors = getattr(model, "priors", None)
+        self.prior_idx, self.prior_mean, self.prior_sd = priors() if priors else (np.zeros(0, int),) + (
+            np.zeros(0),) * 2
 
     def _group(self, idx: np.ndarray, chans: tuple[str, ...]) -> Group:
         n = self.model.robot.n
@@ -124,7 +129,8 @@ class Problem:
     @property
     def n_residuals(self) -> int:
         """Number of residuals with a non-zero weight."""
-        return int(sum(np.count_nonzero(g.weight) for g in self.groups) + np.count_nonzero(self.ref_weight))
+        return int(sum(np.count_nonzero(g.weight) for g in self.groups) + np.count_nonzero(self.ref_weight)
+                   + self.prior_idx.size)
 
     def evaluate(self, theta: np.ndarray, poses: np.ndarray, derivatives: bool = True) -> Evaluation:
         """Weighted residuals (and Jacobian blocks) at theta (p,) and poses (k, 6)."""
@@ -147,6 +153,12 @@ class Problem:
             g0 = np.concatenate([pred0[c].d_theta[0] for c in self.ref_channels], 0)
             g0[:, :6] += np.concatenate([pred0[c].d_pose[0] for c in self.ref_channels], 0)
             g0 = self.ref_weight[:, None] * g0
+        if self.prior_idx.size:
+            r0 = np.r_[r0, (theta[self.prior_idx] - self.prior_mean) / self.prior_sd]
+            if derivatives:
+                gp = np.zeros((self.prior_idx.size, theta.shape[0]))
+                gp[np.arange(self.prior_idx.size), self.prior_idx] = 1.0 / self.prior_sd
+                g0 = np.vstack([g0, gp])
         return Evaluation(out, r0, g0)
 
     def pose_normal_equations(
