@@ -13,7 +13,7 @@ import scipy.io
 from acquisition.cli import main as cdpr
 from calib.diagnose import diagnose, fit, pose_error
 from calib.effects import make_effects
-from calib.effects.builtin import pulley_gauge_basis
+from calib.effects.builtin import DeviceAccuracy, pulley_gauge_basis
 from calib.effects.simdata import simulated_rows
 from calib.robot import load_robot
 from sim_backend.config import sim_config_from_dict
@@ -47,11 +47,16 @@ def _rows(effects: dict):
     return simulated_rows(ROBOT, sim_config_from_dict({"effects": effects}), seed=SEED)
 
 
+# the diagnosis's base model: the rigid model plus the devices' constant errors within their datasheet
+# accuracy (Gaussian priors); the simulated rows carry such errors, drawn as the emulators draw them
+BASE = [DeviceAccuracy()]
+
+
 @pytest.fixture(scope="module")
 def clean():
-    """The same run (seed, plan) without any hidden effect, fitted with the rigid model."""
+    """The same run (seed, plan) without any hidden effect, fitted with the diagnosis's base model."""
     d = _rows({})
-    return d, fit(ROBOT, d.meas, d.sigma, [], d.guess_zeta0, d.guess_poses)
+    return d, fit(ROBOT, d.meas, d.sigma, BASE, d.guess_zeta0, d.guess_poses)
 
 
 @pytest.mark.parametrize("name", list(HIDDEN))
@@ -61,36 +66,34 @@ def test_hidden_effect_ranks_first_and_its_refit_recovers_the_initial_pose(name,
     diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=1)
     assert diag.ranking[0].effect == name
     assert diag.ranking[0].significant and diag.selected == [name]
-    assert diag.p_value < 1e-6  # the rigid model visibly fails
+    assert diag.p_value < 1e-3  # the rigid model fails (an AHRS tilt: p = 6e-4, the others far below)
     e_rigid = pose_error(diag.fit.theta, d.zeta0)
     e_refit = pose_error(diag.final.theta, d.zeta0)
     e_clean = pose_error(f0.theta, d0.zeta0)
-    if name == "ahrs_mounting":
-        # a free AHRS tilt leaves roll and pitch of every pose to the statics alone: the estimator itself is
-        # looser (sigma_y 0.09 -> 0.37 mm), so compare with the same estimator on the effect-free run
-        fc = fit(ROBOT, d0.meas, d0.sigma, make_effects([name]), d0.guess_zeta0, d0.guess_poses)
-        e_clean = pose_error(fc.theta, d0.zeta0)
-    assert e_refit <= 2.0 * e_clean, (e_rigid, e_refit, e_clean)
+    # the refit removes the harm; "within 2x of the effect-free error" is judged over ten seeds below, as on
+    # one seed the effect-free error can be small by luck (seed 5: 0.155 mm, the RMS over ten seeds 0.46 mm;
+    # measured here: refit 0.13-0.23 mm, and 0.59 mm for the 8-parameter pulley deformation)
+    assert e_refit < 0.65 * e_rigid and e_refit <= 4.0 * e_clean, (e_rigid, e_refit, e_clean)
     assert diag.final.chi2 < 2.0 * diag.final.dof
     assert "explains" in diag.verdict and name in diag.verdict
 
 
 @pytest.fixture(scope="module")
 def clean_over_seeds():
-    """Ten effect-free runs (seeds 0..9) and their rigid-model initial-position errors, m."""
+    """Ten effect-free runs (seeds 0..9) and their base-model initial-position errors, m."""
     runs = [simulated_rows(ROBOT, sim_config_from_dict({"effects": {}}), seed=s) for s in range(10)]
-    errors = [pose_error(fit(ROBOT, d.meas, d.sigma, [], d.guess_zeta0, d.guess_poses).theta, d.zeta0) for d in runs]
+    errors = [pose_error(fit(ROBOT, d.meas, d.sigma, BASE, d.guess_zeta0, d.guess_poses).theta, d.zeta0)
+              for d in runs]
     return runs, np.array(errors)
 
 
 @pytest.mark.parametrize("name", list(HIDDEN))
 def test_refit_removes_the_bias_over_ten_seeds(name, clean_over_seeds):
     """RMS over ten seeds, so that no single lucky seed decides: the refit with the injected effect is as
-    good as the same estimator on the effect-free runs (the bias is gone), and within 2x of the rigid model
-    on the effect-free runs, except for an AHRS tilt, whose fit turns absolute roll and pitch into relative
-    readings (information lost, measured 2.7x at grid 2)."""
+    good as the same estimator on the effect-free runs (the bias is gone), and within 2x of the base model
+    on the effect-free runs (measured: 0.79x to 1.38x; an AHRS tilt 1.23x, a pulley deformation 1.38x)."""
     runs, rigid_clean = clean_over_seeds
-    effects = make_effects([name])
+    effects = BASE + make_effects([name])
     refit, same_clean = [], []
     for seed, d0 in enumerate(runs):
         d = simulated_rows(ROBOT, sim_config_from_dict({"effects": HIDDEN[name]}), seed=seed)
@@ -102,10 +105,7 @@ def test_refit_removes_the_bias_over_ten_seeds(name, clean_over_seeds):
         return float(np.sqrt(np.mean(np.square(x))))
 
     assert rms(refit) <= 1.15 * rms(same_clean)
-    if name == "ahrs_mounting":
-        assert 2.0 * rms(rigid_clean) < rms(refit) < 4.0 * rms(rigid_clean)
-    else:
-        assert rms(refit) <= 2.0 * rms(rigid_clean)
+    assert rms(refit) <= 2.0 * rms(rigid_clean)
 
 
 def test_fitted_parameters_match_the_injected_ones():
@@ -220,9 +220,9 @@ def test_simulated_rows_are_rest_states_of_the_simulator_physics(name):
 
     cfg = sim_config_from_dict({"effects": HIDDEN[name]})
     d = simulated_rows(ROBOT, cfg, seed=0, noise={"tension": 0.0, "length": 0.0, "swivel": 0.0,
-                                                    "orientation": 0.0})
+                                                    "orientation": 0.0}, device_biases=False)
     truth = cfg.true_robot(ROBOT)
-    tau = d.meas.tau[2]  # readings = true tensions here (no load-cell effect, no noise)
+    tau = d.meas.tau[2]  # readings = true tensions here (no load-cell effect or error, no noise)
     sim = CablePhysics(truth, cfg.physics_params(), cfg.true_transmission(ROBOT), d.poses[2], tau, brakes=True)
     for _ in range(200):
         sim.step(0.005)

@@ -192,4 +192,32 @@ def test_absolute_lengths_are_what_the_encoders_count():
     ph = m._physical(theta, POSES[[0]])[1]
     absolute = m.absolute_readings(theta)
     assert np.allclose(absolute["length"], ph.L[0] / (1 + ph.tau[0] / 20000.0))
-    assert np.all(ph.L[0] - absolute["length"] > 0.005)  # ~1-2 cm of stretch at 100-170 N, 20 kN
+    # L tau / EA: 4-10 mm of stretch at 42-92 N on 1.4-2.3 m of cable of 20 kN
+    assert np.all(ph.L[0] - absolute["length"] > 0.0035)
+
+
+def test_device_accuracy_columns_and_its_prior_pseudo_readings():
+    """The devices' constant errors compose with the other effects (exact columns), and each of their
+    parameters adds one pseudo-reading (theta_j - 0) / sd_j, sd = accuracy / sqrt(3): the degrees of
+    freedom of a fit do not change."""
+    from calib.effects.builtin import DeviceAccuracy
+    from calib.selfcal.problem import Measurements, Problem
+
+    rng = np.random.default_rng(3)
+    model = EffectModel(ROBOT, [*make_effects(["ahrs_mounting", "tension_gain"]), DeviceAccuracy()])
+    theta = model.initial_params(POSES[2] + 0.01 * rng.standard_normal(6), _values(model, rng))
+    _check_fd(model, theta, POSES)
+    idx, mean, sd = model.priors()
+    assert idx.tolist() == list(range(12, 18)) and not mean.any()
+    np.testing.assert_allclose(sd[:4], 0.0002 * 100 * 9.81 / np.sqrt(3))  # 0.113 N
+    np.testing.assert_allclose(sd[4:], np.radians(0.2) / np.sqrt(3))
+    k, n = POSES.shape[0], ROBOT.n
+    meas = Measurements(np.full((k, n), 60.0), np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, 3)),
+                        np.full(n, 60.0), np.zeros(2))
+    sigma = {"tension": 0.1, "length": 1e-4, "swivel": 1e-3, "orientation": np.array([1e-3, 1e-3, 1e-2])}
+    with_p, without = Problem(model, meas, sigma), Problem(EffectModel(ROBOT, model.effects[:2]), meas, sigma)
+    assert with_p.n_residuals == without.n_residuals + 6
+    ev = with_p.evaluate(theta, POSES)
+    np.testing.assert_allclose(ev.r0[-6:], theta[12:] / sd)
+    np.testing.assert_allclose(ev.g0[-6:, 12:], np.diag(1.0 / sd))
+    assert not ev.g0[-6:, :12].any()

@@ -8,8 +8,10 @@ motor encoders count the unstretched length ``l0 = L / (1 + tau / EA)`` through 
 (the true one is ``(1 + k_i)`` times larger, so the reading is ``delta l0 / (1 + k_i)``); the swivel
 encoders see the true geometry; the AHRS reads the angles of ``R(zeta) Rx(roll_m) Ry(pitch_m)``. This is
 the physics of ``sim_backend`` (same SimConfig, same formulas) at its static equilibria plus white noise of
-the size of a window average; it leaves out the per-device constant biases the emulators also draw
-(load-cell accuracy class, AHRS roll/pitch bias), which are themselves effects the library detects.
+the size of a window average, plus (``device_biases``, on by default) the constant per-device errors the
+emulators draw at power-on: each load-cell channel off by up to its accuracy class (0.02 % of 100 kg),
+the AHRS roll and pitch off by up to 0.1 deg. Those are part of every run of the simulated prototype, as of
+the real one, with or without a hidden effect; they are what limits the rigid model on an effect-free run.
 The reference (zeta_0) is the home pose under the home tensions, the rows are the planned poses.
 """
 
@@ -24,6 +26,7 @@ from calib.kinematics import inverse_kinematics, rotation, rotation_to_euler
 from calib.planning import PosePlan, plan_poses
 from calib.robot import Robot
 from calib.selfcal.problem import Measurements
+from sim_backend.xsens_emulator import XsensNoise
 
 # standard deviation of one equilibrium-window average: N, m, rad, rad (roll, pitch, yaw)
 WINDOW_NOISE = {
@@ -48,16 +51,23 @@ class SimulatedRows:
 
 
 def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: dict | None = None,
-                   plan: PosePlan | None = None) -> SimulatedRows:
+                   plan: PosePlan | None = None, device_biases: bool = True) -> SimulatedRows:
     """Window-averaged readings at the planned poses of ``robot`` with the hidden effects of ``config``
-    (a ``sim_backend.config.SimConfig``), noise of ``noise`` (default WINDOW_NOISE) drawn with ``seed``."""
+    (a ``sim_backend.config.SimConfig``), noise of ``noise`` (default WINDOW_NOISE) drawn with ``seed``,
+    and, with ``device_biases``, the emulators' per-device constant errors drawn with ``seed``."""
     e = config.effects
     if e.cable_sag is not None:
         raise ValueError("simulated_rows: the cable_sag effect needs the full simulation (cdpr startup).")
     n = robot.n
     plan = plan or plan_poses(robot, grid)
     sp = np.vstack([plan.tau0, plan.setpoints])
-    gain, offset = config.tension_gain(n), config.tension_offset(n)
+    cell_error, ahrs_bias = np.zeros(n), np.zeros(3)
+    if device_biases:  # a stream of its own, so that the noise draws do not depend on this switch
+        brng = np.random.default_rng([seed, 406])
+        fs = robot.sensors.load_cell_full_scale * robot.sensors.load_cell_accuracy
+        cell_error = brng.uniform(-fs, fs, n)
+        ahrs_bias[:2] = np.radians(brng.uniform(-XsensNoise.roll_pitch_bias, XsensNoise.roll_pitch_bias, 2))
+    gain, offset = config.tension_gain(n), config.tension_offset(n) + cell_error
     tau = (sp - offset) / gain
     truth = config.true_robot(robot)
     guess = np.vstack([plan.home_pose, plan.poses])
@@ -74,7 +84,7 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
     dsig = np.angle(np.exp(1j * (kin.swivel[1:] - kin.swivel[0])))
     mr, mp = config.ahrs_mounting()
     M = rotation(np.array([[mr, mp, 0.0]]), "xyz")[0]
-    ang = rotation_to_euler(rotation(Z[:, 3:], robot.orientation) @ M, robot.ahrs_convention)
+    ang = rotation_to_euler(rotation(Z[:, 3:], robot.orientation) @ M, robot.ahrs_convention) + ahrs_bias
     ori = ang[1:].copy()
     ori[:, 2] = np.angle(np.exp(1j * (ori[:, 2] - ang[0, 2])))
     read_tau = gain * tau + offset
