@@ -1,7 +1,9 @@
 """False alarms of `cdpr diagnose` on effect-free simulated runs (not collected by pytest).
 
 For each seed: the simulated prototype with no hidden effect (calib.effects.simdata: its static equilibria
-at the planned poses of --grid, window-average noise), diagnosed with the default settings; counts the seeds
+at the planned poses of --grid, window-average noise, and the per-device errors the emulators draw: load
+cells within their accuracy class, AHRS roll/pitch bias), diagnosed with the default settings (which hold
+those device errors within their datasheet accuracy as priors); counts the seeds
 where some effect is reported significant at the 1% level (family-wise over the library). The target is at
 most 2 of 100. Also reports how often the rigid model's own chi2 test rejects at 1% (expected ~1%).
 
