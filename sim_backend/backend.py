@@ -2,21 +2,23 @@
 
 :class:`SimBackend` creates the physics at a power-on equilibrium, a python-can ``virtual`` channel with a
 unique name carrying the emulated CiA 402 drives and CiA 406 encoders (canopen LocalNodes), pty pairs for
-the load-cell amplifier and the AHRS, and one SYNC subscriber that runs the lockstep. For each SYNC the
-master sends:
+the load-cell amplifier and the AHRS, and one SYNC subscriber that runs the lockstep. The nodes' network is
+pumped (``drivers.can_bus.Network``): no receive thread, a frame the master sends is handled in the master's
+own thread before its send returns, answers included, and a master network that joins the channel is pumped
+too (``drivers.can_bus.open_network``). For each SYNC the master sends:
 
 1. every drive applies the last RPDO targets (``apply_targets``); the drives engage the winch brakes
    (``CablePhysics.set_brake``) in every state but operation enabled, as a servo's holding brake does;
 2. the faults due are injected, the physics advances by one control period;
-3. the load-cell amplifier writes the tick's line and the AHRS its sample (first: the serial drivers parse
-   them while the CAN frames are being built, ~10 % less wall time per tick in lockstep), then every node
-   transmits its TPDOs (``on_sync``).
+3. the load-cell amplifier writes the tick's line and the AHRS its sample (first: serial drivers with a
+   reader thread parse them while the CAN frames are being built), then every node transmits its TPDOs
+   (``on_sync``).
 
 The simulated clock is the physics time, exactly ``count * control_period`` after SYNC ``count`` (0 at
 power-on); the load-cell line written at SYNC ``count`` has device sequence ``count - 1``, the AHRS samples
 on its own output-rate grid of that clock. Nothing here reads wall time, so a run costs far less wall time
 than robot time and the same seed gives the same frames and bytes. An exception inside the lockstep (it
-runs in the CAN notifier thread) is kept in :attr:`SimBackend.errors`; the nodes then stay silent. The
+runs inside the master's SYNC send) is kept in :attr:`SimBackend.errors`; the nodes then stay silent. The
 drivers connect through :attr:`SimBackend.devices` (a ``drivers.config.DeviceConfig``);
 :meth:`SimBackend.truth` gives the true pose now or at an earlier tick.
 """
@@ -115,7 +117,7 @@ class SimBackend:
         self.loadcells: LoadCellEmulator | None = None
         self.ahrs: XsensEmulator | None = None
         self.sync_count = 0
-        self.errors: list[str] = []  # exceptions raised inside the lockstep (the notifier thread)
+        self.errors: list[str] = []  # exceptions raised inside the lockstep (the SYNC handler)
         self._lock = threading.RLock()
         self._history: list[tuple[int, float, tuple, tuple, tuple]] = []
         self._pending: list[Fault] = []  # serial and cable faults, by time
@@ -144,7 +146,7 @@ class SimBackend:
         self.physics = self._make_physics()
         channel = f"cdpr-sim-{os.getpid()}-{next(_channel_ids)}-{id(self):x}"
         self._bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        self._network = open_network(self._bus)
+        self._network = open_network(self._bus, pumped=True)  # answers in the sender's thread (lockstep)
         try:
             for i in range(n):
                 self.drives.append(
@@ -262,7 +264,7 @@ class SimBackend:
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         try:
             self.tick()
-        except Exception as exc:  # the notifier thread must not die silently: keep it for the caller
+        except Exception as exc:  # not the master's problem at its send: keep it for the caller
             self.errors.append(f"{type(exc).__name__}: {exc}")
 
     def tick(self) -> int:
