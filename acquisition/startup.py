@@ -432,7 +432,9 @@ def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, 
 
     The CAN drivers take their time stamps (heartbeat supervision) from the loop's clock; in lockstep the
     serial drivers' own wall-time staleness rule is switched off (the supervisor judges staleness on the
-    loop's clock). Raises ``drivers.interfaces.DeviceError`` (one sentence) when a device does not answer.
+    loop's clock) and they read their ports in the loop's thread when it waits for a reading (no reader
+    thread to wake at every tick). Raises ``drivers.interfaces.DeviceError`` (one sentence) when a device does
+    not answer.
     """
     from drivers.can_bus import SyncProducer, open_bus_from_config, open_network
     from drivers.canopen_drive import CanopenWinchDrive
@@ -460,9 +462,9 @@ def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, 
                                          counts_per_rev=robot.sensors.swivel_counts_per_rev)
                     for nc in devices.encoders]
         loadcells = LoadCellDriver(LoadCellConfig(devices.loadcells.port, devices.loadcells.baud, channels=robot.n,
-                                                  rate_hz=1.0 / period, stale_periods=stale))
+                                                  rate_hz=1.0 / period, stale_periods=stale, polled=lockstep))
         ahrs = XsensMti(XsensConfig(devices.ahrs.port, devices.ahrs.baud, rate_hz=int(devices.ahrs.rate),
-                                    stale_periods=stale))
+                                    stale_periods=stale, polled=lockstep))
         for dev in [*drives, *encoders, loadcells, ahrs]:
             dev.open()
             opened.append(dev)

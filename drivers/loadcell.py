@@ -153,6 +153,7 @@ class LoadCellConfig:
     stale_periods: float = 3.0
     stuck_samples: int = 50  # identical consecutive values that mark a stuck channel
     info_timeout: float = 1.0  # s
+    polled: bool = False  # read the port in the waiting thread, not a reader thread (lockstep simulation)
 
 
 class LoadCellDriver(LoadCellBase):
@@ -178,7 +179,9 @@ class LoadCellDriver(LoadCellBase):
         if self._port is not None:
             return
         self._port = open_port(self.config.port, self.config.baud, "load-cell amplifier")
-        self._reader = PortReader(self._port, self._on_bytes, name=f"loadcell-{self.config.port}")
+        self._reader = PortReader(self._port, self._on_bytes, name=f"loadcell-{self.config.port}",
+                                  threaded=not self.config.polled)
+        self._box.reader = None if self._reader.threaded else self._reader
         self._reader.start()
         try:
             self._handshake()
@@ -193,7 +196,11 @@ class LoadCellDriver(LoadCellBase):
             self._port.write(frame("INFO"))
         except Exception as exc:  # serial.SerialException, OSError, write timeout
             raise DeviceError(f"load-cell amplifier: writing INFO to {self.config.port} failed ({exc}).") from exc
-        if not self._info_event.wait(self.config.info_timeout):
+        if self.config.polled:
+            answered = self._reader.until(self._info_event.is_set, self.config.info_timeout)
+        else:
+            answered = self._info_event.wait(self.config.info_timeout)
+        if not answered:
             raise DeviceError(f"load-cell amplifier on {self.config.port} did not answer INFO within "
                               f"{self.config.info_timeout:g} s.")
         if self.info.channels != self.config.channels:
@@ -244,6 +251,8 @@ class LoadCellDriver(LoadCellBase):
 
     # ---- the LoadCellAmplifier interface ----
     def latest(self) -> TensionReading | None:
+        if self._box.reader is not None:
+            self._box.reader.poll()
         return self._box.latest  # type: ignore[return-value]
 
     def wait_for(self, device_seq: int, timeout: float) -> TensionReading:

@@ -1,8 +1,9 @@
-"""Small pieces both serial drivers share: opening a port with one clear error, the reader thread, and the
-book-keeping of the latest reading (waiters, staleness)."""
+"""Small pieces both serial drivers share: opening a port with one clear error, the reader (a thread, or polled
+by the caller in lockstep), and the book-keeping of the latest reading (waiters, staleness)."""
 
 from __future__ import annotations
 
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -21,17 +22,23 @@ def open_port(port: str, baud: int, what: str) -> serial.Serial:
 
 
 class PortReader:
-    """A daemon thread that reads a port and hands every chunk of bytes to ``on_bytes``."""
+    """Reads a port and hands every chunk of bytes to ``on_bytes``: in a daemon thread, or, not ``threaded``,
+    in the thread that calls :meth:`poll` (the drivers' waits do, in lockstep with a simulated prototype whose
+    bytes are already written when the loop asks for them: no thread hand-off per reading)."""
 
-    def __init__(self, port: serial.Serial, on_bytes: Callable[[bytes, float], None], name: str) -> None:
+    def __init__(self, port: serial.Serial, on_bytes: Callable[[bytes, float], None], name: str,
+                 threaded: bool = True) -> None:
         self.port = port
         self.on_bytes = on_bytes
+        self.threaded = threaded
         self.error: str | None = None
         self._stop = threading.Event()
+        self._poll_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def start(self) -> None:
-        self._thread.start()
+        if self.threaded:
+            self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
@@ -51,9 +58,45 @@ class PortReader:
             if data:
                 self.on_bytes(data, time.monotonic())
 
+    def poll(self, timeout: float = 0.0) -> bool:
+        """Polled reader: hand the bytes waiting now (waiting up to ``timeout`` s for some) to ``on_bytes``;
+        whether there were any. A reader thread, if running, does that itself: then this only waits."""
+        if self.threaded:
+            if timeout > 0:
+                time.sleep(min(timeout, 0.001))
+            return False
+        with self._poll_lock:
+            if self._stop.is_set():
+                return False
+            try:
+                n = self.port.in_waiting
+                if not n and timeout > 0:
+                    select.select([self.port.fileno()], [], [], timeout)
+                    n = self.port.in_waiting
+                data = self.port.read(n) if n else b""
+            except (serial.SerialException, OSError, TypeError, ValueError) as exc:
+                self.error = f"serial port {self.port.port} failed while reading ({exc})"
+                if timeout > 0:
+                    time.sleep(min(timeout, 0.05))
+                return False
+            if data:
+                self.on_bytes(data, time.monotonic())
+            return bool(data)
+
+    def until(self, done: Callable[[], bool], timeout: float) -> bool:
+        """Polled reader: poll until ``done()`` (True) or ``timeout`` s have passed (False)."""
+        deadline = time.monotonic() + timeout
+        while not done():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            self.poll(left)
+        return True
+
 
 class LatestBox:
-    """The most recent reading, a condition to wait on it, and the staleness rule (3 silent periods)."""
+    """The most recent reading, a condition to wait on it, and the staleness rule (3 silent periods).
+    With a polled reader (``reader``, see :class:`PortReader`) the waits poll the port instead."""
 
     def __init__(self, period: float, stale_periods: float = 3.0) -> None:
         self.period = period
@@ -61,6 +104,7 @@ class LatestBox:
         self.cond = threading.Condition()
         self.latest: Reading | None = None
         self.opened_at = time.monotonic()
+        self.reader: PortReader | None = None  # set when the port is polled
 
     def put(self, reading: Reading) -> None:
         with self.cond:
@@ -68,6 +112,11 @@ class LatestBox:
             self.cond.notify_all()
 
     def wait(self, ok: Callable[[Reading], bool], timeout: float, what: str) -> Reading:
+        reader = self.reader
+        if reader is not None:
+            if not reader.until(lambda: self.latest is not None and ok(self.latest), timeout):
+                raise DeviceError(what)
+            return self.latest
         deadline = time.monotonic() + timeout
         with self.cond:
             while self.latest is None or not ok(self.latest):

@@ -2,9 +2,10 @@
 
 ``open`` puts the device in configuration mode, reads its device id, sets the output configuration
 (PacketCounter and SampleTimeFine with every packet, EulerAngles float32 at ``rate_hz``) and returns it
-to measurement mode; a reader thread then turns every MTData2 into an :class:`AhrsReading` (angles in rad).
-Error messages from the device are surfaced: during configuration as a DeviceError, while streaming as
-the pending :meth:`fault`. ``seq`` is the packet counter unwrapped past its 16-bit roll-over.
+to measurement mode; a reader thread (or, ``polled``, the thread waiting for a reading) then turns every
+MTData2 into an :class:`AhrsReading` (angles in rad). Error messages from the device are surfaced: during
+configuration as a DeviceError, while streaming as the pending :meth:`fault`. ``seq`` is the packet counter
+unwrapped past its 16-bit roll-over.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ class XsensConfig:
     ack_timeout: float = 1.0  # s to wait for each acknowledgement
     retries: int = 3  # GoToConfig attempts (a device streaming fast may miss the first)
     stale_periods: float = 3.0
+    polled: bool = False  # read the port in the waiting thread, not a reader thread (lockstep simulation)
 
 
 FRAME_BYTES = 32  # our MTData2 on the wire: 4 header + 5 + 7 + 15 item bytes + 1 checksum
@@ -72,7 +74,9 @@ class XsensMti(AhrsBase):
         if self._port is not None:
             return
         self._port = open_port(self.config.port, self.config.baud, "Xsens MTi")
-        self._reader = PortReader(self._port, self._on_bytes, name=f"xsens-{self.config.port}")
+        self._reader = PortReader(self._port, self._on_bytes, name=f"xsens-{self.config.port}",
+                                  threaded=not self.config.polled)
+        self._box.reader = None if self._reader.threaded else self._reader
         self._reader.start()
         try:
             self._configure()
@@ -123,8 +127,9 @@ class XsensMti(AhrsBase):
         except Exception as exc:  # serial.SerialException, OSError, write timeout
             raise DeviceError(f"Xsens MTi: writing {xbus.mid_name(mid)} to {self.config.port} failed ({exc}).") from exc
         deadline = time.monotonic() + self.config.ack_timeout
-        with self._reply_cond:
-            while True:
+        polled = not self._reader.threaded
+        while True:
+            with self._reply_cond:
                 for msg in self._replies:
                     if msg.mid == answer:
                         return msg
@@ -137,7 +142,10 @@ class XsensMti(AhrsBase):
                 if left <= 0:
                     raise DeviceError(f"Xsens MTi on {self.config.port} did not acknowledge "
                                       f"{xbus.mid_name(mid)} within {self.config.ack_timeout:g} s.")
-                self._reply_cond.wait(left)
+                if not polled:
+                    self._reply_cond.wait(left)
+                    continue
+            self._reader.poll(left)
 
     # ---- the reader thread ----
     def _on_bytes(self, data: bytes, t: float) -> None:
@@ -186,6 +194,8 @@ class XsensMti(AhrsBase):
 
     # ---- the Ahrs interface ----
     def latest(self) -> AhrsReading | None:
+        if self._box.reader is not None:
+            self._box.reader.poll()
         return self._box.latest  # type: ignore[return-value]
 
     def wait_for(self, packet_counter: int, timeout: float) -> AhrsReading:
