@@ -170,7 +170,8 @@ class SimulatedNode:
                 if packed is None:
                     continue
                 st, keys = packed
-                getters = [(k, code) for k, code in zip(keys, st.format[1:], strict=True)]
+                getters = [(index, sub, *_RANGES[code], code == "i")
+                           for (index, sub), code in zip(keys, st.format[1:], strict=True)]
                 self._tpdos.append((pdo_map.cob_id, pdo_map.trans_type, st, getters))
             self.on_rpdo_config()
 
@@ -215,7 +216,11 @@ class SimulatedNode:
                 for cob_id, every, st, getters in self._tpdos:
                     if self._sync_seen % every:
                         continue
-                    self.send(cob_id, st.pack(*[clamp_int(code, value(i, s)) for (i, s), code in getters]), "tpdo")
+                    raw = []
+                    for index, sub, lo, hi, wraps in getters:  # clamp_int, unrolled: this runs 10^4 times a run
+                        v = int(round(value(index, sub)))
+                        raw.append((v + 0x80000000) % 0x100000000 - 0x80000000 if wraps else min(max(v, lo), hi))
+                    self.send(cob_id, st.pack(*raw), "tpdo")
 
     def before_tpdo(self) -> None:
         """Hook run at each SYNC before the TPDOs are built."""
@@ -312,9 +317,9 @@ class CanDriveEmulator(SimulatedNode):
         if index == 0x6041:
             return self.statusword
         if index == 0x6064:
-            return clamp_int("i", self.plant.motor_position()[self.index] * self.counts_per_rev / (2 * math.pi))
+            return clamp_int("i", float(self.plant.motor_position()[self.index]) * self.counts_per_rev / (2 * math.pi))
         if index == 0x606C:
-            return clamp_int("i", self.plant.motor_velocity()[self.index] * self.counts_per_rev / (2 * math.pi))
+            return clamp_int("i", float(self.plant.motor_velocity()[self.index]) * self.counts_per_rev / (2 * math.pi))
         if index == 0x6077:
             tq = float(self.plant.motor_torque()[self.index])
             if self.config.torque_noise:
