@@ -134,7 +134,11 @@ def order_setpoints(tau0: np.ndarray, setpoints: np.ndarray) -> tuple[list[int],
     """Visiting order (indices into setpoints) of the cheapest closed tour from tau0, and its cost (N)."""
     nodes = np.vstack([tau0, setpoints])
     cost = transition_costs(nodes)
-    order = _tour_exact(cost) if len(nodes) <= 13 else _tour_heuristic(cost)
+    # whole micro-newtons: a symmetric grid has many tours of equal cost, and costs that differ only in their
+    # last bits (another libm, another x87 precision) would pick different ones; integral costs sum exactly,
+    # so ties are exact and the first tour found wins on every machine
+    q = np.rint(cost * 1e6)
+    order = _tour_exact(q) if len(nodes) <= 13 else _tour_heuristic(q)
     path = [0, *order, 0]
     total = float(sum(cost[a, b] for a, b in zip(path[:-1], path[1:], strict=True)))
     return [j - 1 for j in order], total
