@@ -4,8 +4,9 @@ Importing codac 2.1.2 switches the whole process to upward rounding (its interva
 which silently changes every later floating-point result of numpy and Python (1/3 becomes
 0.33333333333333337) and breaks libraries that check their constants at import (hypothesis). It also sets
 the x87 unit to 53-bit precision (control word 0x037f -> 0x0a7f), which round-to-nearest alone does not undo
-and which changes what glibc's libm returns in its last bits (the self-calibration then converged elsewhere
-by 0.05 mm on a test run when codac had been imported first). This module saves the whole floating-point
+and which changes what glibc's libm returns in its last bits (enough, before the planner's costs were made
+integral, to pick another of several equally cheap pose tours, and so to change every later figure of a
+process that had imported codac first). This module saves the whole floating-point
 environment (fegetenv: x87 control word and SSE MXCSR), imports codac, keeps codac's environment, restores
 the saved one, and offers :func:`codac_rounding`, a context in which codac's environment is active; every
 codac computation of the package runs inside it. Without it codac's intervals are not outward-rounded
