@@ -108,6 +108,24 @@ def test_refit_removes_the_bias_over_ten_seeds(name, clean_over_seeds):
     assert rms(refit) <= 2.0 * rms(rigid_clean)
 
 
+def test_a_drifting_ahrs_yaw_is_found_when_the_rows_have_times():
+    """Rows read 12 s apart, the yaw reading drifting by 20 deg/h (an MTi without magnetometer): the drift
+    ranks first and is fitted within 4 sigma; the same rows without times cannot see it (0 dof)."""
+    d = _rows({})
+    k = d.meas.k
+    rate = np.radians(20.0) / 3600.0
+    times = 12.0 * np.arange(1, k + 1)
+    d.meas.orientation[:, 2] += rate * times
+    blind = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=1, max_effects=1)
+    assert next(c for c in blind.ranking if c.effect == "ahrs_yaw_drift").score_dof == 0
+    d.meas.times = times
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=1)
+    best = diag.ranking[0]
+    assert best.effect == "ahrs_yaw_drift" and diag.selected == ["ahrs_yaw_drift"]
+    assert abs(best.params["rate"] - rate) < 4 * best.params_sigma["rate"]
+    assert best.params["deg_per_hour"] == pytest.approx(20.0, rel=0.25)
+
+
 def test_fitted_parameters_match_the_injected_ones():
     d = _rows({**HIDDEN["cable_elasticity"], **HIDDEN["tension_offset"]})
     f = fit(ROBOT, d.meas, d.sigma, make_effects(["cable_elasticity", "tension_offset"]), d.guess_zeta0,
@@ -139,7 +157,7 @@ def test_no_effect_is_reported_on_an_effect_free_run(clean):
     assert set(doc) >= {"chi2", "dof", "noise", "channels", "ranking", "verdict"}
     assert set(doc["channels"]) == {"tension", "length", "swivel", "orientation"}
     assert all(set(r) >= {"effect", "delta_chi2", "p_value", "params"} for r in doc["ranking"])
-    assert len(doc["ranking"]) == 9
+    assert len(doc["ranking"]) == 10  # the nine of spec/cli.md and ahrs_yaw_drift
     json.dumps(doc, allow_nan=False)
 
 
@@ -187,7 +205,7 @@ def test_real_run_diagnosis_ranks_effects_and_the_refit_lowers_chi2(real_run, tm
     assert code == 0, out.err
     doc = json.loads(out.out)
     assert doc["noise"] == "estimate" and doc["dof"] > 0 and doc["chi2"] > doc["dof"]
-    assert len(doc["ranking"]) == 9 and doc["ranking"][0]["delta_chi2"] > 0
+    assert len(doc["ranking"]) == 10 and doc["ranking"][0]["delta_chi2"] > 0
     assert doc["steps"][-1]["chi2"] < doc["steps"][0]["chi2"]
     assert doc["verdict"]
     pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))

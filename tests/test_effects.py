@@ -67,7 +67,7 @@ def test_each_effect_jacobian_matches_finite_differences(name):
 def test_all_effects_composed_jacobian_matches_finite_differences():
     rng = np.random.default_rng(11)
     model = EffectModel(ROBOT, make_effects(list(BUILTIN)))
-    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 3 + 1 + 8  # pulley_position: 12 - 4 gauge modes
+    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 1 + 3 + 1 + 8  # pulley_position: 12 - 4 gauge modes
     theta = model.initial_params(POSES[1] + 0.01 * rng.standard_normal(6), _values(model, rng))
     _check_fd(model, theta, POSES[:3])
 
@@ -221,3 +221,21 @@ def test_device_accuracy_columns_and_its_prior_pseudo_readings():
     np.testing.assert_allclose(ev.r0[-6:], theta[12:] / sd)
     np.testing.assert_allclose(ev.g0[-6:, 12:], np.diag(1.0 / sd))
     assert not ev.g0[-6:, :12].any()
+
+
+def test_yaw_drift_column_is_the_row_time_and_needs_times():
+    model = EffectModel(ROBOT, make_effects(["ahrs_mounting", "ahrs_yaw_drift"]))
+    theta = model.initial_params(POSES[0], [0.01, -0.005, 2e-4])
+    times = np.array([12.0, 30.0, 47.5, 61.0])
+    with_t = model.predict(POSES, theta, ("orientation",), times)["orientation"]
+    without = model.predict(POSES, theta, ("orientation",))["orientation"]
+    np.testing.assert_allclose(with_t.value[:, 2] - without.value[:, 2], 2e-4 * times, atol=1e-15)
+    tp, tm = theta.copy(), theta.copy()
+    tp[-1] += 1e-7
+    tm[-1] -= 1e-7
+    fd = (model.predict(POSES, tp, ("orientation",), times)["orientation"].value
+          - model.predict(POSES, tm, ("orientation",), times)["orientation"].value) / 2e-7
+    np.testing.assert_allclose(with_t.d_theta[..., -1], fd, atol=1e-7)
+    np.testing.assert_allclose(with_t.d_theta[:, 2, -1], times)
+    assert not without.d_theta[..., -1].any()  # rows without times cannot see a drift
+    assert model.report(theta)["ahrs_yaw_drift"]["deg_per_hour"] == pytest.approx(np.degrees(2e-4) * 3600)

@@ -69,8 +69,9 @@ class Physical:
 @dataclass
 class Context:
     """What a reading effect sees: the robot (robot effects applied), the poses (k, 6), theta (p,), the
-    columns of theta that are its own (``cols``), and the physical quantities at the poses (``at``) and at
-    zeta_0 (``ref``, whose theta derivatives include the zeta_0 columns)."""
+    columns of theta that are its own (``cols``), the physical quantities at the poses (``at``) and at
+    zeta_0 (``ref``, whose theta derivatives include the zeta_0 columns), and the times of the rows (k,),
+    s after the reference sample (None where the readings carry no times)."""
 
     robot: Robot
     poses: np.ndarray
@@ -78,6 +79,7 @@ class Context:
     cols: slice
     at: Physical
     ref: Physical
+    times: np.ndarray | None = None
 
 
 class Effect:
@@ -242,9 +244,10 @@ class EffectModel:
         return robot, ph
 
     def predict(
-        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str]
+        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None
     ) -> dict[str, ChannelPrediction]:
-        """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included."""
+        """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included; ``times`` (k,)
+        s after the reference sample, for the effects that depend on time."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)
         robot, at = self._physical(theta, z)
@@ -267,7 +270,7 @@ class EffectModel:
             (i for i, e in enumerate(self.effects) if e.stage == "reading"), key=lambda i: self.effects[i].order
         )
         for i in readers:
-            ctx = Context(robot, z, theta, self.slices[i], at, ref)
+            ctx = Context(robot, z, theta, self.slices[i], at, ref, times)
             self.effects[i].transform(ctx, np.asarray(theta[self.slices[i]]), out)
         return out
 
@@ -330,7 +333,7 @@ class Projected(Effect):
         p = ctx.theta.shape[0]
         for pr in preds.values():
             pr.d_theta = np.concatenate([pr.d_theta, np.zeros(pr.d_theta.shape[:2] + (q,))], axis=2)
-        inner_ctx = Context(ctx.robot, ctx.poses, ctx.theta, slice(p, p + q), ctx.at, ctx.ref)
+        inner_ctx = Context(ctx.robot, ctx.poses, ctx.theta, slice(p, p + q), ctx.at, ctx.ref, ctx.times)
         self.inner.transform(inner_ctx, self.full_values(ctx.robot, values), preds)
         for pr in preds.values():
             extra = pr.d_theta[..., p:]

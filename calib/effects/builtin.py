@@ -3,7 +3,8 @@
 Reading effects: cable_elasticity (encoders count the unstretched length l0 = L / (1 + tau / EA)),
 length_scale (per winch: length reading = (1 + k_i) * true change of the unstretched length),
 tension_gain and tension_offset (load cell i reads (1 + g_i) tau_i + o_i), ahrs_mounting (the AHRS frame
-is tilted by Rx(roll) Ry(pitch) on the platform: it reads the angles of R(zeta) Rx(roll) Ry(pitch)).
+is tilted by Rx(roll) Ry(pitch) on the platform: it reads the angles of R(zeta) Rx(roll) Ry(pitch)),
+ahrs_yaw_drift (yaw reading + rate * t).
 Robot effects: pulley_radius (common, or per pulley), pulley_position (d_i, 3 per pulley), com_offset
 (3, platform frame), mass_scale (true mass = (1 + s) model mass).
 """
@@ -167,6 +168,32 @@ class AhrsMounting(Effect):
         cols = d_ab.copy()
         cols[:, 2] -= d0ab[0, 2]
         pr.d_theta[..., ctx.cols] = cols
+
+
+class AhrsYawDrift(Effect):
+    """The AHRS yaw drifts at a constant rate: yaw reading = true yaw change + rate * t (rad/s), t the row's
+    time after the reference sample. Without a magnetometer the heading is the integral of a gyro whose bias
+    is never observed; an MTi in VRU mode drifts by up to tens of degrees per hour. Needs the rows' times
+    (runs have them; rows without times leave it unobservable)."""
+
+    name = "ahrs_yaw_drift"
+    order = 41
+    description = "constant drift rate of the AHRS yaw, rad/s"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec("rate", "rad/s", 0.0, -0.01, 0.01, 1e-4)]
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        if "orientation" not in preds or ctx.times is None:
+            return
+        t = np.asarray(ctx.times, float)
+        pr = preds["orientation"]
+        pr.value = pr.value.copy()
+        pr.value[:, 2] += float(values[0]) * t
+        pr.d_theta[:, 2, ctx.cols.start] = t
+
+    def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
+        return {"rate": float(values[0]), "deg_per_hour": math.degrees(float(values[0])) * 3600.0}
 
 
 class PulleyRadius(Effect):
@@ -336,6 +363,7 @@ BUILTIN: dict[str, type[Effect]] = {
         TensionGain,
         PulleyRadius,
         AhrsMounting,
+        AhrsYawDrift,
         ComOffset,
         MassScale,
         PulleyPosition,

@@ -165,6 +165,7 @@ def _rows(
         ref_tau=ref["tau"] if static_ref else np.full(sig["tau"].shape[1], np.nan),
         ref_orientation=ref["ori"][:2],
         samples=np.array(samples),
+        times=sig["t"][np.array(samples)] - sig["t"][int(ref_sample)],
         windows=np.array(spans),
     )
     return meas, int(ref_sample), ref_win, ref, win_of
@@ -287,7 +288,7 @@ def estimate_poses(problem: Problem, theta0: np.ndarray, Z: np.ndarray, free: np
 def _kinematic_only(meas: Measurements) -> Measurements:
     return Measurements(
         np.full_like(meas.tau, np.nan), meas.dl, meas.dsigma, meas.orientation,
-        np.full_like(meas.ref_tau, np.nan), meas.ref_orientation, meas.samples, meas.windows,
+        np.full_like(meas.ref_tau, np.nan), meas.ref_orientation, meas.samples, meas.windows, meas.times,
     )
 
 

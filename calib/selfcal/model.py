@@ -82,9 +82,10 @@ class MeasurementModel:
         return np.asarray(zeta0, dtype=float).copy()
 
     def predict(
-        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str]
+        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None
     ) -> dict[str, ChannelPrediction]:
-        """Predicted readings of ``channels`` at poses (k, 6) for global parameters theta (p,)."""
+        """Predicted readings of ``channels`` at poses (k, 6) for global parameters theta (p,) (the rigid model
+        does not depend on the rows' ``times``)."""
         robot = self.robot
         z = np.asarray(poses, dtype=float)
         k, n, p = z.shape[0], robot.n, theta.shape[0]

@@ -25,7 +25,8 @@ class Measurements:
     tau (k, n) N, NaN rows where tensions are not used (kinematic rows); dl (k, n) m; dsigma (k, n) rad;
     orientation (k, 3): roll, pitch (absolute) and yaw minus the reference yaw, rad.
     ref_tau (n,) and ref_orientation (2,) are the absolute readings at the reference sample (NaN: unused).
-    samples (k,) and windows (k, 2) say where each row comes from in the run (-1 when not applicable).
+    samples (k,) and windows (k, 2) say where each row comes from in the run (-1 when not applicable);
+    times (k,) when each row was read, s after the reference sample (None: unknown).
     """
 
     tau: np.ndarray
@@ -36,6 +37,7 @@ class Measurements:
     ref_orientation: np.ndarray
     samples: np.ndarray | None = None
     windows: np.ndarray | None = None
+    times: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -126,6 +128,10 @@ class Problem:
     def k(self) -> int:
         return self.meas.k
 
+    def _times(self, rows: np.ndarray) -> np.ndarray | None:
+        t = self.meas.times
+        return None if t is None else np.asarray(t, float)[rows]
+
     @property
     def n_residuals(self) -> int:
         """Number of residuals with a non-zero weight."""
@@ -136,7 +142,7 @@ class Problem:
         """Weighted residuals (and Jacobian blocks) at theta (p,) and poses (k, 6)."""
         out = []
         for g in self.groups:
-            pred = self.model.predict(poses[g.idx], theta, g.channels)
+            pred = self.model.predict(poses[g.idx], theta, g.channels, self._times(g.idx))
             val = np.concatenate([pred[c].value for c in g.channels], 1)
             r = g.weight * (val - g.reading)
             if derivatives:
@@ -145,7 +151,7 @@ class Problem:
             else:
                 J = G = None
             out.append((g, r, J, G))
-        pred0 = self.model.predict(theta[None, :6], theta, self.ref_channels)
+        pred0 = self.model.predict(theta[None, :6], theta, self.ref_channels, np.zeros(1))
         val0 = np.concatenate([pred0[c].value[0] for c in self.ref_channels])
         r0 = self.ref_weight * (val0 - self.ref_reading)
         g0 = None
@@ -173,7 +179,7 @@ class Problem:
             if not sel.size:
                 continue
             pos = np.searchsorted(g.idx, rows[sel])
-            pred = self.model.predict(poses[sel], theta, g.channels)
+            pred = self.model.predict(poses[sel], theta, g.channels, self._times(rows[sel]))
             w = g.weight[pos]
             r = w * (np.concatenate([pred[c].value for c in g.channels], 1) - g.reading[pos])
             J = w[..., None] * np.concatenate([pred[c].d_pose for c in g.channels], 1)
