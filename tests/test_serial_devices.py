@@ -345,3 +345,18 @@ def test_loadcell_wrong_channel_count_and_no_answer(pty_pair):
             LoadCellDriver(LoadCellConfig(path, channels=3)).open()
     finally:
         emu.close()
+
+
+def test_emulator_rotations_in_plain_floats_match_the_models():
+    """The emulated MTi composes its rotations in plain floats (speed); they are the model's, both ways."""
+    from sim_backend.xsens_emulator import _euler, _matmul, _rotation
+
+    rng = np.random.default_rng(4)
+    for conv in ("xyz", "zyx"):
+        for ang in rng.uniform(-0.6, 0.6, (20, 3)):
+            R = rotation(ang[None], conv)[0]
+            np.testing.assert_allclose(_rotation(*ang, conv), R, atol=1e-15)
+            M = rotation(rng.uniform(-0.1, 0.1, (1, 3)), "xyz")[0]
+            for out in ("xyz", "zyx"):
+                np.testing.assert_allclose(_euler(_matmul(R.tolist(), M.tolist()), out),
+                                           rotation_to_euler(R @ M, out)[0], atol=1e-12)
