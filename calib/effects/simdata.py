@@ -64,7 +64,7 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
     cell_error, ahrs_bias = np.zeros(n), np.zeros(3)
     if device_biases:  # a stream of its own, so that the noise draws do not depend on this switch
         brng = np.random.default_rng([seed, 406])
-        fs = robot.sensors.load_cell_full_scale * robot.sensors.load_cell_accuracy
+        fs = robot.sensors.load_cell_uncertainty
         cell_error = brng.uniform(-fs, fs, n)
         ahrs_bias[:2] = np.radians(brng.uniform(-XsensNoise.roll_pitch_bias, XsensNoise.roll_pitch_bias, 2))
     gain, offset = config.tension_gain(n), config.tension_offset(n) + cell_error

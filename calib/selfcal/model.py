@@ -81,6 +81,11 @@ class MeasurementModel:
         """The starting global vector for a guess of zeta_0 (effects append their neutral values)."""
         return np.asarray(zeta0, dtype=float).copy()
 
+    def priors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Theta indices, means and standard deviations of the parameters with a Gaussian prior: none here
+        (effects with a prior, e.g. a device's accuracy class, add them)."""
+        return np.zeros(0, dtype=int), np.zeros(0), np.zeros(0)
+
     def predict(
         self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None
     ) -> dict[str, ChannelPrediction]:

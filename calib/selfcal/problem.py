@@ -108,9 +108,7 @@ class Problem:
         self.ref_channels = tuple(ref_chans)
         self.ref_reading = np.concatenate(ref_read)
         self.ref_weight = np.concatenate(ref_w)
-        priors = getattr(model, "priors", None)
-        self.prior_idx, self.prior_mean, self.prior_sd = priors() if priors else (np.zeros(0, int),) + (
-            np.zeros(0),) * 2
+        self.prior_idx, self.prior_mean, self.prior_sd = model.priors()
 
     def _group(self, idx: np.ndarray, chans: tuple[str, ...]) -> Group:
         n = self.model.robot.n
