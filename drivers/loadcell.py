@@ -181,7 +181,7 @@ class LoadCellDriver(LoadCellBase):
         self._port = open_port(self.config.port, self.config.baud, "load-cell amplifier")
         self._reader = PortReader(self._port, self._on_bytes, name=f"loadcell-{self.config.port}",
                                   threaded=not self.config.polled)
-        self._box.reader = None if self._reader.threaded else self._reader
+        self._box.attach(self._reader)
         self._reader.start()
         try:
             self._handshake()
@@ -251,9 +251,7 @@ class LoadCellDriver(LoadCellBase):
 
     # ---- the LoadCellAmplifier interface ----
     def latest(self) -> TensionReading | None:
-        if self._box.reader is not None:
-            self._box.reader.poll()
-        return self._box.latest  # type: ignore[return-value]
+        return self._box.current()  # type: ignore[return-value]
 
     def wait_for(self, device_seq: int, timeout: float) -> TensionReading:
         return self._box.wait(lambda r: r.device_seq >= device_seq, timeout,  # type: ignore[return-value]

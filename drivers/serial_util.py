@@ -60,10 +60,8 @@ class PortReader:
 
     def poll(self, timeout: float = 0.0) -> bool:
         """Polled reader: hand the bytes waiting now (waiting up to ``timeout`` s for some) to ``on_bytes``;
-        whether there were any. A reader thread, if running, does that itself: then this only waits."""
+        whether there were any (always False with a reader thread, which reads by itself)."""
         if self.threaded:
-            if timeout > 0:
-                time.sleep(min(timeout, 0.001))
             return False
         with self._poll_lock:
             if self._stop.is_set():
@@ -105,6 +103,16 @@ class LatestBox:
         self.latest: Reading | None = None
         self.opened_at = time.monotonic()
         self.reader: PortReader | None = None  # set when the port is polled
+
+    def attach(self, reader: PortReader) -> None:
+        """The port's reader: a polled one is polled by :meth:`current` and :meth:`wait`."""
+        self.reader = None if reader.threaded else reader
+
+    def current(self) -> Reading | None:
+        """The latest reading, the port polled first when no reader thread does it."""
+        if self.reader is not None:
+            self.reader.poll()
+        return self.latest
 
     def put(self, reading: Reading) -> None:
         with self.cond:

@@ -76,7 +76,7 @@ class XsensMti(AhrsBase):
         self._port = open_port(self.config.port, self.config.baud, "Xsens MTi")
         self._reader = PortReader(self._port, self._on_bytes, name=f"xsens-{self.config.port}",
                                   threaded=not self.config.polled)
-        self._box.reader = None if self._reader.threaded else self._reader
+        self._box.attach(self._reader)
         self._reader.start()
         try:
             self._configure()
@@ -194,9 +194,7 @@ class XsensMti(AhrsBase):
 
     # ---- the Ahrs interface ----
     def latest(self) -> AhrsReading | None:
-        if self._box.reader is not None:
-            self._box.reader.poll()
-        return self._box.latest  # type: ignore[return-value]
+        return self._box.current()  # type: ignore[return-value]
 
     def wait_for(self, packet_counter: int, timeout: float) -> AhrsReading:
         """Block until a reading with unwrapped packet counter (``seq``) >= ``packet_counter`` arrives."""
