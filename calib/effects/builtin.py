@@ -11,6 +11,7 @@ Robot effects: pulley_radius (common, or per pulley), pulley_position (d_i, 3 pe
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -342,16 +343,13 @@ class DeviceAccuracy(Effect):
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         n = ctx.robot.n
-        cols = np.arange(ctx.cols.start, ctx.cols.stop)
-        if "tension" in preds:
-            pr = preds["tension"]
-            pr.value = pr.value + values[None, :n]
-            pr.d_theta[:, range(n), cols[:n]] = 1.0
+        a = ctx.cols.start
+        TensionOffset.transform(self, dataclasses.replace(ctx, cols=slice(a, a + n)), values[:n], preds)
         if "orientation" in preds:
             pr = preds["orientation"]
             pr.value = pr.value.copy()
             pr.value[:, :2] += values[n:]
-            pr.d_theta[:, [0, 1], cols[n:]] = 1.0
+            pr.d_theta[:, [0, 1], [a + n, a + n + 1]] = 1.0
 
 
 BUILTIN: dict[str, type[Effect]] = {
