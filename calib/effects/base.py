@@ -23,6 +23,7 @@ stages:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -333,7 +334,7 @@ class Projected(Effect):
         p = ctx.theta.shape[0]
         for pr in preds.values():
             pr.d_theta = np.concatenate([pr.d_theta, np.zeros(pr.d_theta.shape[:2] + (q,))], axis=2)
-        inner_ctx = Context(ctx.robot, ctx.poses, ctx.theta, slice(p, p + q), ctx.at, ctx.ref, ctx.times)
+        inner_ctx = dataclasses.replace(ctx, cols=slice(p, p + q))
         self.inner.transform(inner_ctx, self.full_values(ctx.robot, values), preds)
         for pr in preds.values():
             extra = pr.d_theta[..., p:]

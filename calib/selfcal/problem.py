@@ -109,6 +109,9 @@ class Problem:
         self.ref_reading = np.concatenate(ref_read)
         self.ref_weight = np.concatenate(ref_w)
         self.prior_idx, self.prior_mean, self.prior_sd = model.priors()
+        q = self.prior_idx.size
+        self._prior_jac = np.zeros((q, model.n_params))  # d(prior pseudo-readings)/d theta, constant
+        self._prior_jac[np.arange(q), self.prior_idx] = 1.0 / self.prior_sd
 
     def _group(self, idx: np.ndarray, chans: tuple[str, ...]) -> Group:
         n = self.model.robot.n
@@ -160,9 +163,7 @@ class Problem:
         if self.prior_idx.size:
             r0 = np.r_[r0, (theta[self.prior_idx] - self.prior_mean) / self.prior_sd]
             if derivatives:
-                gp = np.zeros((self.prior_idx.size, theta.shape[0]))
-                gp[np.arange(self.prior_idx.size), self.prior_idx] = 1.0 / self.prior_sd
-                g0 = np.vstack([g0, gp])
+                g0 = np.vstack([g0, self._prior_jac])
         return Evaluation(out, r0, g0)
 
     def pose_normal_equations(
