@@ -1,17 +1,19 @@
 """CiA 402 winch servo drive driver over CANopen (canopen.RemoteNode, EDS drivers/od/cia402_winch.eds).
 
 Setup by SDO (outside the cyclic loop): NMT pre-operational, device type check, heartbeat producer time
-0x1017, PDO mapping (TPDO1 = position actual 0x6064 + velocity actual 0x606C, TPDO2 = torque actual 0x6077
-+ statusword 0x6041, both transmission type 1 = every SYNC; RPDO1 = controlword 0x6040 + target torque
-0x6071 + target velocity 0x60FF, synchronous), mode of operation 0x6060 = 10 (cyclic synchronous torque),
-NMT start. The CiA 402 state machine is driven by SDO writes of the controlword (and the RPDO carries the
-same controlword so that a later RPDO never undoes it). Feedback: the TPDOs answering one SYNC are assembled
-into one :class:`WinchReading` stamped with that SYNC's counter (from the shared :class:`SyncProducer`).
+0x1017, PDO mapping (TPDO1 = position actual 0x6064 + torque actual 0x6077 + statusword 0x6041, one 8-byte
+frame at every SYNC, transmission type 1; TPDO2 = velocity actual 0x606C at every n-th SYNC, type n; RPDO1 =
+controlword 0x6040 + target torque 0x6071 + target velocity 0x60FF, synchronous), mode of operation 0x6060 =
+10 (cyclic synchronous torque), NMT start. The CiA 402 state machine is driven by SDO writes of the
+controlword (and the RPDO carries the same controlword so that a later RPDO never undoes it). Feedback: the
+TPDOs answering one SYNC are assembled into one :class:`WinchReading` stamped with that SYNC's counter (from
+the shared :class:`SyncProducer`); the frames are decoded by COB-ID with one struct call each.
 Faults: EMCY messages, the statusword fault bit, a lost heartbeat.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 import threading
@@ -90,8 +92,12 @@ class CanopenNodeDriver:
         self.heartbeat: HeartbeatMonitor | None = None
         self.emcy_faults: list[str] = []
         self._cond = threading.Condition()
-        self._parts: dict[int, tuple[int, bytes]] = {}  # cob_id -> (sync count, data) of the pending SYNC
-        self._decoders: dict[int, tuple[struct.Struct, list[int]]] = {}  # cob_id -> struct, OD indices
+        self._parts: dict[int, tuple] = {}  # cob_id -> decoded values, TPDOs of the pending SYNC
+        self._parts_sync = -1  # the SYNC they answer
+        self._decoders: dict[int, tuple[struct.Struct, tuple[int, ...], int]] = {}  # cob_id -> struct, indices, every
+        self._cyclic = 0  # TPDOs sent at every SYNC
+        self._slow: dict[int, int] = {}  # latest values of the TPDOs sent every n-th SYNC, by OD index
+        self.malformed = 0  # TPDO frames shorter than their mapping
         self._latest = None
         self._seq = 0
         self.frames = 0
@@ -132,22 +138,29 @@ class CanopenNodeDriver:
         self.heartbeat = HeartbeatMonitor(node, self.heartbeat_period, self.clock, self.heartbeat_factor)
         self.sdo_write(0x1017, int(round(self.heartbeat_period * 1000)))
 
-    def _map_tpdo(self, number: int, entries: list[tuple[int, int]]) -> None:
-        """TPDO ``number`` (1-based) carries ``entries`` [(index, bits)], sent at every SYNC."""
+    def _map_tpdo(self, number: int, entries: list[tuple[int, int]], every: int = 1) -> None:
+        """TPDO ``number`` (1-based) carries ``entries`` [(index, bits)], sent at every ``every``-th SYNC (CiA 301
+        transmission type 1..240). Its frames are decoded here by COB-ID (see :meth:`_on_frame`)."""
+        if not 1 <= every <= 240:
+            raise ValueError(f"{self.name}: TPDO{number} transmission type must be 1..240 SYNCs, got {every}")
         pdo = self.node.tpdo[number]
         pdo.clear()
         for index, bits in entries:
             pdo.add_variable(index, 0, bits)
         pdo.cob_id = 0x180 + 0x100 * (number - 1) + self.node_id
-        pdo.trans_type = 1
+        pdo.trans_type = every
         pdo.enabled = True
         try:
             pdo.save()
         except (SdoCommunicationError, SdoAbortedError) as exc:
             raise self._sdo_fail(f"mapping TPDO{number}", exc) from exc
+        # canopen's PdoMap subscribed itself to decode into its variables; this driver decodes the frame in one
+        # struct call instead (a PDO arrives every few milliseconds for every node).
+        self.network.unsubscribe(pdo.cob_id, pdo.on_message)
         fmt = "<" + "".join(_code(self.node.object_dictionary[i].data_type) for i, _ in entries)
-        self._decoders[pdo.cob_id] = (struct.Struct(fmt), [i for i, _ in entries])
-        pdo.add_callback(self._on_tpdo)
+        self._decoders[pdo.cob_id] = (struct.Struct(fmt), tuple(i for i, _ in entries), every)
+        self._cyclic = sum(1 for _, _, n in self._decoders.values() if n == 1)
+        self.network.subscribe(pdo.cob_id, self._on_frame)
 
     def _disable_pdo(self, com_index: int, cob_base: int, number: int) -> None:
         if com_index in self.node.object_dictionary:
@@ -169,6 +182,12 @@ class CanopenNodeDriver:
             node.nmt.state = "PRE-OPERATIONAL"
         except Exception:  # the bus may already be gone
             pass
+        for cob_id in self._decoders:
+            try:
+                self.network.unsubscribe(cob_id, self._on_frame)
+            except (KeyError, ValueError):
+                pass
+        self._decoders.clear()
         if node.id in self.network:
             del self.network[node.id]
 
@@ -181,28 +200,47 @@ class CanopenNodeDriver:
         else:
             self.emcy_faults.clear()
 
-    def _on_tpdo(self, pdo_map) -> None:
+    def _on_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """One TPDO frame. The TPDOs sent at every SYNC (transmission type 1) make one reading when all of them
+        answered the same SYNC; a TPDO sent every n-th SYNC only refreshes the values it carries, which every
+        later reading includes."""
+        st, indices, every = self._decoders[can_id]
+        if len(data) < st.size:
+            self.malformed += 1
+            return
+        values = st.unpack_from(data)
         count = self.sync.count
-        cob_id = pdo_map.cob_id
         with self._cond:
             self.frames += 1
-            if self._parts and next(iter(self._parts.values()))[0] != count:
-                self.incomplete += 1
-                self._parts.clear()
-            self._parts[cob_id] = (count, bytes(pdo_map.data))
-            if len(self._parts) < len(self._decoders):
+            if every != 1:
+                self._slow.update(zip(indices, values, strict=True))
+                latest = self._latest
+                if latest is not None and latest.sync_count == count:  # it followed the TPDOs of its SYNC
+                    self._latest = self._refresh(latest, self._slow)
+                    self._cond.notify_all()
                 return
-            values: dict[int, int] = {}
-            for cid, (_, data) in self._parts.items():
-                st, indices = self._decoders[cid]
-                values.update(zip(indices, st.unpack_from(data), strict=True))
-            self._parts.clear()
+            parts = self._parts
+            if parts and self._parts_sync != count:
+                self.incomplete += 1
+                parts.clear()
+            self._parts_sync = count
+            parts[can_id] = values
+            if len(parts) < self._cyclic:
+                return
+            merged = dict(self._slow)
+            for cid, vals in parts.items():
+                merged.update(zip(self._decoders[cid][1], vals, strict=True))
+            parts.clear()
             self._seq += 1
-            self._latest = self._make_reading(self.clock(), self._seq, count, values)
+            self._latest = self._make_reading(self.clock(), self._seq, count, merged)
             self._cond.notify_all()
 
     def _make_reading(self, t: float, seq: int, sync_count: int, values: dict[int, int]):
         raise NotImplementedError
+
+    def _refresh(self, reading, slow: dict[int, int]):
+        """``reading`` with the values of the TPDOs sent every n-th SYNC that arrived after it for its SYNC."""
+        return reading
 
     def latest(self):
         """The last complete reading (all TPDOs of one SYNC), or None."""
@@ -267,7 +305,9 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
 
     ``length_per_motor_rev`` (m of cable per motor revolution, the robot description's
     ``sensors.length_per_motor_rev[i]``) turns motor counts into cable-length change; the motor encoder
-    has ``counts_per_rev`` increments per revolution (20 bits).
+    has ``counts_per_rev`` increments per revolution (20 bits). The velocity actual comes every
+    ``velocity_every``-th SYNC (10 Hz at a 200 Hz loop by default: the loop does not use it, the status and
+    checks do); a reading has NaN velocity until the first one.
     """
 
     profile = 402
@@ -276,9 +316,12 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
     def __init__(self, network: canopen.Network, node_id: int, sync: SyncProducer, length_per_motor_rev: float,
                  name: str | None = None, clock: Callable[[], float] = time.monotonic,
                  heartbeat_period: float = 0.1, counts_per_rev: int = 1 << 20, mode: int = MODE_CST,
-                 state_timeout: float = 1.0, eds: str | Path | None = None):
+                 state_timeout: float = 1.0, eds: str | Path | None = None, velocity_every: int = 20):
         super().__init__(network, node_id, sync, name or f"winch drive {node_id}", clock, heartbeat_period,
                          eds=eds)
+        if not 1 <= int(velocity_every) <= 240:
+            raise ValueError(f"{self.name}: velocity TPDO transmission type must be 1..240 SYNCs, got {velocity_every}")
+        self.velocity_every = int(velocity_every)
         self.length_per_motor_rev = float(length_per_motor_rev)
         self.counts_per_rev = int(counts_per_rev)
         self.mode = mode
@@ -307,8 +350,8 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
             if revs and incr // revs != self.counts_per_rev:
                 raise DeviceError(f"{self.name} (CAN node {self.node_id}) reports {incr // revs} encoder "
                                   f"increments per revolution (0x608F), expected {self.counts_per_rev}")
-            self._map_tpdo(1, [(0x6064, 32), (0x606C, 32)])
-            self._map_tpdo(2, [(0x6077, 16), (0x6041, 16)])
+            self._map_tpdo(1, [(0x6064, 32), (0x6077, 16), (0x6041, 16)])
+            self._map_tpdo(2, [(0x606C, 32)], every=self.velocity_every)
             for k in (3, 4):
                 self._disable_pdo(0x1800 + k - 1, 0x180, k)
             rpdo = self.node.rpdo[1]
@@ -456,12 +499,17 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
         counts = self._unwrapped
         return WinchReading(
             t=t, seq=seq, position_counts=counts,
-            velocity=values[0x606C] * 2 * math.pi / self.counts_per_rev,
+            velocity=values[0x606C] * 2 * math.pi / self.counts_per_rev if 0x606C in values else math.nan,
             torque=values[0x6077] / 1000.0 * self.rated_torque,
             statusword=values[0x6041],
             delta_length=counts / self.counts_per_rev * self.length_per_motor_rev,
             sync_count=sync_count,
         )
+
+    def _refresh(self, reading, slow):
+        if 0x606C not in slow:
+            return reading
+        return dataclasses.replace(reading, velocity=slow[0x606C] * 2 * math.pi / self.counts_per_rev)
 
     # -- state ------------------------------------------------------------------------------------------
     @property

@@ -30,7 +30,7 @@ class WinchReading(Reading):
     """One SYNC cycle of a winch drive."""
 
     position_counts: int  # motor encoder, counts since power-on (signed, unwrapped)
-    velocity: float  # motor velocity, rad/s
+    velocity: float  # motor velocity, rad/s (its TPDO may come less often: the last one received; NaN before)
     torque: float  # motor torque actual, N m
     statusword: int
     delta_length: float  # cable-length change since power-on, m (counts x transmission ratio)

@@ -44,6 +44,10 @@ class CanEncoderEmulator(SimulatedNode):
         """0x6004: counts in [0, total measuring range)."""
         return (self.raw_counts() + self._preset_offset) % self.total_range
 
+    def live_getter(self, index: int, subindex: int):
+        """0x6004, the position sent at SYNC."""
+        return self.position if index == 0x6004 else None
+
     def process_value(self, index: int, subindex: int):
         if index == 0x6004:
             return self.position()

@@ -187,7 +187,9 @@ def test_configuration_by_sdo(rig):
     rig.tick()  # the NMT start frame precedes this SYNC on the bus
     # the mapping the driver wrote by SDO is what the emulated node now transmits
     assert emu.nmt_state == "OPERATIONAL"
-    assert emu.tpdo_layout == [(0x181, "<ii"), (0x281, "<hH")]
+    # position, torque and statusword in one frame at every SYNC; the velocity every 20th SYNC
+    assert emu.tpdo_layout == [(0x181, "<ihH"), (0x281, "<i")]
+    assert [emu.node.tpdo[k].trans_type for k in (1, 2)] == [1, 20]
     assert emu.rpdo_layout == [(0x201, [0x6040, 0x6071, 0x60FF])]
     assert emu.heartbeat_period == pytest.approx(0.1)
     assert emu.mode == 10
@@ -316,14 +318,31 @@ def test_frame_loss_leaves_incomplete_syncs(rig):
     rig.tick(wait=False)
     rig.ticks(3)  # frames flow again
     assert drv.latest().sync_count == rig.sync.count
-    assert rig.drives[0].frames_lost == 6
+    assert rig.drives[0].frames_lost == 3  # one TPDO1 per SYNC (no velocity TPDO2 due in SYNCs 7-9)
+    assert drv.incomplete == 0 and drv.malformed == 0
+
+
+def test_velocity_comes_every_nth_sync_and_readings_keep_the_last_one(rig):
+    drv = rig.winch(velocity_every=4)
+    drv.set_mode(MODE_CSV)
+    drv.enable()
+    drv.set_velocity(1.0)  # rad/s
+    seen = []
+    for _ in range(12):
+        rig.tick()
+        seen.append(drv.latest().velocity)
+    assert math.isnan(seen[0])  # SYNCs 1-3 carry no velocity yet
+    assert [k for k in range(1, 12) if seen[k] != seen[k - 1] and not math.isnan(seen[k])] == [3, 7, 11]
+    assert rig.drives[0].node.tpdo[2].trans_type == 4
+    with pytest.raises(ValueError, match="transmission type must be 1..240 SYNCs, got 300"):
+        CanopenWinchDrive(rig.master, 2, rig.sync, LPR, velocity_every=300)
 
 
 def test_quick_stop_holds_and_reenable(rig):
-    drv = rig.winch()
+    drv = rig.winch(velocity_every=2)
     drv.set_torque(0.6)
     drv.enable()
-    rig.ticks(10)  # the motor is accelerating towards 0.3 rad
+    rig.ticks(10)  # the motor is accelerating towards 0.3 rad; its velocity came with SYNC 10
     assert abs(drv.latest().velocity) > 0.5
     drv.quick_stop()
     assert drv.state() == "quick stop active"
