@@ -3,6 +3,7 @@ by the caller in lockstep), and the book-keeping of the latest reading (waiters,
 
 from __future__ import annotations
 
+import os
 import select
 import threading
 import time
@@ -35,6 +36,14 @@ class PortReader:
         self._stop = threading.Event()
         self._poll_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._fd: int | None = None  # the descriptor read directly by a polled reader (POSIX, non-blocking)
+        if not threaded:
+            try:
+                fd = port.fileno()
+                if not os.get_blocking(fd):
+                    self._fd = fd
+            except (AttributeError, OSError, ValueError, serial.SerialException):
+                self._fd = None
 
     def start(self) -> None:
         if self.threaded:
@@ -67,11 +76,10 @@ class PortReader:
             if self._stop.is_set():
                 return False
             try:
-                n = self.port.in_waiting
-                if not n and timeout > 0:
+                data = self._read_now()
+                if not data and timeout > 0:
                     select.select([self.port.fileno()], [], [], timeout)
-                    n = self.port.in_waiting
-                data = self.port.read(n) if n else b""
+                    data = self._read_now()
             except (serial.SerialException, OSError, TypeError, ValueError) as exc:
                 self.error = f"serial port {self.port.port} failed while reading ({exc})"
                 if timeout > 0:
@@ -80,6 +88,19 @@ class PortReader:
             if data:
                 self.on_bytes(data, time.monotonic())
             return bool(data)
+
+    def _read_now(self) -> bytes:
+        """What the port holds now, without waiting. pyserial keeps a POSIX port's descriptor non-blocking
+        and its ``read`` asks select() first; one read() of the descriptor does the same in one system call
+        (the polled reader runs at every control tick). Other platforms go through pyserial."""
+        fd = self._fd
+        if fd is None:
+            n = self.port.in_waiting
+            return self.port.read(n) if n else b""
+        try:
+            return os.read(fd, 4096)
+        except BlockingIOError:
+            return b""
 
     def until(self, done: Callable[[], bool], timeout: float) -> bool:
         """Polled reader: poll until ``done()`` (True) or ``timeout`` s have passed (False)."""
