@@ -156,6 +156,13 @@ class Rig:
         self._last_fresh: dict[str, float] = {}
         self._link_errors0: dict[str, int] = {}
         self.closer = None  # set by whoever opened the devices
+        self._drive_names = [self.drive_name(i) for i in range(self.n)]
+        self._encoder_names = [self.encoder_name(i) for i in range(len(self.encoders))]
+        self._devices = [*zip(self._drive_names, self.drives, strict=True),
+                         *zip(self._encoder_names, self.encoders, strict=True),
+                         ("load cells", self.loadcells), ("AHRS", self.ahrs)]
+        self._periods = {name: self.period for name, _ in self._devices}
+        self._periods["AHRS"] = max(self.ahrs_period, self.period)
 
     def close(self) -> None:
         """Release every device (safe to call twice)."""
@@ -172,16 +179,12 @@ class Rig:
 
     @property
     def devices(self) -> list[tuple[str, object]]:
-        out = [(self.drive_name(i), d) for i, d in enumerate(self.drives)]
-        out += [(self.encoder_name(i), e) for i, e in enumerate(self.encoders)]
-        out += [("load cells", self.loadcells), ("AHRS", self.ahrs)]
-        return out
+        """(name, device) of every device, drives and encoders in cable order (a new list)."""
+        return list(self._devices)
 
     def periods(self) -> dict[str, float]:
-        """Nominal period of each device's readings, s."""
-        p = {name: self.period for name, _ in self.devices}
-        p["AHRS"] = max(self.ahrs_period, self.period)
-        return p
+        """Nominal period of each device's readings, s (a new dict)."""
+        return dict(self._periods)
 
     def statuses(self) -> list[str]:
         return [f"{name}: {dev.status()}" for name, dev in self.devices]
@@ -189,7 +192,7 @@ class Rig:
     def faults(self) -> dict[str, str | None]:
         """Pending fault of every device (None when fine)."""
         out = {}
-        for name, dev in self.devices:
+        for name, dev in self._devices:
             try:
                 out[name] = dev.fault()
             except Exception as exc:  # a driver that cannot even say: that is a fault too
@@ -212,8 +215,8 @@ class Rig:
 
     def ages(self, t: float) -> dict[str, tuple[float, float]]:
         """Seconds of loop time since each device's last new reading, with its nominal period."""
-        per = self.periods()
-        return {name: (t - self._last_fresh.get(name, t), per[name]) for name, _ in self.devices}
+        per, fresh = self._periods, self._last_fresh
+        return {name: (t - fresh.get(name, t), per[name]) for name, _ in self._devices}
 
     def command(self, torques: np.ndarray) -> None:
         """Cyclic torque targets (n,) N m, sent before the next SYNC (errors ignored during a safe stop)."""
@@ -258,7 +261,7 @@ class Rig:
         dl = np.full(n, np.nan) if prev is None else prev.dl.copy()
         dsigma = np.full(n, np.nan) if prev is None else prev.dsigma.copy()
         for i, d in enumerate(self.drives):
-            name = self.drive_name(i)
+            name = self._drive_names[i]
             r = self._wait_sync(name, d, count, left())
             if r is not None and (not self.lockstep or r.sync_count >= count) and (
                     prev is None or r.seq != self._seq.get(name)):
@@ -268,7 +271,7 @@ class Rig:
             else:
                 missing.append(name)
         for i, e in enumerate(self.encoders):
-            name = self.encoder_name(i)
+            name = self._encoder_names[i]
             r = self._wait_sync(name, e, count, left())
             if r is not None and (not self.lockstep or r.sync_count >= count) and (
                     prev is None or r.seq != self._seq.get(name)):

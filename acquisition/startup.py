@@ -159,8 +159,8 @@ class StartupRoutine:
         c0 = time.perf_counter()
         self._last = snap
         self._ref = np.asarray(tau_ref, dtype=float)
-        self._supervise(snap)
-        torque = self.controller.update(self._ref, np.nan_to_num(snap.tau, nan=0.0), self.period)
+        self._supervise(snap)  # raises SafeStop unless every load cell gives a finite value
+        torque = self.controller.update(self._ref, snap.tau, self.period)
         self.rig.command(torque)
         self._compute.append(time.perf_counter() - c0)
         state = None

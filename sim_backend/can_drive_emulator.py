@@ -303,7 +303,8 @@ class CanDriveEmulator(SimulatedNode):
         self.error_code = 0
         self.error_register = 0
         self.torque_command = 0.0  # N m sent to the plant
-        self._rpdos: list[tuple[object, struct.Struct, list]] = []
+        self._rpdos: list[tuple[int, struct.Struct, list]] = []  # (cob_id, struct, mapped (index, sub))
+        self._rx: dict[int, bytes | None] = {}  # cob_id -> RPDO data received since the last SYNC
         self._v_integral = 0.0
         self._hold: float | None = None  # torque at quick stop (plant without brake)
         self._scheduled: list[tuple[float, int]] = []
@@ -390,20 +391,40 @@ class CanDriveEmulator(SimulatedNode):
                 self.quick_stop_option = int(value)
 
     def on_rpdo_config(self) -> None:
+        """Take the RPDO maps the master wrote. Each RPDO frame is kept raw by COB-ID (:meth:`_on_rpdo`) and
+        decoded once at the next SYNC, instead of through canopen's PdoMap at every frame."""
+        self._drop_rpdo_subscriptions()
         self._rpdos = []
-        self.node.rpdo.read()  # subscribes the enabled RPDOs on the network
+        self.node.rpdo.read()  # subscribes the enabled RPDO maps on the network; replaced by _on_rpdo below
         for pdo_map in self.node.rpdo.map.values():
             if not pdo_map.enabled or not pdo_map.map:
                 continue
             packed = pdo_struct(pdo_map)
             if packed is not None:
-                pdo_map.is_received = False
-                self._rpdos.append((pdo_map, packed[0], packed[1]))
+                self.network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)
+                self._rx[pdo_map.cob_id] = None
+                self.network.subscribe(pdo_map.cob_id, self._on_rpdo)
+                self._rpdos.append((pdo_map.cob_id, packed[0], packed[1]))
+
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._rx[can_id] = bytes(data)  # the last one before the SYNC wins (CiA 301 synchronous RPDO)
+
+    def _drop_rpdo_subscriptions(self) -> None:
+        for cob_id in self._rx:
+            try:
+                self.network.unsubscribe(cob_id, self._on_rpdo)
+            except (KeyError, ValueError):
+                pass
+        self._rx = {}
+
+    def close(self) -> None:
+        self._drop_rpdo_subscriptions()
+        super().close()
 
     @property
     def rpdo_layout(self) -> list[tuple[int, list[int]]]:
         """(COB-ID, mapped object indices) of each RPDO the drive applies at SYNC."""
-        return [(m.cob_id, [i for i, _ in keys]) for m, _, keys in self._rpdos]
+        return [(cob_id, [i for i, _ in keys]) for cob_id, _, keys in self._rpdos]
 
     # -- state machine -------------------------------------------------------------------------------
     @property
@@ -515,11 +536,12 @@ class CanDriveEmulator(SimulatedNode):
         with self.lock:
             self._check_scheduled()
             if self.node.nmt.state == "OPERATIONAL":
-                for pdo_map, st, keys in self._rpdos:
-                    if not pdo_map.is_received:
+                rx = self._rx
+                for cob_id, st, keys in self._rpdos:
+                    data = rx.get(cob_id)
+                    if data is None:
                         continue
-                    pdo_map.is_received = False
-                    data = bytes(pdo_map.data)
+                    rx[cob_id] = None
                     if len(data) < st.size:
                         continue
                     for (index, _), value in zip(keys, st.unpack_from(data), strict=True):
