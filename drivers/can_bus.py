@@ -115,7 +115,9 @@ class Network(canopen.Network):
     returns: an SDO response waits for the SDO client, the TPDOs that answer a SYNC are decoded, and no
     thread hand-off happens on the way (each costs tens of microseconds). The frames are python-can's as
     ever; only who reads the queues changes. A frame from a non-pumped sender waits for the next pump
-    (:meth:`pump`, which the drivers' waits call).
+    (:meth:`pump`, which the drivers' waits call). A PDO (COB-IDs 0x180-0x57F) does not pump by itself: nobody
+    answers one, and the next frame that pumps (the SYNC the synchronous RPDOs are meant for, an SDO request)
+    delivers it first, in the order sent; the waits pump too.
     """
 
     def __init__(self, bus: can.BusABC | None = None):
@@ -161,7 +163,8 @@ class Network(canopen.Network):
         lane = self._lane
         if lane is not None:
             lane.sent += 1
-            lane.pump()
+            if not 0x180 <= can_id < 0x580:  # a PDO waits for the next frame that pumps (see the class)
+                lane.pump()
         else:
             self.check()
 
