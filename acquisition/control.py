@@ -161,7 +161,8 @@ class Rig:
         self._devices = [*zip(self._drive_names, self.drives, strict=True),
                          *zip(self._encoder_names, self.encoders, strict=True),
                          ("load cells", self.loadcells), ("AHRS", self.ahrs)]
-        self._periods = {name: self.period for name, _ in self._devices}
+        # a CAN node may answer every n-th SYNC only (its ``every``, with ``due(count)``): its period is n ticks
+        self._periods = {name: self.period * getattr(dev, "every", 1) for name, dev in self._devices}
         self._periods["AHRS"] = max(self.ahrs_period, self.period)
 
     def close(self) -> None:
@@ -261,6 +262,8 @@ class Rig:
         dl = np.full(n, np.nan) if prev is None else prev.dl.copy()
         dsigma = np.full(n, np.nan) if prev is None else prev.dsigma.copy()
         for i, d in enumerate(self.drives):
+            if not _due(d, count):  # not answering this SYNC: its last values stand, nothing is missing
+                continue
             name = self._drive_names[i]
             r = self._wait_sync(name, d, count, left())
             if r is not None and (not self.lockstep or r.sync_count >= count) and (
@@ -271,6 +274,8 @@ class Rig:
             else:
                 missing.append(name)
         for i, e in enumerate(self.encoders):
+            if not _due(e, count):
+                continue
             name = self._encoder_names[i]
             r = self._wait_sync(name, e, count, left())
             if r is not None and (not self.lockstep or r.sync_count >= count) and (
@@ -310,6 +315,12 @@ class Rig:
                         tuple(missing))
         self._last = snap
         return snap
+
+
+def _due(dev, count: int) -> bool:
+    """Whether a CAN device answers SYNC ``count`` (devices without a schedule answer every SYNC)."""
+    due = getattr(dev, "due", None)
+    return True if due is None or getattr(dev, "every", 1) == 1 else due(count)
 
 
 def _wait_ahrs(ahrs, stf: int, timeout: float):

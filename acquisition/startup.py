@@ -427,8 +427,26 @@ class StartupRoutine:
 # ---- connecting the devices -----------------------------------------------------------------------------
 
 
-def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, timeout: float = 0.5) -> Rig:
+def feedback_every(rate: float, log_every: int, overflow: int = 240) -> tuple[int, int]:
+    """How often (in SYNCs) the winch drives and the swivel encoders send their readings: (drives, encoders).
+
+    The loop closes on the load cells at every tick; the drives' position, torque and statusword serve the
+    log, the equilibrium detector (at the log ticks) and the fault checks (EMCY comes at once anyway), the
+    swivel angles only the log. So the encoders send at every log tick and the drives as often as that
+    allows at 50 Hz or more; both periods divide the log period and the SYNC counter overflow, and the
+    first SYNC after connecting (counter 1) carries them all (the log ticks are those SYNCs too).
+    Halves the frames per tick at 200 Hz (13.6 -> 6.4).
+    """
+    base = math.gcd(int(log_every), int(overflow)) if overflow else 1
+    encoders = base
+    drives = max(d for d in range(1, base + 1) if base % d == 0 and rate / d >= 50.0)
+    return drives, encoders
+
+
+def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, timeout: float = 0.5,
+            every: tuple[int, int] = (1, 1)) -> Rig:
     """Open and check every device of a :class:`drivers.config.DeviceConfig`; a :class:`Rig` over them.
+    ``every``: the drives and the encoders send their readings every n-th SYNC (see :func:`feedback_every`).
 
     The CAN drivers take their time stamps (heartbeat supervision) from the loop's clock; in lockstep the
     serial drivers' own wall-time staleness rule is switched off (the supervisor judges staleness on the
@@ -456,10 +474,11 @@ def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, 
         network = open_network(bus)
         sync = SyncProducer(network, devices.can.sync_overflow)
         hb = devices.can.heartbeat_period
-        drives = [CanopenWinchDrive(network, nc.node_id, sync, lpr[i], name=nc.name, clock=now, heartbeat_period=hb)
+        drives = [CanopenWinchDrive(network, nc.node_id, sync, lpr[i], name=nc.name, clock=now, heartbeat_period=hb,
+                                    every=every[0])
                   for i, nc in enumerate(devices.drives)]
         encoders = [CanopenSwivelEncoder(network, nc.node_id, sync, name=nc.name, clock=now, heartbeat_period=hb,
-                                         counts_per_rev=robot.sensors.swivel_counts_per_rev)
+                                         counts_per_rev=robot.sensors.swivel_counts_per_rev, every=every[1])
                     for nc in devices.encoders]
         loadcells = LoadCellDriver(LoadCellConfig(devices.loadcells.port, devices.loadcells.baud, channels=robot.n,
                                                   rate_hz=1.0 / period, stale_periods=stale, polled=lockstep))

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition.startup import feedback_every
 from calib.equilibrium import direct_statics
 from calib.robot import load_robot
 from sim_backend.backend import SimBackend
@@ -79,8 +80,9 @@ def bench_backend_tick(robot, period: float, ticks: int = 2000) -> tuple[float, 
 
 def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict]:
     """A simple force loop through the real drivers in lockstep, set up as the startup's connect() does (pumped
-    CAN network, polled serial ports): torque targets -> SYNC -> wait for every node's TPDOs and the load-cell
-    line of that tick. Wall µs per tick and the backend's share (the SYNC handler runs inside the SYNC send)."""
+    CAN network, polled serial ports, the drives and encoders answering every n-th SYNC as feedback_every
+    says): torque targets -> SYNC -> wait for the TPDOs due and the load-cell line of that tick. Wall µs per
+    tick and the backend's share (the SYNC handler runs inside the SYNC send)."""
     from drivers.can_bus import SyncProducer, open_bus_from_config, open_network
     from drivers.canopen_drive import CanopenWinchDrive
     from drivers.loadcell import LoadCellConfig, LoadCellDriver
@@ -95,8 +97,10 @@ def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict
         net = open_network(bus)
         sync = SyncProducer(net)
         clock = lambda: sim.time  # noqa: E731
-        drives = [CanopenWinchDrive(net, n.node_id, sync, lpr[i], clock=clock) for i, n in enumerate(cfg.drives)]
-        encs = [CanopenSwivelEncoder(net, n.node_id, sync, clock=clock) for n in cfg.encoders]
+        every = feedback_every(1.0 / period, int(round(0.1 / period)))  # the routine's feedback rates
+        drives = [CanopenWinchDrive(net, n.node_id, sync, lpr[i], clock=clock, every=every[0])
+                  for i, n in enumerate(cfg.drives)]
+        encs = [CanopenSwivelEncoder(net, n.node_id, sync, clock=clock, every=every[1]) for n in cfg.encoders]
         cells = LoadCellDriver(LoadCellConfig(cfg.loadcells.port, rate_hz=1 / period, stale_periods=1e9, polled=True))
         ahrs = XsensMti(XsensConfig(cfg.ahrs.port, stale_periods=1e9, polled=True))
         devs = [*drives, *encs, cells, ahrs]
@@ -123,10 +127,9 @@ def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict
                 for d, ui in zip(drives, u, strict=True):
                     d.set_torque(float(ui))
                 c = sync.send_sync()
-                for d in drives:
-                    d.wait_for_sync(c, 2.0)
-                for e in encs:
-                    e.wait_for_sync(c, 2.0)
+                for d in drives + encs:
+                    if d.due(c):
+                        d.wait_for_sync(c, 2.0)
                 lc = cells.wait_for(c - 1, 2.0)
             wall = time.perf_counter() - t0
         finally:

@@ -64,6 +64,18 @@ def cia402_state(statusword: int) -> str:
     return f"unknown (statusword 0x{statusword:04X})"
 
 
+def check_every(every: int, sync: SyncProducer, name: str, what: str) -> int:
+    """A TPDO transmission type n (every n-th SYNC), checked: 1..240, and with n > 1 a SYNC counter whose
+    overflow n divides (the master then knows from the counter which SYNCs carry the TPDO)."""
+    n = int(every)
+    if not 1 <= n <= 240:
+        raise ValueError(f"{name}: {what} TPDO transmission type must be 1..240 SYNCs, got {every}")
+    if n > 1 and (not sync.overflow or sync.overflow % n):
+        raise ValueError(f"{name}: {what} every {n} SYNCs needs a SYNC counter overflow that {n} divides, "
+                         f"not {sync.overflow}")
+    return n
+
+
 def wrap_delta(new: int, old: int, bits: int) -> int:
     """Signed difference new - old of two counters that wrap at 2**bits."""
     half = 1 << (bits - 1)
@@ -79,8 +91,10 @@ class CanopenNodeDriver:
 
     def __init__(self, network: canopen.Network, node_id: int, sync: SyncProducer, name: str,
                  clock: Callable[[], float] = time.monotonic, heartbeat_period: float = 0.1,
-                 heartbeat_factor: float = 2.5, eds: str | Path | None = None):
+                 heartbeat_factor: float = 2.5, eds: str | Path | None = None, every: int = 1):
         self.network = network
+        self.every = check_every(every, sync, name or f"CAN node {node_id}", "feedback")
+        self._first_due: int | None = None  # the first SYNC count at which the readings come, once started
         self.node_id = int(node_id)
         self.sync = sync
         self.name = name
@@ -95,7 +109,7 @@ class CanopenNodeDriver:
         self._parts: dict[int, tuple] = {}  # cob_id -> decoded values, TPDOs of the pending SYNC
         self._parts_sync = -1  # the SYNC they answer
         self._decoders: dict[int, tuple[struct.Struct, tuple[int, ...], int]] = {}  # cob_id -> struct, indices, every
-        self._cyclic = 0  # TPDOs sent at every SYNC
+        self._cyclic = 0  # TPDOs that make a reading: those sent at the node's feedback SYNCs (every ``every``-th)
         self._slow: dict[int, int] = {}  # latest values of the TPDOs sent every n-th SYNC, by OD index
         self.malformed = 0  # TPDO frames shorter than their mapping
         self._latest = None
@@ -149,6 +163,12 @@ class CanopenNodeDriver:
             pdo.add_variable(index, 0, bits)
         pdo.cob_id = 0x180 + 0x100 * (number - 1) + self.node_id
         pdo.trans_type = every
+        # Every n-th SYNC: from the SYNC whose counter is 1 (CiA 301 SYNC start value, 0x18xx:06), so that the
+        # master knows which SYNCs carry it (n divides the counter overflow, see check_every).
+        if every > 1 and 6 not in pdo.com_record.od:
+            raise DeviceError(f"{self.name} (CAN node {self.node_id}): its EDS has no SYNC start value 0x"
+                              f"{pdo.com_record.od.index:04X}:06, needed to send TPDO{number} every {every} SYNCs")
+        pdo.sync_start_value = 1 if every > 1 else None
         pdo.enabled = True
         try:
             pdo.save()
@@ -159,7 +179,7 @@ class CanopenNodeDriver:
         self.network.unsubscribe(pdo.cob_id, pdo.on_message)
         fmt = "<" + "".join(_code(self.node.object_dictionary[i].data_type) for i, _ in entries)
         self._decoders[pdo.cob_id] = (struct.Struct(fmt), tuple(i for i, _ in entries), every)
-        self._cyclic = sum(1 for _, _, n in self._decoders.values() if n == 1)
+        self._cyclic = sum(1 for _, _, n in self._decoders.values() if n == self.every)
         self.network.subscribe(pdo.cob_id, self._on_frame)
 
     def _disable_pdo(self, com_index: int, cob_base: int, number: int) -> None:
@@ -167,6 +187,8 @@ class CanopenNodeDriver:
             self.sdo_write(com_index, 0x80000000 | (cob_base + 0x100 * (number - 1) + self.node_id), 1)
 
     def _start(self) -> None:
+        nxt = self.sync.count + 1  # the node starts counting at the first SYNC with counter 1 from now on
+        self._first_due = nxt if self.every == 1 else nxt + (1 - self.sync.wire_counter(nxt)) % self.sync.overflow
         self.node.nmt.state = "OPERATIONAL"
         self.heartbeat.state = None  # a heartbeat already in flight may still say pre-operational
         self.heartbeat.start()
@@ -201,9 +223,9 @@ class CanopenNodeDriver:
             self.emcy_faults.clear()
 
     def _on_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        """One TPDO frame. The TPDOs sent at every SYNC (transmission type 1) make one reading when all of them
-        answered the same SYNC; a TPDO sent every n-th SYNC only refreshes the values it carries, which every
-        later reading includes."""
+        """One TPDO frame. The TPDOs sent at the node's feedback SYNCs (every ``every``-th) make one reading when
+        all of them answered the same SYNC; a TPDO sent at another rate (the drive's velocity) only refreshes the
+        values it carries, which every later reading includes."""
         st, indices, every = self._decoders[can_id]
         if len(data) < st.size:
             self.malformed += 1
@@ -212,7 +234,7 @@ class CanopenNodeDriver:
         count = self.sync.count
         with self._cond:
             self.frames += 1
-            if every != 1:
+            if every != self.every:
                 self._slow.update(zip(indices, values, strict=True))
                 latest = self._latest
                 if latest is not None and latest.sync_count == count:  # it followed the TPDOs of its SYNC
@@ -246,11 +268,33 @@ class CanopenNodeDriver:
         """The last complete reading (all TPDOs of one SYNC), or None."""
         return self._latest
 
+    def due(self, count: int) -> bool:
+        """Whether the node answers SYNC ``count`` with its readings (every ``every``-th SYNC once started)."""
+        if self.every == 1:
+            return True
+        first = self._first_due
+        return first is not None and count >= first and self.sync.wire_counter(count) % self.every == 1 % self.every
+
+    def last_due(self, count: int) -> int | None:
+        """The last SYNC count <= ``count`` that the node answers, None if none yet."""
+        if self.every == 1:
+            return count
+        first = self._first_due
+        if first is None or count < first:
+            return None
+        return count - (self.sync.wire_counter(count) - 1) % self.every
+
     def wait_for_sync(self, count: int, timeout: float = 1.0):
-        """Block (wall time) until the reading answering SYNC ``count`` (or a later one) has arrived.
+        """Block (wall time) until the reading answering SYNC ``count`` (or a later one) has arrived. A node that
+        answers every n-th SYNC only: the reading of the last SYNC it answered up to ``count``.
 
         On a pumped network (``drivers.can_bus.Network``, the simulated prototype in lockstep) the answer has
         normally been decoded when the SYNC was sent; the wait pumps the channel every 2 ms in case."""
+        wanted = self.last_due(count)
+        if wanted is None:
+            raise DeviceError(f"{self.name} (CAN node {self.node_id}) sends its readings every {self.every} SYNCs "
+                              f"from SYNC {self._first_due}: none is due by SYNC {count}")
+        count = wanted
         r = self._latest
         if r is not None and r.sync_count >= count:
             return r
@@ -305,9 +349,9 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
 
     ``length_per_motor_rev`` (m of cable per motor revolution, the robot description's
     ``sensors.length_per_motor_rev[i]``) turns motor counts into cable-length change; the motor encoder
-    has ``counts_per_rev`` increments per revolution (20 bits). The velocity actual comes every
-    ``velocity_every``-th SYNC (10 Hz at a 200 Hz loop by default: the loop does not use it, the status and
-    checks do); a reading has NaN velocity until the first one.
+    has ``counts_per_rev`` increments per revolution (20 bits). Position, torque and statusword come every
+    ``every``-th SYNC (1: all), the velocity actual every ``velocity_every``-th (10 Hz at a 200 Hz loop by
+    default: the loop does not use it, the status and checks do); a reading has NaN velocity until the first.
     """
 
     profile = 402
@@ -316,12 +360,13 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
     def __init__(self, network: canopen.Network, node_id: int, sync: SyncProducer, length_per_motor_rev: float,
                  name: str | None = None, clock: Callable[[], float] = time.monotonic,
                  heartbeat_period: float = 0.1, counts_per_rev: int = 1 << 20, mode: int = MODE_CST,
-                 state_timeout: float = 1.0, eds: str | Path | None = None, velocity_every: int = 20):
+                 state_timeout: float = 1.0, eds: str | Path | None = None, velocity_every: int | None = None,
+                 every: int = 1):
         super().__init__(network, node_id, sync, name or f"winch drive {node_id}", clock, heartbeat_period,
-                         eds=eds)
-        if not 1 <= int(velocity_every) <= 240:
-            raise ValueError(f"{self.name}: velocity TPDO transmission type must be 1..240 SYNCs, got {velocity_every}")
-        self.velocity_every = int(velocity_every)
+                         eds=eds, every=every)
+        if velocity_every is None:  # 20 where the SYNC counter allows it (it needs a start value), else every SYNC
+            velocity_every = 20 if sync.overflow and sync.overflow % 20 == 0 else 1
+        self.velocity_every = check_every(velocity_every, sync, self.name, "velocity")
         self.length_per_motor_rev = float(length_per_motor_rev)
         self.counts_per_rev = int(counts_per_rev)
         self.mode = mode
@@ -350,7 +395,7 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
             if revs and incr // revs != self.counts_per_rev:
                 raise DeviceError(f"{self.name} (CAN node {self.node_id}) reports {incr // revs} encoder "
                                   f"increments per revolution (0x608F), expected {self.counts_per_rev}")
-            self._map_tpdo(1, [(0x6064, 32), (0x6077, 16), (0x6041, 16)])
+            self._map_tpdo(1, [(0x6064, 32), (0x6077, 16), (0x6041, 16)], every=self.every)
             self._map_tpdo(2, [(0x606C, 32)], every=self.velocity_every)
             for k in (3, 4):
                 self._disable_pdo(0x1800 + k - 1, 0x180, k)

@@ -1,7 +1,8 @@
 """CiA 406 swivel-pulley encoder driver over CANopen (EDS drivers/od/cia406_encoder.eds).
 
 Setup by SDO: NMT pre-operational, device type check, resolution check (0x6001/0x6002 against the robot's
-counts per revolution), heartbeat 0x1017, TPDO1 = position value 0x6004 at every SYNC, NMT start. Each TPDO
+counts per revolution), heartbeat 0x1017, TPDO1 = position value 0x6004 at every SYNC or at every n-th one
+(from the SYNC with counter 1, CiA 301 SYNC start value), NMT start. Each TPDO
 becomes a :class:`SwivelReading` with the counter of the SYNC it answered; the 16-bit counts are unwrapped
 into the swivel-angle change since power-on (first reading taken within half a turn of power-on).
 """
@@ -21,16 +22,17 @@ from drivers.interfaces import DeviceError, SwivelEncoder, SwivelReading
 
 
 class CanopenSwivelEncoder(CanopenNodeDriver, SwivelEncoder):
-    """One swivel encoder: counts -> rad with ``counts_per_rev`` (65536 for 16 bits)."""
+    """One swivel encoder: counts -> rad with ``counts_per_rev`` (65536 for 16 bits); its position comes every
+    ``every``-th SYNC (1: all)."""
 
     profile = 406
     eds_name = "cia406_encoder.eds"
 
     def __init__(self, network: canopen.Network, node_id: int, sync: SyncProducer, name: str | None = None,
                  clock: Callable[[], float] = time.monotonic, heartbeat_period: float = 0.1,
-                 counts_per_rev: int = 65536, eds: str | Path | None = None):
+                 counts_per_rev: int = 65536, eds: str | Path | None = None, every: int = 1):
         super().__init__(network, node_id, sync, name or f"swivel encoder {node_id}", clock, heartbeat_period,
-                         eds=eds)
+                         eds=eds, every=every)
         self.counts_per_rev = int(counts_per_rev)
         self.bits = self.counts_per_rev.bit_length() - 1
         if 1 << self.bits != self.counts_per_rev:
@@ -46,7 +48,7 @@ class CanopenSwivelEncoder(CanopenNodeDriver, SwivelEncoder):
             if units != self.counts_per_rev or total != self.counts_per_rev:
                 raise DeviceError(f"{self.name} (CAN node {self.node_id}) reports {units} counts per revolution "
                                   f"(0x6001) and a range of {total} (0x6002), expected {self.counts_per_rev}")
-            self._map_tpdo(1, [(0x6004, 32)])
+            self._map_tpdo(1, [(0x6004, 32)], every=self.every)
             self._disable_pdo(0x1801, 0x180, 2)
             self._start()
         except Exception:

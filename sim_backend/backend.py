@@ -263,12 +263,13 @@ class SimBackend:
     # -- the lockstep -------------------------------------------------------------------------------------
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         try:
-            self.tick()
+            self.tick(data[0] if data else 0)
         except Exception as exc:  # not the master's problem at its send: keep it for the caller
             self.errors.append(f"{type(exc).__name__}: {exc}")
 
-    def tick(self) -> int:
-        """One SYNC: targets -> faults -> physics step -> serial samples and TPDOs. Returns the SYNC count."""
+    def tick(self, counter: int = 0) -> int:
+        """One SYNC (``counter``: its counter byte, 0 if none): targets -> faults -> physics step -> serial
+        samples and TPDOs. Returns the SYNC count."""
         with self._lock:
             ph = self.physics
             self.sync_count += 1
@@ -281,9 +282,9 @@ class SimBackend:
             roll, pitch, yaw = ph.euler()
             self.ahrs.emit(t, roll, pitch, yaw)
             for node in self.drives:
-                node.on_sync(self.sync_count)
+                node.on_sync(self.sync_count, counter)
             for node in self.encoders:
-                node.on_sync(self.sync_count)
+                node.on_sync(self.sync_count, counter)
             self._record()
             return self.sync_count
 

@@ -85,6 +85,18 @@ def clamp_int(code: str, value: float) -> int:
     return min(max(v, lo), hi)
 
 
+@dataclass(slots=True)
+class _Tpdo:
+    """One synchronous TPDO of an emulated node and its SYNC countdown."""
+
+    cob_id: int
+    every: int  # transmission type n: every n-th SYNC
+    start: int  # SYNC start value (0x18xx:06), 0 for none
+    st: struct.Struct
+    getters: list  # zero-argument functions giving the mapped values
+    left: int  # SYNCs until the next transmission; -1 while waiting for the SYNC whose counter is ``start``
+
+
 @dataclass
 class FrameLoss:
     """Outgoing frames of a node are lost with probability ``fraction`` while start <= plant.time < stop."""
@@ -114,8 +126,7 @@ class SimulatedNode:
         self.lock = threading.RLock()
         self.heartbeat_period = 0.0
         self._next_heartbeat = math.inf
-        self._tpdos: list[tuple[int, int, struct.Struct, list]] = []  # (cob_id, every_n, struct, getters)
-        self._sync_seen = 0
+        self._tpdos: list[_Tpdo] = []  # the TPDOs sent at SYNC, from the mapping the master wrote
         self.losses: list[FrameLoss] = []
         self.frames_sent = 0
         self.frames_lost = 0
@@ -172,8 +183,18 @@ class SimulatedNode:
                 st, keys = packed
                 getters = [self._getter(index, sub, code) for (index, sub), code in zip(keys, st.format[1:],
                                                                                        strict=True)]
-                self._tpdos.append((pdo_map.cob_id, pdo_map.trans_type, st, getters))
+                every, start = pdo_map.trans_type, self._sync_start_value(pdo_map)
+                self._tpdos.append(_Tpdo(pdo_map.cob_id, every, start, st, getters,
+                                         -1 if start and every > 1 else every))
             self.on_rpdo_config()
+
+    @staticmethod
+    def _sync_start_value(pdo_map) -> int:
+        """0x18xx:06 as stored in the local OD (canopen's PdoMap.read only reads it for event-driven types)."""
+        try:
+            return int(pdo_map.com_record[6].raw or 0)
+        except (KeyError, canopen.SdoAbortedError):
+            return 0
 
     def _getter(self, index: int, subindex: int, code: str):
         """A zero-argument function giving the wire value of a mapped object (an int in the range of ``code``):
@@ -195,7 +216,7 @@ class SimulatedNode:
     @property
     def tpdo_layout(self) -> list[tuple[int, str]]:
         """(COB-ID, struct format) of each TPDO the node sends at SYNC, as the master mapped them."""
-        return [(cob, st.format) for cob, _, st, _ in self._tpdos]
+        return [(tp.cob_id, tp.st.format) for tp in self._tpdos]
 
     # -- SDO live values ---------------------------------------------------------------------------
     def _on_read(self, index, subindex, od):
@@ -212,9 +233,14 @@ class SimulatedNode:
         """Called for every SDO write (before the value is stored)."""
 
     # -- SYNC ---------------------------------------------------------------------------------------
-    def on_sync(self, sync_count: int) -> None:
+    def on_sync(self, sync_count: int, counter: int = 0) -> None:
         """After the physics step: the heartbeat if due, then the TPDOs due at this SYNC (in this order, so
-        that a master that has the TPDOs of a SYNC has also seen that tick's heartbeat and EMCY)."""
+        that a master that has the TPDOs of a SYNC has also seen that tick's heartbeat and EMCY).
+
+        ``counter``: the counter byte of the SYNC (0 when it carries none). A TPDO of transmission type n goes
+        out at every n-th SYNC since the node was started; with a SYNC start value s (0x18xx:06, used only
+        with a counting SYNC) the SYNC with counter s is the first one counted and carries the first
+        transmission."""
         with self.lock:
             self.last_sync_count = sync_count
             self.before_tpdo()
@@ -225,11 +251,17 @@ class SimulatedNode:
                 while self._next_heartbeat <= now + 1e-9:
                     self._next_heartbeat += self.heartbeat_period
             if self.node.nmt.state == "OPERATIONAL":
-                self._sync_seen += 1
-                seen = self._sync_seen
-                for cob_id, every, st, getters in self._tpdos:
-                    if every == 1 or seen % every == 0:
-                        self.send(cob_id, st.pack(*[g() for g in getters]), "tpdo")
+                for tp in self._tpdos:
+                    left = tp.left
+                    if left < 0:  # waiting for the SYNC start value
+                        if counter and counter != tp.start:
+                            continue
+                        left = 1
+                    if left == 1:
+                        tp.left = tp.every
+                        self.send(tp.cob_id, tp.st.pack(*[g() for g in tp.getters]), "tpdo")
+                    else:
+                        tp.left = left - 1
 
     def before_tpdo(self) -> None:
         """Hook run at each SYNC before the TPDOs are built."""

@@ -114,7 +114,7 @@ class CanRig:
         self.plant.step(DT)
         count = data[0] if data else -1
         for node in self.drives + self.encoders:
-            node.on_sync(count)
+            node.on_sync(count, data[0] if data else 0)
         with self._stepped:
             self.sync_counts.append(count)
             self._stepped.notify_all()
@@ -326,16 +326,40 @@ def test_velocity_comes_every_nth_sync_and_readings_keep_the_last_one(rig):
     drv = rig.winch(velocity_every=4)
     drv.set_mode(MODE_CSV)
     drv.enable()
-    drv.set_velocity(1.0)  # rad/s
+    drv.set_velocity(1.0)  # rad/s: the motor speeds up, each velocity frame differs from the one before
     seen = []
     for _ in range(12):
-        rig.tick()
-        seen.append(drv.latest().velocity)
-    assert math.isnan(seen[0])  # SYNCs 1-3 carry no velocity yet
-    assert [k for k in range(1, 12) if seen[k] != seen[k - 1] and not math.isnan(seen[k])] == [3, 7, 11]
+        c = rig.tick()
+        seen.append((c, drv.latest().velocity))
+    # the velocity TPDO starts at the SYNC with counter 1 (start value) and comes every 4th: SYNCs 1, 5, 9
     assert rig.drives[0].node.tpdo[2].trans_type == 4
+    assert not math.isnan(seen[0][1])
+    assert [c for (c, v), (_, before) in zip(seen[1:], seen[:-1], strict=True) if v != before] == [5, 9]
     with pytest.raises(ValueError, match="transmission type must be 1..240 SYNCs, got 300"):
         CanopenWinchDrive(rig.master, 2, rig.sync, LPR, velocity_every=300)
+    with pytest.raises(ValueError, match="every 7 SYNCs needs a SYNC counter overflow that 7 divides, not 240"):
+        CanopenWinchDrive(rig.master, 2, rig.sync, LPR, every=7)
+    # without a SYNC counter nobody can tell which SYNC carries a 1-in-n TPDO: the velocity then comes at each
+    assert CanopenWinchDrive(rig.master, 2, SyncProducer(rig.master, overflow=0), LPR).velocity_every == 1
+    assert CanopenWinchDrive(rig.master, 2, rig.sync, LPR).velocity_every == 20
+
+
+def test_feedback_every_nth_sync_from_counter_one(rig):
+    rig.ticks(2)  # SYNCs 1, 2 before the drive starts: it waits for the counter to come back to 1
+    drv = rig.winch(every=4)
+    assert [drv.due(c) for c in (3, 241, 242, 245)] == [False, True, False, True]
+    got = []
+    for _ in range(250):
+        c = rig.tick(wait=False)
+        r = drv.latest()
+        got.append(None if r is None else r.sync_count)
+        if c >= 241:
+            assert drv.wait_for_sync(c, 1.0).sync_count == drv.last_due(c) == c - (c - 241) % 4
+    assert set(got[:238]) == {None}  # SYNCs 3..240 carry no feedback from it
+    assert rig.drives[0].tpdo_layout == [(0x181, "<ihH"), (0x281, "<i")]
+    assert drv.incomplete == 0
+    with pytest.raises(DeviceError, match=r"every 4 SYNCs from SYNC 241: none is due by SYNC 100"):
+        drv.wait_for_sync(100, 0.1)
 
 
 def test_quick_stop_holds_and_reenable(rig):

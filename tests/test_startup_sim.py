@@ -200,3 +200,43 @@ def test_bad_options_and_absent_devices_end_with_one_sentence(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("cdpr: device check failed: n1 (CAN node 1): ") and err.count("\n") == 1, err
     assert not (tmp_path / "run").exists()
+
+
+def test_feedback_rates_halve_the_frames_and_every_log_tick_is_fresh():
+    from acquisition.clock import SimClock
+    from acquisition.startup import connect, feedback_every
+    from calib.robot import load_robot
+    from sim_backend.backend import SimBackend
+
+    assert feedback_every(200.0, 20) == (4, 20)  # drives at 50 Hz, encoders at the 10 Hz log rate
+    assert feedback_every(500.0, 50) == (10, 10)  # gcd(50, 240) = 10
+    assert feedback_every(250.0, 25) == (5, 5)
+    assert feedback_every(200.0, 20, overflow=0) == (1, 1)  # no SYNC counter: every SYNC
+    robot = load_robot("irma4u")
+    period = 0.005
+    with SimBackend(robot, None, seed=3, control_period=period) as sim:
+        clock = SimClock(period)
+        rig = connect(sim.devices, robot, clock, lockstep=True, period=period, every=(4, 20))
+        try:
+            assert rig.periods()["swivel encoder 1"] == pytest.approx(0.1)
+            assert rig.periods()["winch drive 1"] == pytest.approx(0.02)
+            sent0 = [n.frames_sent for n in sim.encoders]
+            snaps = []
+            for _ in range(45):
+                tk = clock.advance()
+                snap = rig.tick(tk.index, tk.t)
+                snaps.append(snap)
+                if tk.index % 20 == 0:  # a log tick: every drive and encoder answered this very SYNC
+                    assert [d.latest().sync_count for d in rig.drives] == [snap.sync] * 4
+                    assert [e.latest().sync_count for e in rig.encoders] == [snap.sync] * 4
+                    assert np.array_equal(snap.dsigma, [e.latest().delta_angle for e in rig.encoders])
+                if tk.index % 4 == 0:
+                    assert [d.latest().sync_count for d in rig.drives] == [snap.sync] * 4
+            assert all(s.missing == () for s in snaps)
+            assert all(np.isfinite(s.dl).all() and np.isfinite(s.dsigma).all() for s in snaps)
+            # 45 SYNCs: encoders answered SYNCs 1, 21, 41 (beside their heartbeats)
+            tpdos = [n.frames_sent - s0 for n, s0 in zip(sim.encoders, sent0, strict=True)]
+            beats = int(45 * period / sim.devices.can.heartbeat_period + 1e-9)
+            assert all(t in (3 + beats, 3 + beats + 1) for t in tpdos)
+        finally:
+            rig.close()

@@ -24,7 +24,7 @@ from acquisition.clock import RealClock, SimClock
 from acquisition.equilibrium import DetectorConfig
 from acquisition.report import ProgressBar, StartupSummary, read_offsets, render_text, write_html, write_offsets
 from acquisition.safety import SafetyLimits, SafetySupervisor
-from acquisition.startup import Plan, StartupConfig, StartupRoutine, StartupStopped, connect
+from acquisition.startup import Plan, StartupConfig, StartupRoutine, StartupStopped, connect, feedback_every
 
 
 def register(sub) -> None:
@@ -118,7 +118,7 @@ def _run_sim(args, robot, plan, cfg, out: Path) -> int:
     supervisor = _supervisor(robot, cfg)
     try:
         with SimBackend(robot, sim_config, args.seed, period) as sim:
-            rig = _connect(sim.devices, robot, clock, True, period)
+            rig = _connect(sim.devices, robot, clock, True, period, cfg)
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
                                      supervisor=supervisor, meta=args.run_meta)
             try:
@@ -152,7 +152,7 @@ def _run_hw(args, robot, plan, cfg, out: Path) -> int:
     clock = RealClock(period, lockstep=False)
     supervisor = _supervisor(robot, cfg)
     try:
-        rig = _connect(devices, robot, clock, False, period)
+        rig = _connect(devices, robot, clock, False, period, cfg)
         routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args),
                                  supervisor=supervisor, meta=args.run_meta)
         try:
@@ -171,11 +171,13 @@ def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
     return sup
 
 
-def _connect(devices, robot, clock, lockstep: bool, period: float):
+def _connect(devices, robot, clock, lockstep: bool, period: float, cfg):
     from drivers.interfaces import DeviceError
 
+    log_every = int(round(cfg.log_period * cfg.rate))
+    every = feedback_every(cfg.rate, log_every, devices.can.sync_overflow)
     try:
-        return connect(devices, robot, clock, lockstep=lockstep, period=period)
+        return connect(devices, robot, clock, lockstep=lockstep, period=period, every=every)
     except DeviceError as exc:
         raise OperationError(f"device check failed: {str(exc).rstrip('.')}.") from exc
 
