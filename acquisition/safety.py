@@ -139,17 +139,17 @@ class SafetySupervisor:
                 )
         tau = np.asarray(tau, dtype=float)
         self._check_stuck(tau)
-        over = np.flatnonzero(tau > self.limits.overload)
-        if over.size:
-            i = int(over[0])
+        over = tau > self.limits.overload
+        if over.any():
+            i = int(np.flatnonzero(over)[0])
             raise SafeStop(
                 "overload",
                 f"cable {i + 1} overloaded: {tau[i]:.1f} N measured, above the {self.limits.overload:g} N limit.",
             )
         if armed:
-            slack = np.flatnonzero((tau < self.limits.slack) & (np.asarray(tau_ref) > 2.0 * self.limits.slack))
-            if slack.size:
-                i = int(slack[0])
+            slack = (tau < self.limits.slack) & (np.asarray(tau_ref) > 2.0 * self.limits.slack)
+            if slack.any():
+                i = int(np.flatnonzero(slack)[0])
                 raise SafeStop(
                     "slack",
                     f"cable {i + 1} slack: {tau[i]:.1f} N measured for {tau_ref[i]:.1f} N commanded, "
@@ -164,9 +164,9 @@ class SafetySupervisor:
         same = tau == self._last_tau
         self._same = np.where(same, self._same + 1, 0)
         self._last_tau = tau.copy()
-        stuck = np.flatnonzero(self._same >= self.limits.stuck_samples)
-        if stuck.size:
-            i = int(stuck[0])
+        stuck = self._same >= self.limits.stuck_samples
+        if stuck.any():
+            i = int(np.flatnonzero(stuck)[0])
             raise SafeStop(
                 "stuck_sensor",
                 f"load cell {i + 1} stuck at {tau[i]:.2f} N for {self._same[i]} samples in a row.",
