@@ -435,7 +435,7 @@ def feedback_every(rate: float, log_every: int, overflow: int = 240) -> tuple[in
     swivel angles only the log. So the encoders send at every log tick and the drives as often as that
     allows at 50 Hz or more; both periods divide the log period and the SYNC counter overflow, and the
     first SYNC after connecting (counter 1) carries them all (the log ticks are those SYNCs too).
-    Halves the frames per tick at 200 Hz (13.6 -> 6.4).
+    Halves the CAN frames per tick at 200 Hz (13.6 -> 6.8, heartbeats included).
     """
     base = math.gcd(int(log_every), int(overflow)) if overflow else 1
     encoders = base

@@ -113,6 +113,8 @@ def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict
             for d in drives:
                 d.enable()
             acc = _instrument(sim)
+            nodes = sim.drives + sim.encoders
+            sent0 = sum(n.frames_sent for n in nodes)
             integ = np.zeros(robot.n)
             target = np.full(robot.n, 100.0)
             t0 = time.perf_counter()
@@ -132,6 +134,8 @@ def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict
                         d.wait_for_sync(c, 2.0)
                 lc = cells.wait_for(c - 1, 2.0)
             wall = time.perf_counter() - t0
+            # the nodes' TPDOs and heartbeats, and the master's SYNC and one RPDO per drive
+            acc["frames"] = (sum(n.frames_sent for n in nodes) - sent0 + ticks * (1 + len(drives))) * 1e-6
         finally:
             for d in devs:
                 d.close()
@@ -176,10 +180,11 @@ def main(argv: list[str] | None = None) -> int:
         parts = ", ".join(f"{k} {v:.0f}" for k, v in split.items() if k != "tick")
         print(f"{rate} Hz backend tick alone: {us:.0f} us/tick ({parts}) -> {period * 1e6 / us:.1f}x real time")
         us, split = bench_lockstep(robot, period, args.ticks)
+        frames = split.pop("frames")
         parts = ", ".join(f"{k} {v:.0f}" for k, v in split.items())
         print(f"{rate} Hz lockstep through the real drivers: {us:.0f} us/tick -> {period * 1e6 / us:.1f}x real "
-              f"time; in the backend's SYNC handler: {parts}; master side, bus and thread hand-offs: "
-              f"{us - split['tick']:.0f}")
+              f"time, {frames:.1f} CAN frames/tick; in the backend's SYNC handler: {parts}; master side, bus and "
+              f"thread hand-offs: {us - split['tick']:.0f}")
     if args.startup:
         wall, sim_s, timing = bench_startup(args.startup)
         loop = float(timing["wall_s"])
