@@ -185,7 +185,7 @@ class Network(canopen.Network):
                     listener(msg)
             return
         # The usual case, canopen's own listener alone on an unfiltered bus: what bus.recv and the listener do,
-        # without their per-frame layers (a simulated tick moves ~10 frames).
+        # without their per-frame layers (a simulated tick moves ~7 frames).
         notify = self.notify
         while rx.qsize():
             msg = rx.get_nowait()

@@ -85,6 +85,11 @@ def clamp_int(code: str, value: float) -> int:
     return min(max(v, lo), hi)
 
 
+def _wrap32(value: float) -> int:
+    """``clamp_int("i", value)``: rounded, wrapped to a signed 32-bit counter."""
+    return (int(round(value)) + 0x80000000) % 0x100000000 - 0x80000000
+
+
 @dataclass(slots=True)
 class _Tpdo:
     """One synchronous TPDO of an emulated node and its SYNC countdown."""
@@ -362,11 +367,9 @@ class CanDriveEmulator(SimulatedNode):
         if index == 0x6041:
             return lambda: self.statusword
         if index == 0x6064:
-            return lambda: (int(round(float(plant.motor_position()[i]) * scale)) + 0x80000000) % 0x100000000 \
-                - 0x80000000
+            return lambda: _wrap32(float(plant.motor_position()[i]) * scale)
         if index == 0x606C:
-            return lambda: (int(round(float(plant.motor_velocity()[i]) * scale)) + 0x80000000) % 0x100000000 \
-                - 0x80000000
+            return lambda: _wrap32(float(plant.motor_velocity()[i]) * scale)
         if index == 0x6077:
             return lambda: clamp_int("h", self.process_value(0x6077, 0))
         return None
