@@ -2,17 +2,19 @@
 
     python benchmarks/bench_sim.py                 # physics, backend tick and driver lockstep at 200 and 500 Hz
     python benchmarks/bench_sim.py --startup 2     # plus the full 'cdpr startup --backend sim --grid 2'
+    python benchmarks/bench_sim.py --startup 2 --repeat 5   # five startups: range and median
 
 The target (issue 4): the whole 8-pose startup routine at >= 20x real time on 2 cores, device traffic
 included. Reports wall microseconds per control tick, where they go, and the real-time factor
 (simulated seconds per wall second); for the startup also the routine's own loop per 5 ms tick, apart from
-connecting, solving and the report. The VM's timings vary by +-20 % from run to run: run it several times.
+connecting, solving and the report. The VM's timings drift by +-30 % between runs: use --repeat.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import statistics
 import sys
 import tempfile
 import time
@@ -171,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ticks", type=int, default=2000)
     ap.add_argument("--startup", type=int, default=0, metavar="GRID", help="also time the full startup")
+    ap.add_argument("--repeat", type=int, default=1, help="startup runs (the VM's speed drifts between runs)")
     args = ap.parse_args(argv)
     robot = load_robot("irma4u")
     print(f"physics step (5 ms, substeps 1): {bench_physics(robot):.1f} us")
@@ -185,13 +188,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{rate} Hz lockstep through the real drivers: {us:.0f} us/tick -> {period * 1e6 / us:.1f}x real "
               f"time, {frames:.1f} CAN frames/tick; in the backend's SYNC handler: {parts}; master side, bus and "
               f"thread hand-offs: {us - split['tick']:.0f}")
-    if args.startup:
+    factors = []
+    for _ in range(args.startup and args.repeat):
         wall, sim_s, timing = bench_startup(args.startup)
         loop = float(timing["wall_s"])
+        factors.append(sim_s / wall)
         print(f"cdpr startup --backend sim --grid {args.startup}: {sim_s:.1f} s simulated in {wall:.1f} s wall "
               f"-> {sim_s / wall:.1f}x real time (the routine's loop {loop:.1f} s, "
               f"{loop / sim_s * 1e6 * 0.005:.0f} us per 5 ms tick; solve {float(timing['solve_s']):.1f} s; "
               f"connecting, report and the rest {wall - loop - float(timing['solve_s']):.1f} s)")
+    if len(factors) > 1:
+        print(f"startup over {len(factors)} runs: {min(factors):.1f}x to {max(factors):.1f}x real time, "
+              f"median {statistics.median(factors):.1f}x")
     return 0
 
 
