@@ -173,7 +173,10 @@ class CanopenNodeDriver:
         try:
             pdo.save()
         except (SdoCommunicationError, SdoAbortedError) as exc:
-            raise self._sdo_fail(f"mapping TPDO{number}", exc) from exc
+            com = pdo.com_record.od.index
+            hint = (f" at every {every} SYNCs from SYNC start value 1 (a node without 0x{com:04X}:06 needs "
+                    f"'can: sync_overflow: 0' in the device file: feedback at every SYNC)") if every > 1 else ""
+            raise self._sdo_fail(f"mapping TPDO{number}{hint}", exc) from exc
         # canopen's PdoMap subscribed itself to decode into its variables; this driver decodes the frame in one
         # struct call instead (a PDO arrives every few milliseconds for every node).
         self.network.unsubscribe(pdo.cob_id, pdo.on_message)

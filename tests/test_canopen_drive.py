@@ -12,6 +12,7 @@ import math
 import threading
 
 import can
+import canopen
 import numpy as np
 import pytest
 from hypothesis import given
@@ -435,3 +436,21 @@ def test_lost_bus_is_a_device_error(rig):
         rig.sync.send_sync()
     drv.close()  # safe on a lost bus
     assert drv.node is None and not drv.operational
+
+
+def test_a_node_without_sync_start_value_is_one_sentence_naming_the_fallback(rig):
+    emu = rig.drives[0]
+    written = emu.on_object_written
+
+    def no_start_value(index, subindex, value):  # a drive whose 0x1800:06 does not exist
+        if 0x1800 <= index <= 0x1803 and subindex == 6:
+            raise canopen.SdoAbortedError(0x06090011)
+        written(index, subindex, value)
+
+    emu.on_object_written = no_start_value
+    with pytest.raises(DeviceError, match=r"mapping TPDO1 at every 4 SYNCs from SYNC start value 1 \(a node "
+                                          r"without 0x1800:06 needs 'can: sync_overflow: 0' in the device file"):
+        rig.winch(every=4)
+    drv = rig.winch(velocity_every=1)  # every SYNC needs no start value
+    rig.ticks(3)
+    assert drv.latest().sync_count == 3
