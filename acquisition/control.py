@@ -88,17 +88,18 @@ class TensionController:
     def update(self, tau_ref: np.ndarray, tau_meas: np.ndarray, dt: float) -> np.ndarray:
         """One control step: references and measurements (n,) N, step dt (s); returns motor torques (n,) N m."""
         c = self.config
+        mx, mn = np.maximum, np.minimum  # clip as two ufuncs: np.clip's dispatch costs more on n = 4
         err = np.where(self.feedback, tau_ref - tau_meas, 0.0)
         raw = tau_ref + c.kp * err + self.integral
-        bounded = np.clip(raw, c.min_command, c.max_command)
+        bounded = mn(mx(raw, c.min_command), c.max_command)
         step = c.max_command_rate * dt
-        limited = np.clip(bounded, self.command - step, self.command + step)
+        limited = mn(mx(bounded, self.command - step), self.command + step)
         high = (limited < raw) & (err > 0)
         low = (limited > raw) & (err < 0)
         self.saturated = high | low
         integrate = ~self.saturated & self.feedback & (np.abs(err) > c.integral_deadband)
-        self.integral = np.where(integrate, self.integral + c.ki * err * dt, self.integral)
-        np.clip(self.integral, -c.integral_limit, c.integral_limit, out=self.integral)
+        self.integral = mn(mx(np.where(integrate, self.integral + c.ki * err * dt, self.integral),
+                              -c.integral_limit), c.integral_limit)
         self.command = limited
         return self.radius * limited
 

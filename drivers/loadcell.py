@@ -28,6 +28,7 @@ OPEN = "OPEN"
 OVER = "OVER"
 _NUMBER = re.compile(r"-?[0-9]{1,7}(\.[0-9]{1,6})?")
 _SEQ = re.compile(r"[0-9]{1,10}")
+_SAMPLE = re.compile(r"LC,([0-9]{1,10})((?:,(?:-?[0-9]{1,7}(?:\.[0-9]{1,6})?|OPEN|OVER))+)")  # LC,seq,values
 
 
 def checksum(body: bytes) -> int:
@@ -87,16 +88,17 @@ def parse_line(line: bytes) -> SampleLine | InfoLine | None:
     body = unframe(line[start:])
     if body is None:
         return None
+    sample = _SAMPLE.fullmatch(body)  # the whole sample line in one match (it comes at every control tick)
+    if sample is not None:
+        seq = int(sample.group(1))
+        if seq >= SEQ_MODULUS:
+            return None
+        fields = sample.group(2)[1:].split(",")
+        flags = tuple(p if p in (OPEN, OVER) else "" for p in fields)
+        tau = np.array([math.nan if f else float(p) for p, f in zip(fields, flags, strict=True)])
+        return SampleLine(seq=seq, tau=tau, flags=flags)
     parts = body.split(",")
     try:
-        if parts[0] == "LC" and len(parts) >= 3:
-            if not _SEQ.fullmatch(parts[1]) or int(parts[1]) >= SEQ_MODULUS:
-                return None
-            flags = tuple(p if p in (OPEN, OVER) else "" for p in parts[2:])
-            if not all(f or _NUMBER.fullmatch(p) for p, f in zip(parts[2:], flags, strict=True)):
-                return None
-            tau = np.array([math.nan if f else float(p) for p, f in zip(parts[2:], flags, strict=True)])
-            return SampleLine(seq=int(parts[1]), tau=tau, flags=flags)
         if parts[0] == "INFO" and len(parts) == 5 and _SEQ.fullmatch(parts[2]) and all(
                 _NUMBER.fullmatch(p) for p in parts[3:]):
             return InfoLine(model=parts[1], channels=int(parts[2]), full_scale=float(parts[3]),
@@ -171,8 +173,8 @@ class LoadCellDriver(LoadCellBase):
         self._box = LatestBox(1.0 / config.rate_hz, config.stale_periods)
         self._info_event = threading.Event()
         self._last_seq: int | None = None
-        self._same = np.zeros(config.channels, dtype=int)
-        self._prev: np.ndarray | None = None
+        self._same = [0] * config.channels  # repeats of each channel's value in a row (plain list: every tick)
+        self._prev: list[float] | None = None
         self._flags: tuple[str, ...] = ("",) * config.channels
 
     def open(self) -> None:
@@ -241,10 +243,11 @@ class LoadCellDriver(LoadCellBase):
             elif step > 1:
                 self._stats.sequence_gaps += step - 1
         self._last_seq = s.seq
+        tau = s.tau.tolist()
         if self._prev is not None:
-            same = (s.tau == self._prev) & np.isfinite(s.tau)
-            self._same = np.where(same, self._same + 1, 0)
-        self._prev = s.tau
+            self._same = [n + 1 if v == p and math.isfinite(v) else 0
+                          for v, p, n in zip(tau, self._prev, self._same, strict=True)]
+        self._prev = tau
         self._flags = s.flags
         self._stats.frames += 1
         self._box.put(TensionReading(t=t, seq=s.seq, tau=s.tau, device_seq=s.seq))

@@ -55,8 +55,8 @@ class LoadCellEmulator(PtyEmulator):
         self._accuracy_error = rng.uniform(-accuracy * full_scale, accuracy * full_scale, channels)
         self.seq = -1
         self._last = [0.0] * channels
-        self._stuck = np.zeros(channels, dtype=bool)
-        self._open = np.zeros(channels, dtype=bool)
+        self._stuck = [False] * channels  # plain lists: read at every tick, numpy costs more than it saves
+        self._open = [False] * channels
         self._decoder = loadcell.LineDecoder()
 
     # ---- faults ----
@@ -93,8 +93,8 @@ class LoadCellEmulator(PtyEmulator):
         value = [round((g * t + o + a + e) * 100.0) / 100.0
                  for g, t, o, a, e in zip(self.gains.tolist(), tau, self.offsets.tolist(),
                                           self._accuracy_error.tolist(), noise, strict=True)]
-        if self._stuck.any():
-            value = [last if stuck else v for v, last, stuck in zip(value, self._last, self._stuck.tolist(),
+        if any(self._stuck):
+            value = [last if stuck else v for v, last, stuck in zip(value, self._last, self._stuck,
                                                                      strict=True)]
         self._last = value
         return value
@@ -108,7 +108,7 @@ class LoadCellEmulator(PtyEmulator):
                 return None
             over = 1.1 * self.full_scale
             fields: list[float | str] = [loadcell.OPEN if is_open else loadcell.OVER if abs(v) > over else v
-                                         for v, is_open in zip(value, self._open.tolist(), strict=True)]
+                                         for v, is_open in zip(value, self._open, strict=True)]
             self._write(self._maybe_corrupt(loadcell.encode_sample(self.seq, fields)))
             return self.seq
 
