@@ -321,7 +321,7 @@ class Rig:
 def _due(dev, count: int) -> bool:
     """Whether a CAN device answers SYNC ``count`` (devices without a schedule answer every SYNC)."""
     due = getattr(dev, "due", None)
-    return True if due is None or getattr(dev, "every", 1) == 1 else due(count)
+    return True if due is None else due(count)
 
 
 def _wait_ahrs(ahrs, stf: int, timeout: float):

@@ -78,15 +78,15 @@ def pdo_struct(pdo_map) -> tuple[struct.Struct, list[tuple[int, int]]] | None:
 
 def clamp_int(code: str, value: float) -> int:
     """Round and saturate ``value`` to the range of the struct code (wrap 32-bit signed)."""
-    lo, hi = _RANGES[code]
-    v = int(round(value))
     if code == "i":
-        return (v + 0x80000000) % 0x100000000 - 0x80000000  # a 32-bit position counter wraps
-    return min(max(v, lo), hi)
+        return _wrap32(value)  # a 32-bit position counter wraps
+    lo, hi = _RANGES[code]
+    return min(max(int(round(value)), lo), hi)
 
 
 def _wrap32(value: float) -> int:
-    """``clamp_int("i", value)``: rounded, wrapped to a signed 32-bit counter."""
+    """Rounded and wrapped to a signed 32-bit counter (``clamp_int("i", value)``, called directly on the TPDO hot
+    path)."""
     return (int(round(value)) + 0x80000000) % 0x100000000 - 0x80000000
 
 
