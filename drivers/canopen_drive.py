@@ -154,9 +154,8 @@ class CanopenNodeDriver:
 
     def _map_tpdo(self, number: int, entries: list[tuple[int, int]], every: int = 1) -> None:
         """TPDO ``number`` (1-based) carries ``entries`` [(index, bits)], sent at every ``every``-th SYNC (CiA 301
-        transmission type 1..240). Its frames are decoded here by COB-ID (see :meth:`_on_frame`)."""
-        if not 1 <= every <= 240:
-            raise ValueError(f"{self.name}: TPDO{number} transmission type must be 1..240 SYNCs, got {every}")
+        transmission type 1..240, checked by :func:`check_every`). Its frames are decoded here by COB-ID (see
+        :meth:`_on_frame`)."""
         pdo = self.node.tpdo[number]
         pdo.clear()
         for index, bits in entries:
