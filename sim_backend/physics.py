@@ -497,18 +497,21 @@ def _quat_to_matrix(q: list[float]) -> list[list[float]]:
 
 
 def _euler(r: list[list[float]], convention: str) -> tuple[float, float, float]:
-    """Roll, pitch, yaw (rad) of a rotation matrix (as calib.kinematics.rotation_to_euler), plain floats."""
+    """Roll, pitch, yaw (rad) of a rotation matrix given as rows of floats (as calib.kinematics.rotation_to_euler);
+    also the AHRS emulator's."""
     if convention == "xyz":
         return (
             math.atan2(-r[1][2], r[2][2]),
             math.asin(max(-1.0, min(1.0, r[0][2]))),
             math.atan2(-r[0][1], r[0][0]),
         )
-    return (
-        math.atan2(r[2][1], r[2][2]),
-        math.asin(max(-1.0, min(1.0, -r[2][0]))),
-        math.atan2(r[1][0], r[0][0]),
-    )
+    if convention == "zyx":
+        return (
+            math.atan2(r[2][1], r[2][2]),
+            math.asin(max(-1.0, min(1.0, -r[2][0]))),
+            math.atan2(r[1][0], r[0][0]),
+        )
+    raise ValueError(f"unknown orientation convention {convention!r}")
 
 
 def pose_of(xg, q, com, convention: str) -> list[float]:

@@ -25,6 +25,7 @@ import numpy as np
 from calib.kinematics import rotation
 from drivers import xbus
 from drivers.xbus import MID, XDI
+from sim_backend.physics import _euler
 from sim_backend.pty import PtyEmulator, free_run, read_master
 
 ORIENTATION_MAX_HZ = 400  # MTi-600 series orientation outputs
@@ -80,17 +81,6 @@ def _matmul(a: list[list[float]], b: list[list[float]]) -> list[list[float]]:
     return [[a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j] for j in range(3)] for i in range(3)]
 
 
-def _euler(r: list[list[float]], convention: str) -> tuple[float, float, float]:
-    """calib.kinematics.rotation_to_euler for one matrix (rows of floats): roll, pitch, yaw."""
-    if convention == "xyz":
-        return (math.atan2(-r[1][2], r[2][2]), math.asin(max(-1.0, min(1.0, r[0][2]))),
-                math.atan2(-r[0][1], r[0][0]))
-    if convention == "zyx":
-        return (math.atan2(r[2][1], r[2][2]), math.asin(max(-1.0, min(1.0, -r[2][0]))),
-                math.atan2(r[1][0], r[0][0]))
-    raise ValueError(f"unknown orientation convention {convention!r}")
-
-
 class XsensEmulator(PtyEmulator):
     """One emulated MTi-630 on ``master_fd`` (see the module docstring). Start with :meth:`start`."""
 
@@ -116,11 +106,9 @@ class XsensEmulator(PtyEmulator):
         self.noise = noise or XsensNoise()
         self.device_id = device_id
         self.product_code = product_code
-        self._mount = rotation(np.array([mounting_roll, mounting_pitch, 0.0]))[0]
-        self._mount_rows = self._mount.tolist()
+        self._mount_rows = rotation(np.array([mounting_roll, mounting_pitch, 0.0]))[0].tolist()
         b = self.noise.roll_pitch_bias
-        self._bias = np.radians(rng.uniform(-b, b, 2))
-        self._bias_roll, self._bias_pitch = self._bias.tolist()
+        self._bias_roll, self._bias_pitch = np.radians(rng.uniform(-b, b, 2)).tolist()
         self._drift = math.radians(rng.uniform(-self.noise.yaw_drift, self.noise.yaw_drift))
         self._yaw0: float | None = None
         self._t0 = 0.0
