@@ -1,4 +1,4 @@
-"""Joint-space force control: one tension controller per winch on load-cell feedback, vectorised over winches.
+"""Joint-space force control: one tension controller per winch on load-cell feedback, all winches in one step.
 
 The command of winch i is a motor torque (N m). A cable tension tau (N) needs the motor torque
 radius_i * tau, where radius_i = -length_per_motor_rev_i / (2 pi) is the signed transmission radius (m/rad):
@@ -63,49 +63,94 @@ def transmission_radius(robot: Robot) -> np.ndarray:
 
 
 class TensionController:
-    """PI tension control with feed-forward, anti-windup and torque rate limits, for n winches at once."""
+    """PI tension control with feed-forward, anti-windup and torque rate limits, for n winches at once.
+
+    One step runs per control tick on n <= 8 channels, where numpy's per-call cost (about 1 us per ufunc,
+    some thirty of them) would be most of the step: :meth:`update` works channel by channel on floats, with
+    the same operations in the same order as the array formulas above (the results are the same doubles).
+    """
 
     def __init__(self, radius: np.ndarray, config: ControllerConfig | None = None):
-        self.radius = np.asarray(radius, dtype=float).copy()
-        if np.any(self.radius == 0) or self.radius.ndim != 1:
-            raise ValueError(f"transmission radii must be a non-zero vector, got {self.radius.tolist()}.")
+        r = np.asarray(radius, dtype=float)
+        if r.ndim != 1 or np.any(r == 0):
+            raise ValueError(f"transmission radii must be a non-zero vector, got {r.tolist()}.")
         self.config = config or ControllerConfig()
-        self.n = len(self.radius)
-        self.integral = np.zeros(self.n)
-        self.command = np.zeros(self.n)  # last tension-equivalent command, N
-        self.feedback = np.ones(self.n, dtype=bool)  # channels whose load cell is trusted
-        self.saturated = np.zeros(self.n, dtype=bool)
+        self.n = len(r)
+        self._radius = r.tolist()
+        self._integral = [0.0] * self.n  # N
+        self._command = [0.0] * self.n  # last tension-equivalent command, N
+        self._feedback = [True] * self.n  # channels whose load cell is trusted
+        self._saturated = [False] * self.n
+
+    @property
+    def radius(self) -> np.ndarray:
+        """Signed transmission radii (n,) m/rad."""
+        return np.array(self._radius)
+
+    @property
+    def integral(self) -> np.ndarray:
+        """Integral term (n,) N."""
+        return np.array(self._integral)
+
+    @property
+    def command(self) -> np.ndarray:
+        """Last tension-equivalent command (n,) N."""
+        return np.array(self._command)
+
+    @property
+    def feedback(self) -> np.ndarray:
+        """Channels (n,) bool whose load cell is trusted."""
+        return np.array(self._feedback, dtype=bool)
+
+    @property
+    def saturated(self) -> np.ndarray:
+        """Channels (n,) bool whose command was held by a bound or the rate limit at the last step."""
+        return np.array(self._saturated, dtype=bool)
 
     def reset(self, command: np.ndarray | None = None) -> None:
         """Zero the integral; the rate limit starts from ``command`` (N, tension-equivalent) or zero."""
-        self.integral[:] = 0.0
-        self.command[:] = 0.0 if command is None else np.asarray(command, dtype=float)
+        self._integral = [0.0] * self.n
+        self._command = [0.0] * self.n if command is None else np.broadcast_to(
+            np.asarray(command, dtype=float), (self.n,)).tolist()
 
     def open_loop(self, channels: np.ndarray) -> None:
         """Stop using the load cells of ``channels`` (bool or index array): feed-forward only, integral kept."""
-        self.feedback[channels] = False
+        fb = self.feedback
+        fb[channels] = False
+        self._feedback = fb.tolist()
 
     def update(self, tau_ref: np.ndarray, tau_meas: np.ndarray, dt: float) -> np.ndarray:
         """One control step: references and measurements (n,) N, step dt (s); returns motor torques (n,) N m."""
         c = self.config
-        mx, mn = np.maximum, np.minimum  # clip as two ufuncs: np.clip's dispatch costs more on n = 4
-        err = np.where(self.feedback, tau_ref - tau_meas, 0.0)
-        raw = tau_ref + c.kp * err + self.integral
-        bounded = mn(mx(raw, c.min_command), c.max_command)
+        kp, ki, lo, hi, band, lim_i = (c.kp, c.ki, c.min_command, c.max_command, c.integral_deadband,
+                                       c.integral_limit)
         step = c.max_command_rate * dt
-        limited = mn(mx(bounded, self.command - step), self.command + step)
-        high = (limited < raw) & (err > 0)
-        low = (limited > raw) & (err < 0)
-        self.saturated = high | low
-        integrate = ~self.saturated & self.feedback & (np.abs(err) > c.integral_deadband)
-        self.integral = mn(mx(np.where(integrate, self.integral + c.ki * err * dt, self.integral),
-                              -c.integral_limit), c.integral_limit)
-        self.command = limited
-        return self.radius * limited
+        ref = np.asarray(tau_ref, dtype=float).tolist()
+        meas = np.asarray(tau_meas, dtype=float).tolist()
+        integral, command, feedback = self._integral, self._command, self._feedback
+        saturated = [False] * self.n
+        torque = [0.0] * self.n
+        for i, radius in enumerate(self._radius):
+            fb = feedback[i]
+            err = ref[i] - meas[i] if fb else 0.0
+            raw = ref[i] + kp * err + integral[i]
+            bounded = min(max(raw, lo), hi)  # raw first: a NaN stays NaN, as with np.maximum/np.minimum
+            prev = command[i]
+            limited = min(max(bounded, prev - step), prev + step)
+            sat = (limited < raw and err > 0) or (limited > raw and err < 0)
+            saturated[i] = sat
+            if not sat and fb and abs(err) > band:
+                integral[i] = min(max(integral[i] + ki * err * dt, -lim_i), lim_i)
+            else:
+                integral[i] = min(max(integral[i], -lim_i), lim_i)
+            command[i] = limited
+            torque[i] = radius * limited
+        self._saturated = saturated
+        return np.array(torque)
 
     def torque_for(self, tension: np.ndarray) -> np.ndarray:
         """Feed-forward torque (n,) N m for tensions (n,) N."""
-        return self.radius * np.asarray(tension, dtype=float)
+        return np.array(self._radius) * np.asarray(tension, dtype=float)
 
 
 # ---- the device set the loop drives ---------------------------------------------------------------------
