@@ -86,8 +86,8 @@ class SafetySupervisor:
     n: int
     requested: str | None = None
     _previous_handlers: dict = field(default_factory=dict)
-    _last_tau: np.ndarray | None = None
-    _same: np.ndarray | None = None
+    _last_tau: list[float] | None = None  # N, the previous tick's tensions
+    _same: list[int] | None = None  # ticks in a row with the same value, per channel
 
     def install_signals(self) -> None:
         """Route SIGINT and SIGTERM to a stop request (main thread only); restore with :meth:`restore_signals`."""
@@ -137,41 +137,41 @@ class SafetySupervisor:
                     f"{name} silent for {age:.3f} s, more than {self.limits.stale_periods:g} periods of {period:g} s.",
                     tuple(range(self.n)) if name.startswith("load") else (),
                 )
-        tau = np.asarray(tau, dtype=float)
-        self._check_stuck(tau)
-        over = tau > self.limits.overload
-        if over.any():
-            i = int(np.flatnonzero(over)[0])
-            raise SafeStop(
-                "overload",
-                f"cable {i + 1} overloaded: {tau[i]:.1f} N measured, above the {self.limits.overload:g} N limit.",
-            )
-        if armed:
-            slack = (tau < self.limits.slack) & (np.asarray(tau_ref) > 2.0 * self.limits.slack)
-            if slack.any():
-                i = int(np.flatnonzero(slack)[0])
+        vals = np.asarray(tau, dtype=float).tolist()  # n <= 8 floats: plain comparisons beat ufunc calls
+        self._check_stuck(vals)
+        lim = self.limits
+        for i, v in enumerate(vals):
+            if v > lim.overload:
                 raise SafeStop(
-                    "slack",
-                    f"cable {i + 1} slack: {tau[i]:.1f} N measured for {tau_ref[i]:.1f} N commanded, "
-                    f"below the {self.limits.slack:g} N slack limit.",
+                    "overload",
+                    f"cable {i + 1} overloaded: {v:.1f} N measured, above the {lim.overload:g} N limit.",
                 )
+        if armed:
+            refs = np.asarray(tau_ref, dtype=float).tolist()
+            for i, v in enumerate(vals):
+                if v < lim.slack and refs[i] > 2.0 * lim.slack:
+                    raise SafeStop(
+                        "slack",
+                        f"cable {i + 1} slack: {v:.1f} N measured for {refs[i]:.1f} N commanded, "
+                        f"below the {lim.slack:g} N slack limit.",
+                    )
 
-    def _check_stuck(self, tau: np.ndarray) -> None:
-        if self._last_tau is None:
-            self._last_tau = tau.copy()
-            self._same = np.zeros(self.n, dtype=int)
+    def _check_stuck(self, vals: list[float]) -> None:
+        """Count, per channel, the ticks in a row with the very same value (N); raise at ``stuck_samples``."""
+        last, self._last_tau = self._last_tau, list(vals)
+        if last is None:
+            self._same = [0] * self.n
             return
-        same = tau == self._last_tau
-        self._same = np.where(same, self._same + 1, 0)
-        self._last_tau = tau.copy()
-        stuck = self._same >= self.limits.stuck_samples
-        if stuck.any():
-            i = int(np.flatnonzero(stuck)[0])
-            raise SafeStop(
-                "stuck_sensor",
-                f"load cell {i + 1} stuck at {tau[i]:.2f} N for {self._same[i]} samples in a row.",
-                (i,),
-            )
+        same = self._same
+        for i, v in enumerate(vals):
+            same[i] = same[i] + 1 if v == last[i] else 0
+        for i, count in enumerate(same):
+            if count >= self.limits.stuck_samples:
+                raise SafeStop(
+                    "stuck_sensor",
+                    f"load cell {i + 1} stuck at {vals[i]:.2f} N for {count} samples in a row.",
+                    (i,),
+                )
 
     def plan(self, tau_now: np.ndarray, power_on: np.ndarray | None = None) -> SafeStopPlan:
         """The safe stop from the tensions now (n,) N: hold, then ramp to the safe pretension.

@@ -176,18 +176,18 @@ class StartupRoutine:
         return snap, state
 
     def _supervise(self, snap: Snapshot) -> None:
-        ages = self.rig.ages(snap.t)
-        for name in list(ages):
-            if name in self.rig.dead:
-                ages.pop(name)
-        self.supervisor.check(snap.tau, self._ref, ages, self.rig.faults(), armed=self._armed)
-        bad = {k: v for k, v in self.rig.link_errors().items() if v > 0}
-        if bad:
-            name, count = next(iter(bad.items()))
-            raise SafeStop("corrupted_stream", f"the {name} stream is corrupted: {count} bad frame(s) since the start.")
-        if not np.all(np.isfinite(snap.tau)):
-            i = int(np.flatnonzero(~np.isfinite(snap.tau))[0])
-            raise SafeStop("sensor_fault", f"load cell {i + 1} gives no value (disconnected).", (i,))
+        rig = self.rig
+        ages = rig.ages(snap.t)
+        for name in rig.dead:
+            ages.pop(name, None)
+        self.supervisor.check(snap.tau, self._ref, ages, rig.faults(), armed=self._armed)
+        for name, count in rig.link_errors().items():
+            if count > 0:
+                raise SafeStop("corrupted_stream",
+                               f"the {name} stream is corrupted: {count} bad frame(s) since the start.")
+        for i, v in enumerate(snap.tau.tolist()):
+            if not math.isfinite(v):
+                raise SafeStop("sensor_fault", f"load cell {i + 1} gives no value (disconnected).", (i,))
 
     def _row(self, snap: Snapshot) -> tuple:
         z = self._zero
