@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.io
 
 from acquisition.runlog import Run, csv_text, read_solution, to_plain
 
@@ -149,6 +148,8 @@ def _export_mat(run: Run, ab: dict[str, np.ndarray] | None, solution: dict[str, 
         st["delta_yaw"] = run.dyaw
     if solution is not None:
         st["solution"] = _to_matlab(solution)
+    import scipy.io  # here: scipy.io costs every cdpr command ~0.1 s at start-up
+
     scipy.io.savemat(str(out), {"st": st}, format="5", oned_as="row", long_field_names=True, do_compression=True)
 
 

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import Delaunay
 
 from calib.kinematics import inverse_kinematics, rotation
 from calib.robot import Robot
@@ -55,6 +54,8 @@ def _inside_frame(robot: Robot, points: np.ndarray) -> np.ndarray:
     A frame whose anchors span 3-D (ReelAx8) is their convex hull; a flat one (IRMA4U: all pulleys at one
     height) is the prism below the horizontal hull of the anchors.
     """
+    from scipy.spatial import Delaunay  # here: scipy.spatial costs every cdpr command ~0.25 s at start-up
+
     d = np.asarray(robot.d)
     centred = d - d.mean(axis=0)
     if np.linalg.matrix_rank(centred, tol=1e-6) == 3:

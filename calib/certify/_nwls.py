@@ -7,7 +7,6 @@ its half-width / sqrt(3) (the standard deviation of a uniform error over the int
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from calib.certify._bounds import Shells
 
@@ -27,6 +26,8 @@ def anchor_least_squares(shells: Shells, start: np.ndarray, loss: str = "linear"
     def jac(a: np.ndarray) -> np.ndarray:
         v = a - shells.centres
         return v / np.linalg.norm(v, axis=1)[:, None] / sigma[:, None]
+
+    from scipy.optimize import least_squares  # here: importing scipy.optimize costs every cdpr command ~0.2 s
 
     sol = least_squares(fun, np.asarray(start, float), jac=jac, loss=loss, f_scale=1.0, x_scale="jac")
     return sol.x
