@@ -210,6 +210,11 @@ class Rig:
         # a CAN node may answer every n-th SYNC only (its ``every``, with ``due(count)``): its period is n ticks
         self._periods = {name: self.period * getattr(dev, "every", 1) for name, dev in self._devices}
         self._periods["AHRS"] = max(self.ahrs_period, self.period)
+        # (name, device, due(count) or None for every SYNC) of the CAN nodes, in cable order
+        self._drive_slots = [(nm, d, getattr(d, "due", None)) for nm, d in zip(self._drive_names, self.drives,
+                                                                                  strict=True)]
+        self._encoder_slots = [(nm, e, getattr(e, "due", None)) for nm, e in zip(self._encoder_names, self.encoders,
+                                                                                    strict=True)]
 
     def close(self) -> None:
         """Release every device (safe to call twice)."""
@@ -274,19 +279,21 @@ class Rig:
                 if not self.dead:
                     raise
 
-    def _wait_sync(self, name: str, dev, count: int, timeout: float):
-        """The reading of ``dev`` answering SYNC ``count`` (lockstep), or its latest (None if too late)."""
+    def _wait_sync(self, name: str, dev, count: int, deadline: float):
+        """The reading of ``dev`` answering SYNC ``count`` (lockstep), or its latest (None if too late);
+        ``deadline``: wall time (time.monotonic) to give up at."""
         r = dev.latest()
         if not self.lockstep or name in self.dead or (r is not None and r.sync_count >= count):
             return r
+        timeout = max(deadline - _now(), 1e-4)
         waiter = getattr(dev, "wait_for_sync", None)
         if waiter is not None:
             try:
                 return waiter(count, timeout)
             except Exception:  # DeviceError: too late; the staleness rule decides
                 return dev.latest()
-        deadline = _now() + timeout
-        while _now() < deadline:
+        end = _now() + timeout
+        while _now() < end:
             r = dev.latest()
             if r is not None and r.sync_count >= count:
                 return r
@@ -307,28 +314,25 @@ class Rig:
         missing = []
         dl = np.full(n, np.nan) if prev is None else prev.dl.copy()
         dsigma = np.full(n, np.nan) if prev is None else prev.dsigma.copy()
-        for i, d in enumerate(self.drives):
-            if not _due(d, count):  # not answering this SYNC: its last values stand, nothing is missing
+        lockstep, seqs, fresh = self.lockstep, self._seq, self._last_fresh
+        for i, (name, d, due) in enumerate(self._drive_slots):
+            if due is not None and not due(count):  # not answering this SYNC: its last values stand
                 continue
-            name = self._drive_names[i]
-            r = self._wait_sync(name, d, count, left())
-            if r is not None and (not self.lockstep or r.sync_count >= count) and (
-                    prev is None or r.seq != self._seq.get(name)):
+            r = self._wait_sync(name, d, count, deadline)
+            if r is not None and (not lockstep or r.sync_count >= count) and (prev is None or r.seq != seqs.get(name)):
                 dl[i] = r.delta_length
-                self._seq[name] = r.seq
-                self._last_fresh[name] = t
+                seqs[name] = r.seq
+                fresh[name] = t
             else:
                 missing.append(name)
-        for i, e in enumerate(self.encoders):
-            if not _due(e, count):
+        for i, (name, e, due) in enumerate(self._encoder_slots):
+            if due is not None and not due(count):
                 continue
-            name = self._encoder_names[i]
-            r = self._wait_sync(name, e, count, left())
-            if r is not None and (not self.lockstep or r.sync_count >= count) and (
-                    prev is None or r.seq != self._seq.get(name)):
+            r = self._wait_sync(name, e, count, deadline)
+            if r is not None and (not lockstep or r.sync_count >= count) and (prev is None or r.seq != seqs.get(name)):
                 dsigma[i] = r.delta_angle
-                self._seq[name] = r.seq
-                self._last_fresh[name] = t
+                seqs[name] = r.seq
+                fresh[name] = t
             else:
                 missing.append(name)
         tau = np.full(n, np.nan) if prev is None else prev.tau.copy()
@@ -361,12 +365,6 @@ class Rig:
                         tuple(missing))
         self._last = snap
         return snap
-
-
-def _due(dev, count: int) -> bool:
-    """Whether a CAN device answers SYNC ``count`` (devices without a schedule answer every SYNC)."""
-    due = getattr(dev, "due", None)
-    return True if due is None else due(count)
 
 
 def _wait_ahrs(ahrs, stf: int, timeout: float):
