@@ -118,6 +118,27 @@ def _solve_spd(a: list[list[float]], b: list[float]) -> list[float]:
     return x
 
 
+
+def _active_set_solve(a: list[list[float]], b: list[float]) -> list[float]:
+    """Tensions (n,) >= 0 solving ``a tau = b`` (a symmetric positive definite, not modified): a cable whose
+    solved tension is negative is slack (0) and the system is solved again without it."""
+    n = len(b)
+    idx = list(range(n))
+    a_idx, b_idx = [row[:] for row in a], list(b)  # every cable taut first
+    while True:
+        x = _solve_spd(a_idx, b_idx)
+        tau = [0.0] * n
+        for c, i in enumerate(idx):
+            tau[i] = x[c]
+        taut = [i for i in idx if not tau[i] < 0.0]
+        if len(taut) == len(idx):
+            return tau
+        if not taut:
+            return [0.0] * n
+        idx = taut
+        a_idx = [[a[i][j] for j in idx] for i in idx]
+        b_idx = [b[i] for i in idx]
+
 class CablePhysics:
     """The simulated prototype (implements ``sim_backend.plant.Plant``).
 
@@ -354,114 +375,51 @@ class CablePhysics:
             self._substep(h)
         if t_end is not None:
             self._t = float(t_end)
-        if not all(math.isfinite(x) for x in self._xg) or not all(math.isfinite(x) for x in self._tau):
+        if not all(map(math.isfinite, self._xg)) or not all(map(math.isfinite, self._tau)):
             raise SimulationError(f"the simulated platform diverged at t = {self._t:.3f} s (unstable commands?).")
 
     def _substep(self, h: float) -> None:
+        """Advance the state by h s: free velocities from the explicit forces, cable tensions from the implicit
+        cable-space solve, their impulses, then the positions, the geometry and the load-cell tensions."""
         n = self.n
-        p = self.params
         m = self._m
         geo = self._geo
-        ibinv = self._ibinv
-        ib = self._ib
-        v0, v1, v2 = self._v
-        w0, w1, w2 = self._wb
-        # explicit forces on the body: gravity, damping, sag loads, gyroscopic moment
-        cl, ca = p.linear_damping, p.angular_damping
-        f0, f1, f2 = -cl * v0, -cl * v1, -cl * v2 - m * self._g
-        iw0 = ib[0][0] * w0 + ib[0][1] * w1 + ib[0][2] * w2
-        iw1 = ib[1][0] * w0 + ib[1][1] * w1 + ib[1][2] * w2
-        iw2 = ib[2][0] * w0 + ib[2][1] * w1 + ib[2][2] * w2
-        mb0 = -(w1 * iw2 - w2 * iw1) - ca * w0
-        mb1 = -(w2 * iw0 - w0 * iw2) - ca * w1
-        mb2 = -(w0 * iw1 - w1 * iw0) - ca * w2
-        if self._w > 0.0:
-            rmat = _quat_to_matrix(self._q)
-            for i in range(n):
-                if self._tau[i] <= 0.0:
-                    continue
-                fz = -0.5 * self._w * geo[i][7]  # half the cable weight hangs on the anchor
-                f2 += fz
-                # body-frame force = R^T (0, 0, fz)
-                fb0, fb1, fb2 = rmat[2][0] * fz, rmat[2][1] * fz, rmat[2][2] * fz
-                b0, b1, b2 = self._rb[i]
-                mb0 += b1 * fb2 - b2 * fb1
-                mb1 += b2 * fb0 - b0 * fb2
-                mb2 += b0 * fb1 - b1 * fb0
-        vs0, vs1, vs2 = v0 + h * f0 / m, v1 + h * f1 / m, v2 + h * f2 / m
-        ws0 = w0 + h * (ibinv[0][0] * mb0 + ibinv[0][1] * mb1 + ibinv[0][2] * mb2)
-        ws1 = w1 + h * (ibinv[1][0] * mb0 + ibinv[1][1] * mb1 + ibinv[1][2] * mb2)
-        ws2 = w2 + h * (ibinv[2][0] * mb0 + ibinv[2][1] * mb1 + ibinv[2][2] * mb2)
-        # motors: linearly implicit friction, brake = locked shaft
-        thds = [0.0] * n
-        minv = [0.0] * n
-        for i in range(n):
-            if self._brake[i]:
-                continue
-            x = self._thd[i]
-            th_ = math.tanh(x / self._ws)
-            fric = self._bm * x + self._fc * th_
-            dfric = self._bm + self._fc / self._ws * (1.0 - th_ * th_)
-            jeff = self._jm[i] + h * dfric
-            thds[i] = x + h * (self._u[i] - fric) / jeff
-            minv[i] = 1.0 / jeff
-        # cable-space implicit solve
+        k = self._k
+        vs0, vs1, vs2, ws0, ws1, ws2 = self._free_body_velocities(h)
+        thds, minv = self._free_motor_velocities(h)
+        (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = self._ibinv
+        # per cable: the body-frame rotation response I^-1 jw, and the right-hand side K e / S + J v*
         ea = self._ea
-        kc = [0.0] * n
-        e = [0.0] * n
-        ed = [0.0] * n
-        s = [0.0] * n
+        p = self.params
+        sc = p.stiff_theta * h + p.cable_damping  # s, S = K * sc
         ijw = []
+        inv_s = []
+        rhs = []
+        for i, (g, l00, th, thd) in enumerate(zip(geo, self._l00, self._th, thds, strict=True)):
+            (t0, t1, t2), (jw0, jw1, jw2) = g[1], g[3]
+            l0 = l00 + k[i] * th
+            kc = ea / l0
+            s = kc * sc
+            ed = t0 * vs0 + t1 * vs1 + t2 * vs2 + jw0 * ws0 + jw1 * ws1 + jw2 * ws2 - k[i] * thd
+            rhs.append(kc * (g[0] + g[5] - l0) / s + ed)
+            inv_s.append(1.0 / s)
+            ijw.append((j00 * jw0 + j01 * jw1 + j02 * jw2, j10 * jw0 + j11 * jw1 + j12 * jw2,
+                        j20 * jw0 + j21 * jw1 + j22 * jw2))
+        # (S^-1 + h D) with D = J M^-1 J^T + K Jm^-1 K, the cable-space inverse inertia (symmetric)
+        a = [[0.0] * n for _ in range(n)]
         for i in range(n):
-            g = geo[i]
-            l0 = self._l00[i] + self._k[i] * self._th[i]
-            kc[i] = ea / l0
-            e[i] = g[0] + g[5] - l0
-            t = g[1]
-            jw = g[3]
-            ed[i] = (
-                t[0] * vs0 + t[1] * vs1 + t[2] * vs2 + jw[0] * ws0 + jw[1] * ws1 + jw[2] * ws2 - self._k[i] * thds[i]
-            )
-            s[i] = kc[i] * (p.stiff_theta * h + p.cable_damping)
-            ijw.append(
-                (
-                    ibinv[0][0] * jw[0] + ibinv[0][1] * jw[1] + ibinv[0][2] * jw[2],
-                    ibinv[1][0] * jw[0] + ibinv[1][1] * jw[1] + ibinv[1][2] * jw[2],
-                    ibinv[2][0] * jw[0] + ibinv[2][1] * jw[1] + ibinv[2][2] * jw[2],
-                )
-            )
-        dmat = [[0.0] * n for _ in range(n)]
-        for i in range(n):
-            ti, ji = geo[i][1], geo[i][3]
+            (t0, t1, t2), (jw0, jw1, jw2) = geo[i][1], geo[i][3]
+            row = a[i]
             for j in range(i, n):
-                tj, ij = geo[j][1], ijw[j]
-                val = (ti[0] * tj[0] + ti[1] * tj[1] + ti[2] * tj[2]) / m
-                val += ji[0] * ij[0] + ji[1] * ij[1] + ji[2] * ij[2]
-                dmat[i][j] = val
-                dmat[j][i] = val
-            dmat[i][i] += self._k[i] * self._k[i] * minv[i]
-        active = [True] * n
-        tau = [0.0] * n
-        for _ in range(n + 1):
-            idx = [i for i in range(n) if active[i]]
-            if not idx:
-                tau = [0.0] * n
-                break
-            # (I + h S D) tau = K e + S J v*, divided by S row-wise: (S^-1 + h D) is symmetric positive definite
-            a = [[h * dmat[i][j] + (1.0 / s[i] if i == j else 0.0) for j in idx] for i in idx]
-            b = [kc[i] * e[i] / s[i] + ed[i] for i in idx]
-            x = _solve_spd(a, b)
-            tau = [0.0] * n
-            for c, i in enumerate(idx):
-                tau[i] = x[c]
-            neg = [i for i in idx if tau[i] < 0.0]
-            if not neg:
-                break
-            for i in neg:
-                active[i] = False
+                (u0, u1, u2), (q0, q1, q2) = geo[j][1], ijw[j]
+                val = (t0 * u0 + t1 * u1 + t2 * u2) / m + (jw0 * q0 + jw1 * q1 + jw2 * q2)
+                if j == i:
+                    row[i] = h * (val + k[i] * k[i] * minv[i]) + inv_s[i]
+                else:
+                    row[j] = a[j][i] = h * val
+        tau = _active_set_solve(a, rhs)
         # velocity update with the cable impulses
-        for i in range(n):
-            ti = tau[i]
+        for i, ti in enumerate(tau):
             if ti == 0.0:
                 continue
             t = geo[i][1]
@@ -473,19 +431,73 @@ class CablePhysics:
             ws0 -= c * ij[0]
             ws1 -= c * ij[1]
             ws2 -= c * ij[2]
-            thds[i] += c * minv[i] * self._k[i]
+            thds[i] += c * minv[i] * k[i]
         self._v = [vs0, vs1, vs2]
         self._wb = [ws0, ws1, ws2]
         self._thd = thds
         xg = self._xg
         self._xg = [xg[0] + h * vs0, xg[1] + h * vs1, xg[2] + h * vs2]
-        self._th = [self._th[i] + h * thds[i] for i in range(n)]
+        self._th = [th + h * thd for th, thd in zip(self._th, thds, strict=True)]
         self._q = _quat_integrate(self._q, ws0 * h, ws1 * h, ws2 * h)
         self._t += h
         self._tau = tau
         self._geo = self._geometry()
         self._tau_cell = self._cell_tensions(self._geo, tau)
 
+    def _free_body_velocities(self, h: float) -> tuple[float, float, float, float, float, float]:
+        """Platform velocity (m/s, 3) and body-frame angular velocity (rad/s, 3) after h s of the explicit forces
+        (gravity, damping, sag loads, gyroscopic moment), before the cable impulses."""
+        p = self.params
+        m = self._m
+        (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = self._ib
+        (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = self._ibinv
+        v0, v1, v2 = self._v
+        w0, w1, w2 = self._wb
+        cl, ca = p.linear_damping, p.angular_damping
+        f0, f1, f2 = -cl * v0, -cl * v1, -cl * v2 - m * self._g
+        iw0 = i00 * w0 + i01 * w1 + i02 * w2
+        iw1 = i10 * w0 + i11 * w1 + i12 * w2
+        iw2 = i20 * w0 + i21 * w1 + i22 * w2
+        mb0 = -(w1 * iw2 - w2 * iw1) - ca * w0
+        mb1 = -(w2 * iw0 - w0 * iw2) - ca * w1
+        mb2 = -(w0 * iw1 - w1 * iw0) - ca * w2
+        if self._w > 0.0:
+            geo = self._geo
+            rmat = _quat_to_matrix(self._q)
+            for i in range(self.n):
+                if self._tau[i] <= 0.0:
+                    continue
+                fz = -0.5 * self._w * geo[i][7]  # half the cable weight hangs on the anchor
+                f2 += fz
+                # body-frame force = R^T (0, 0, fz)
+                fb0, fb1, fb2 = rmat[2][0] * fz, rmat[2][1] * fz, rmat[2][2] * fz
+                b0, b1, b2 = self._rb[i]
+                mb0 += b1 * fb2 - b2 * fb1
+                mb1 += b2 * fb0 - b0 * fb2
+                mb2 += b0 * fb1 - b1 * fb0
+        return (v0 + h * f0 / m, v1 + h * f1 / m, v2 + h * f2 / m,
+                w0 + h * (j00 * mb0 + j01 * mb1 + j02 * mb2),
+                w1 + h * (j10 * mb0 + j11 * mb1 + j12 * mb2),
+                w2 + h * (j20 * mb0 + j21 * mb1 + j22 * mb2))
+
+    def _free_motor_velocities(self, h: float) -> tuple[list[float], list[float]]:
+        """Motor velocities (n,) rad/s after h s of torque and linearly implicit friction, before the cable
+        impulses, and the inverse effective inertias (n,) 1/(kg m^2); both 0 for a braked (locked) motor."""
+        bm, fc, ws = self._bm, self._fc, self._ws
+        thds = []
+        minv = []
+        for x, u, jm, brake in zip(self._thd, self._u, self._jm, self._brake, strict=True):
+            if brake:
+                thds.append(0.0)
+                minv.append(0.0)
+                continue
+            th_ = math.tanh(x / ws)
+            fric = bm * x + fc * th_
+            dfric = bm + fc / ws * (1.0 - th_ * th_)
+            jeff = jm + h * dfric
+            thds.append(x + h * (u - fric) / jeff)
+            minv.append(1.0 / jeff)
+        return thds, minv
 
 def _quat_to_matrix(q: list[float]) -> list[list[float]]:
     qw, qx, qy, qz = q
