@@ -29,6 +29,9 @@ OVER = "OVER"
 _NUMBER = re.compile(r"-?[0-9]{1,7}(\.[0-9]{1,6})?")
 _SEQ = re.compile(r"[0-9]{1,10}")
 _SAMPLE = re.compile(r"LC,([0-9]{1,10})((?:,(?:-?[0-9]{1,7}(?:\.[0-9]{1,6})?|OPEN|OVER))+)")  # LC,seq,values
+# A whole sample line, '$' to the end (CR/LF included), in one match: body (_SAMPLE), seq, values, checksum. A
+# line it matches passes every check of unframe and _SAMPLE but the checksum's value; any other goes through them.
+_FRAMED_SAMPLE = re.compile(rb"\$(" + _SAMPLE.pattern.encode() + rb")\*([0-9A-F]{2})[\r\n]*")
 
 
 def checksum(body: bytes) -> int:
@@ -83,20 +86,21 @@ def unframe(line: bytes) -> str | None:
 def parse_line(line: bytes) -> SampleLine | InfoLine | None:
     """Decode one line (garbage before its ``$`` is ignored); None when it is not a valid line."""
     start = line.rfind(b"$")
-    if start < 0:
-        return None
+    return None if start < 0 else _parse_from(line, start)
+
+
+def _parse_from(line: bytes, start: int) -> SampleLine | InfoLine | None:
+    """:func:`parse_line` of ``line`` (its newline may be cut off) whose last ``$`` is at ``start`` (>= 0)."""
+    framed = _FRAMED_SAMPLE.fullmatch(line, start)
+    if framed is not None:  # a well-formed sample line (one at every control tick): only its checksum is left
+        body, seq_text, values, hh = framed.groups()
+        return _sample_line(seq_text, values.decode("ascii")) if int(hh, 16) == checksum(body) else None
     body = unframe(line[start:])
     if body is None:
         return None
-    sample = _SAMPLE.fullmatch(body)  # the whole sample line in one match (it comes at every control tick)
+    sample = _SAMPLE.fullmatch(body)
     if sample is not None:
-        seq = int(sample.group(1))
-        if seq >= SEQ_MODULUS:
-            return None
-        fields = sample.group(2)[1:].split(",")
-        flags = tuple(p if p in (OPEN, OVER) else "" for p in fields)
-        tau = np.array([math.nan if f else float(p) for p, f in zip(fields, flags, strict=True)])
-        return SampleLine(seq=seq, tau=tau, flags=flags)
+        return _sample_line(*sample.groups())
     parts = body.split(",")
     try:
         if parts[0] == "INFO" and len(parts) == 5 and _SEQ.fullmatch(parts[2]) and all(
@@ -106,6 +110,21 @@ def parse_line(line: bytes) -> SampleLine | InfoLine | None:
     except ValueError:
         return None
     return None
+
+
+def _sample_line(seq_text: str | bytes, values: str) -> SampleLine | None:
+    """The sample of a body that matched ``_SAMPLE`` (sequence number, ``,f_1,...,f_n``); None past 32 bits."""
+    seq = int(seq_text)
+    if seq >= SEQ_MODULUS:
+        return None
+    fields = values[1:].split(",")
+    if "O" in values:  # an OPEN or OVER flag stands somewhere
+        flags = tuple(p if p in (OPEN, OVER) else "" for p in fields)
+        tau = [math.nan if f else float(p) for p, f in zip(fields, flags, strict=True)]
+    else:
+        flags = ("",) * len(fields)
+        tau = list(map(float, fields))
+    return SampleLine(seq=seq, tau=np.array(tau), flags=flags)
 
 
 @dataclass
@@ -118,28 +137,33 @@ class LineDecoder:
     _buf: bytearray = field(default_factory=bytearray, repr=False)
 
     def feed(self, data: bytes) -> list[SampleLine | InfoLine]:
-        self._buf += data
+        buf = self._buf
+        if buf:  # the start of a line came with an earlier chunk
+            buf += data
+            data = bytes(buf)
+            buf.clear()
         out: list[SampleLine | InfoLine] = []
-        while True:
-            nl = self._buf.find(b"\n")
-            if nl < 0:
-                break
-            line = bytes(self._buf[: nl + 1])
-            del self._buf[: nl + 1]
-            msg = parse_line(line)
-            if msg is None:
-                self.bad_lines += 1
-                self.bytes_discarded += len(line)
-            else:
+        end = data.rfind(b"\n") + 1
+        if end:  # the complete lines, split at once
+            lines = data[:end].split(b"\n")
+            lines.pop()  # the empty rest after the last newline
+            for line in lines:
                 start = line.rfind(b"$")
-                self.bytes_discarded += start
-                self.resyncs += start > 0
-                out.append(msg)
-        if len(self._buf) > MAX_LINE:  # no newline for too long: keep only from the last '$'
-            start = self._buf.rfind(b"$")
-            cut = len(self._buf) if start < 0 or len(self._buf) - start > MAX_LINE else start
-            self.bytes_discarded += cut
-            del self._buf[:cut]
+                msg = None if start < 0 else _parse_from(line, start)
+                if msg is None:
+                    self.bad_lines += 1
+                    self.bytes_discarded += len(line) + 1  # with its newline
+                else:
+                    self.bytes_discarded += start
+                    self.resyncs += start > 0
+                    out.append(msg)
+        if end < len(data):
+            buf += data[end:]
+            if len(buf) > MAX_LINE:  # no newline for too long: keep only from the last '$'
+                start = buf.rfind(b"$")
+                cut = len(buf) if start < 0 or len(buf) - start > MAX_LINE else start
+                self.bytes_discarded += cut
+                del buf[:cut]
         return out
 
 
@@ -220,43 +244,52 @@ class LoadCellDriver(LoadCellBase):
                 self._port = None
 
     def _on_bytes(self, data: bytes, t: float) -> None:
-        for msg in self._decoder.feed(data):
+        decoder = self._decoder
+        for msg in decoder.feed(data):
             if isinstance(msg, InfoLine):
                 self.info = msg
                 self._info_event.set()
             else:
                 self._on_sample(msg, t)
-        self._stats.checksum_errors = self._decoder.bad_lines
-        self._stats.bytes_discarded = self._decoder.bytes_discarded
-        self._stats.resyncs = self._decoder.resyncs
+        stats = self._stats
+        stats.checksum_errors = decoder.bad_lines
+        stats.bytes_discarded = decoder.bytes_discarded
+        stats.resyncs = decoder.resyncs
 
     def _on_sample(self, s: SampleLine, t: float) -> None:
+        stats = self._stats
         if len(s.tau) != self.config.channels:
-            self._stats.extra["wrong_width"] = self._stats.extra.get("wrong_width", 0) + 1
+            stats.extra["wrong_width"] = stats.extra.get("wrong_width", 0) + 1
             return
+        seq = s.seq
         if self._last_seq is not None:
-            step = (s.seq - self._last_seq) % SEQ_MODULUS
+            step = (seq - self._last_seq) % SEQ_MODULUS
             if step == 0:
                 return  # a repeated line
             if step > SEQ_MODULUS // 2:  # the counter went back: the amplifier restarted
-                self._stats.extra["restarts"] = self._stats.extra.get("restarts", 0) + 1
+                stats.extra["restarts"] = stats.extra.get("restarts", 0) + 1
             elif step > 1:
-                self._stats.sequence_gaps += step - 1
-        self._last_seq = s.seq
+                stats.sequence_gaps += step - 1
+        self._last_seq = seq
         tau = s.tau.tolist()
-        if self._prev is not None:
-            self._same = [n + 1 if v == p and math.isfinite(v) else 0
-                          for v, p, n in zip(tau, self._prev, self._same, strict=True)]
+        prev = self._prev
+        if prev is not None:
+            isfinite = math.isfinite
+            self._same = [n + 1 if v == p and isfinite(v) else 0
+                          for v, p, n in zip(tau, prev, self._same, strict=True)]
         self._prev = tau
         self._flags = s.flags
-        self._stats.frames += 1
-        self._box.put(TensionReading(t=t, seq=s.seq, tau=s.tau, device_seq=s.seq))
+        stats.frames += 1
+        self._box.put(TensionReading(t=t, seq=seq, tau=s.tau, device_seq=seq))
 
     # ---- the LoadCellAmplifier interface ----
     def latest(self) -> TensionReading | None:
         return self._box.current()  # type: ignore[return-value]
 
     def wait_for(self, device_seq: int, timeout: float) -> TensionReading:
+        r = self._box.latest
+        if r is not None and r.device_seq >= device_seq:  # already here (the usual case in lockstep)
+            return r  # type: ignore[return-value]
         return self._box.wait(lambda r: r.device_seq >= device_seq, timeout,  # type: ignore[return-value]
                               f"load-cell amplifier on {self.config.port}: no sample with sequence >= "
                               f"{device_seq} within {timeout:g} s.")

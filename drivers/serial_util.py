@@ -136,6 +136,9 @@ class LatestBox:
         return self.latest
 
     def put(self, reading: Reading) -> None:
+        if self.reader is not None:  # polled: the waits poll, nobody waits on the condition
+            self.latest = reading
+            return
         with self.cond:
             self.latest = reading
             self.cond.notify_all()
