@@ -279,8 +279,8 @@ class SimBackend:
             ph.step(self.control_period, t_end=self.sync_count * self.control_period)
             t = ph.time
             self.loadcells.emit(t, ph.cable_tension())
-            roll, pitch, yaw = ph.euler()
-            self.ahrs.emit(t, roll, pitch, yaw)
+            if self.ahrs.due(t):  # the AHRS samples at its own rate: the angles only for the ticks it sends
+                self.ahrs.emit(t, *ph.euler())
             for node in self.drives:
                 node.on_sync(self.sync_count, counter)
             for node in self.encoders:

@@ -78,7 +78,13 @@ def _rotation(roll: float, pitch: float, yaw: float, convention: str) -> list[li
 
 
 def _matmul(a: list[list[float]], b: list[list[float]]) -> list[list[float]]:
-    return [[a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j] for j in range(3)] for i in range(3)]
+    """The 3x3 product a b of rows of floats (written out: a nested comprehension costs several calls)."""
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b
+    return [[a0 * b00 + a1 * b10 + a2 * b20, a0 * b01 + a1 * b11 + a2 * b21, a0 * b02 + a1 * b12 + a2 * b22]
+            for a0, a1, a2 in a]
+
+
+_VALUE_STRUCTS = {(n, fmt): struct.Struct(f">{n}{fmt}") for n in (3, 4) for fmt in "fd"}  # Euler angles, quaternion
 
 
 class XsensEmulator(PtyEmulator):
@@ -114,11 +120,20 @@ class XsensEmulator(PtyEmulator):
         self._t0 = 0.0
         # power-on state: measurement mode with a factory-like output configuration (no Euler angles)
         self.measuring = True
-        self.config: list[tuple[int, int]] = [(XDI.PACKET_COUNTER, XDI.MAX_RATE),
-                                              (XDI.SAMPLE_TIME_FINE, XDI.MAX_RATE), (XDI.QUATERNION, 100)]
+        self.config = [(XDI.PACKET_COUNTER, XDI.MAX_RATE), (XDI.SAMPLE_TIME_FINE, XDI.MAX_RATE), (XDI.QUATERNION, 100)]
         self.packet_counter = 0
         self._last_slot: dict[int, int] = {}
         self._decoder = xbus.XbusDecoder()
+
+    @property
+    def config(self) -> list[tuple[int, int]]:
+        """The output configuration: (XDI, rate Hz) items; rate 0 or ``XDI.MAX_RATE``: with every packet."""
+        return self._config
+
+    @config.setter
+    def config(self, items: list[tuple[int, int]]) -> None:
+        self._config = list(items)
+        self._rated = [(xdi, rate) for xdi, rate in self._config if rate not in (0, XDI.MAX_RATE)]
 
     # ---- faults the backend injects ----
     def disconnect(self) -> None:
@@ -165,31 +180,43 @@ class XsensEmulator(PtyEmulator):
             # time alone, so the same seed still gives the same bytes
             ang = self._measure(sim_time, roll, pitch, yaw)
             number = self.packet_counter
-            pc = number & 0xFFFF
-            deg = tuple(math.degrees(a) for a in ang)
-            q = euler_to_quaternion(*ang, convention=self.output_convention)
             data = []
             for xdi in items:
                 if xdi == XDI.PACKET_COUNTER:
-                    data.append((xdi, pc.to_bytes(2, "big")))
+                    data.append((xdi, (number & 0xFFFF).to_bytes(2, "big")))
                 elif xdi == XDI.SAMPLE_TIME_FINE:
                     data.append((xdi, (round(sim_time * 10000) & 0xFFFFFFFF).to_bytes(4, "big")))
                 else:
-                    values = q if xdi & 0xFFF0 == XDI.QUATERNION else deg
-                    fmt = "d" if xdi & XDI.FORMAT_MASK == XDI.FLOAT64 else "f"
-                    data.append((xdi, struct.pack(f">{len(values)}{fmt}", *values)))
+                    data.append((xdi, self._orientation_item(xdi, ang)))
             self.packet_counter += 1
             frame = xbus.encode(MID.MTDATA2, xbus.encode_mtdata2(data))
             frame = self._maybe_corrupt(frame)
             self._write(frame)
             return number
 
+    def _orientation_item(self, xdi: int, ang: tuple[float, float, float]) -> bytes:
+        """The data of a quaternion or Euler-angles (degrees) item for the measured angles ``ang`` (rad)."""
+        if xdi & 0xFFF0 == XDI.QUATERNION:
+            values = euler_to_quaternion(*ang, convention=self.output_convention)
+        else:
+            values = (math.degrees(ang[0]), math.degrees(ang[1]), math.degrees(ang[2]))
+        return _VALUE_STRUCTS[len(values), "d" if xdi & XDI.FORMAT_MASK == XDI.FLOAT64 else "f"].pack(*values)
+
+    def due(self, sim_time: float) -> bool:
+        """Whether :meth:`emit` at ``sim_time`` (s) writes a sample: measuring, not silent, and an item with an
+        explicit rate reaches a new slot of its grid (the caller can skip computing the angles otherwise)."""
+        if not self.measuring or self._silent:
+            return False
+        last = self._last_slot
+        for xdi, rate in self._rated:
+            if last.get(xdi, -1) < math.floor(sim_time * rate + 1e-9):
+                return True
+        return False
+
     def _due_items(self, sim_time: float) -> list[int]:
         """Items due at this tick: each explicit rate on its own grid; 0xFFFF items ride along."""
         due = []
-        for xdi, rate in self.config:
-            if rate in (0, XDI.MAX_RATE):
-                continue
+        for xdi, rate in self._rated:
             slot = math.floor(sim_time * rate + 1e-9)
             if self._last_slot.get(xdi, -1) < slot:
                 self._last_slot[xdi] = slot
