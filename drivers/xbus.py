@@ -265,8 +265,18 @@ def find_item(items: dict[int, bytes], base: int) -> tuple[int, bytes] | None:
     return None
 
 
+# The MTData2 payload the driver configures (PacketCounter, SampleTimeFine, float32 EulerAngles, in this order),
+# unpacked in one call: XDI, size and data of each item.
+_STREAMED = struct.Struct(">HBHHBIHB3f")
+_STREAMED_ITEMS = (XDI.PACKET_COUNTER, 2, XDI.SAMPLE_TIME_FINE, 4, XDI.EULER_ANGLES, 12)
+
+
 def decode_sample(payload: bytes) -> Mtdata2Sample | None:
     """Packet counter, SampleTimeFine, Euler angles and quaternion of an MTData2 payload (None if malformed)."""
+    if len(payload) == _STREAMED.size:  # the configured stream (at every sample): one unpack, the same result
+        xdi_pc, n_pc, pc, xdi_stf, n_stf, stf, xdi_euler, n_euler, roll, pitch, yaw = _STREAMED.unpack(payload)
+        if (xdi_pc, n_pc, xdi_stf, n_stf, xdi_euler, n_euler) == _STREAMED_ITEMS:
+            return Mtdata2Sample(packet_counter=pc, sample_time_fine=stf, euler_deg=(roll, pitch, yaw))
     items = decode_mtdata2(payload)
     if items is None:
         return None

@@ -186,7 +186,7 @@ class XsensMti(AhrsBase):
             self._last_raw_pc = pc
         else:
             self._unwrapped += 1
-        roll, pitch, yaw = (math.radians(a) for a in sample.euler_deg)
+        roll, pitch, yaw = map(math.radians, sample.euler_deg)
         self._stats.frames += 1
         self._box.put(AhrsReading(t=t, seq=self._unwrapped, roll=roll, pitch=pitch, yaw=yaw,
                                   packet_counter=-1 if pc is None else pc,
