@@ -350,12 +350,19 @@ class Rig:
             missing.append("load cells")
         roll, pitch, yaw, stf = (np.nan, np.nan, np.nan, -1) if prev is None else (
             prev.roll, prev.pitch, prev.yaw, prev.ahrs_time)
-        a = self.ahrs.latest()
         if self.lockstep and "AHRS" not in self.dead:
             sim_t = count * self.period  # the simulated prototype steps one period per SYNC from power-on
             due = int(round(math.floor(sim_t / self.ahrs_period + 1e-9) * self.ahrs_period * 1e4))
-            if a is None or a.sample_time_fine < due:
-                a = _wait_ahrs(self.ahrs, due, left())
+            # the AHRS samples on its own grid: between two samples there is nothing to read (its port is
+            # read, and any device message seen, at the next tick that has a sample due)
+            if prev is not None and stf >= due:
+                a = None  # the sample due is the one held: the previous values stand
+            else:
+                a = self.ahrs.latest()
+                if a is None or a.sample_time_fine < due:
+                    a = _wait_ahrs(self.ahrs, due, left())
+        else:
+            a = self.ahrs.latest()
         if a is not None and a.sample_time_fine != stf:
             roll, pitch, yaw, stf = a.roll, a.pitch, a.yaw, a.sample_time_fine
             self._last_fresh["AHRS"] = t
