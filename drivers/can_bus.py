@@ -10,8 +10,10 @@ SYNC producer, one driver per drive and encoder) for the acquisition and ``cdpr 
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -71,11 +73,12 @@ class _Frame(can.Message):
 _new_message = can.Message.__new__
 
 
-def _virtual_send(bus: VirtualBus, can_id: int, data: bytes, remote: bool) -> None:
+def _virtual_send(bus: VirtualBus, can_id: int, data: bytes, remote: bool, inboxes: dict[queue.Queue, deque]) -> None:
     """``bus.send`` of the frame (``can_id``, ``data``, ``remote``) on a python-can ``virtual`` bus, as
     :meth:`VirtualBus.send` does it (time stamp, channel, ``is_rx``, one copy per receiving queue), but with
     each receiver's :class:`can.Message` built directly: no frame to build and then deep-copy per receiver
-    (~3 us a frame; a pumped network sends ~7 frames per control tick)."""
+    (~3 us a frame; a pumped network sends ~7 frames per control tick). A queue in ``inboxes`` (a pumped
+    network's, see :attr:`_Lane.inboxes`) gets the frame appended to its deque."""
     bus._check_if_open()
     timestamp = 0.0 if bus.preserve_timestamps else time.time()  # a new frame's own time stamp is 0.0
     own = bus.queue
@@ -97,7 +100,11 @@ def _virtual_send(bus: VirtualBus, can_id: int, data: bytes, remote: bool) -> No
         m.is_rx = bus_queue is not own
         m.bitrate_switch = False
         m.error_state_indicator = False
-        bus_queue.put(m)  # as VirtualBus.send without a timeout: waits while a bounded queue is full
+        inbox = inboxes.get(bus_queue)
+        if inbox is not None:
+            inbox.append(m)
+        else:
+            bus_queue.put(m)  # as VirtualBus.send without a timeout: waits while a bounded queue is full
 
 
 class _Lane:
@@ -108,6 +115,10 @@ class _Lane:
         self.channel = channel
         self.networks: list[Network] = []
         self.sent = 0  # frames sent by the pumped networks, to know when a pass delivered something new
+        # The receive queues of the pumped networks, unbounded ones, with their deques: only the pump takes from
+        # them and nobody blocks on them, so the pumped senders append and the pump pops there directly, without
+        # Queue's lock and its conditions to notify (~2 us a frame); deque appends and pops are thread-safe.
+        self.inboxes: dict[queue.Queue, deque] = {}
         self._lock = threading.RLock()
         self._owner: int | None = None
 
@@ -144,15 +155,17 @@ class Network(canopen.Network):
     returns: an SDO response waits for the SDO client, the TPDOs that answer a SYNC are decoded, and no
     thread hand-off happens on the way (each costs tens of microseconds). The frames are python-can's as
     ever (a pumped send puts them in the channel's queues as ``VirtualBus.send`` does, see
-    :func:`_virtual_send`); only who reads the queues changes. A frame from a non-pumped sender waits for the next pump
-    (:meth:`pump`, which the drivers' waits call). A PDO (COB-IDs 0x180-0x57F) does not pump by itself: nobody
-    answers one, and the next frame that pumps (the SYNC the synchronous RPDOs are meant for, an SDO request)
-    delivers it first, in the order sent; the waits pump too.
+    :func:`_virtual_send`); only who reads the queues changes (and how: see :attr:`_Lane.inboxes`). A frame
+    from a non-pumped sender waits for the next pump (:meth:`pump`, which the drivers' waits call). A PDO
+    (COB-IDs 0x180-0x57F) does not pump by itself: nobody answers one, and the next frame that pumps (the SYNC
+    the synchronous RPDOs are meant for, an SDO request) delivers it first, in the order sent; the waits pump
+    too.
     """
 
     def __init__(self, bus: can.BusABC | None = None):
         super().__init__(bus)
         self._lane: _Lane | None = None
+        self._inbox: deque | None = None  # pumped: the deque of the bus's receive queue (see _Lane.inboxes)
 
     @property
     def pumped(self) -> bool:
@@ -171,6 +184,9 @@ class Network(canopen.Network):
             if lane is None:
                 lane = _lanes[channel] = _Lane(channel)
             lane.networks.append(self)
+            rx = self.bus.queue
+            if type(rx) is queue.Queue and rx.maxsize <= 0:
+                lane.inboxes[rx] = self._inbox = rx.queue
         self._lane = lane
         return self
 
@@ -180,6 +196,9 @@ class Network(canopen.Network):
             with _lanes_lock:
                 if self in lane.networks:
                     lane.networks.remove(self)
+                if self._inbox is not None:
+                    lane.inboxes.pop(self.bus.queue, None)
+                    self._inbox = None
                 if not lane.networks and _lanes.get(lane.channel) is lane:
                     del _lanes[lane.channel]
         super().disconnect()
@@ -196,7 +215,7 @@ class Network(canopen.Network):
             self.check()
             return
         with self.send_lock:
-            _virtual_send(bus, can_id, data, remote)
+            _virtual_send(bus, can_id, data, remote, lane.inboxes)
         lane.sent += 1
         if not 0x180 <= can_id < 0x580:  # a PDO waits for the next frame that pumps (see the class)
             lane.pump()
@@ -211,17 +230,18 @@ class Network(canopen.Network):
         if bus is None:
             return
         listeners = self.listeners
-        rx = bus.queue  # the virtual bus's receive queue: an empty one costs no call
-        if bus.filters or len(listeners) != 1 or not isinstance(listeners[0], canopen.network.MessageListener):
-            while rx.qsize() and (msg := bus.recv(0.0)) is not None:
+        inbox = self._inbox
+        if (inbox is None or bus.filters or len(listeners) != 1
+                or not isinstance(listeners[0], canopen.network.MessageListener)):
+            while bus.queue.qsize() and (msg := bus.recv(0.0)) is not None:
                 for listener in listeners:
                     listener(msg)
             return
         # The usual case, canopen's own listener alone on an unfiltered bus: what bus.recv and the listener do,
-        # without their per-frame layers (a simulated tick moves ~7 frames).
+        # without their per-frame layers (a simulated tick moves ~7 frames), the frames taken from the inbox.
         notify = self.notify
-        while rx.qsize():
-            msg = rx.get_nowait()
+        while inbox:
+            msg = inbox.popleft()
             if msg.is_error_frame or msg.is_remote_frame:
                 continue
             try:
