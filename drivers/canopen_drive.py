@@ -507,9 +507,16 @@ class CanopenWinchDrive(CanopenNodeDriver, WinchDrive):
 
     # -- cyclic -----------------------------------------------------------------------------------------
     def torque_to_permille(self, torque: float) -> int:
+        """Target torque 0x6071 for ``torque`` N m: per mille of the rated torque, saturated at the maximum torque
+        0x6072 (at 32.767 rated torques without one) and at the 16-bit range."""
         limit = self.max_torque if self.max_torque > 0 else 32.767 * self.rated_torque
-        tq = min(max(float(torque), -limit), limit)
-        return max(-32768, min(32767, int(round(tq / self.rated_torque * 1000.0))))
+        tq = float(torque)
+        if tq > limit:
+            tq = limit
+        elif tq < -limit:
+            tq = -limit
+        permille = round(tq / self.rated_torque * 1000.0)
+        return -32768 if permille < -32768 else 32767 if permille > 32767 else permille
 
     def set_torque(self, torque: float) -> None:
         """Torque target, N m at the motor (saturated at 0x6072), sent now in RPDO1 (effective at SYNC)."""
