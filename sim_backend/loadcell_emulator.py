@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from drivers import loadcell
-from sim_backend.pty import PtyEmulator, free_run, read_master
+from sim_backend.pty import GaussianBlocks, PtyEmulator, free_run, read_master
 
 FULL_SCALE = 100.0 * 9.81  # N, the prototype's 100 kg cells
 
@@ -44,20 +44,33 @@ class LoadCellEmulator(PtyEmulator):
     ) -> None:
         super().__init__(master_fd, rng)
         self.n = channels
-        self.offsets = np.zeros(channels) if offsets is None else np.asarray(offsets, dtype=float)
-        self.gains = np.ones(channels) if gains is None else np.asarray(gains, dtype=float)
-        if self.offsets.shape != (channels,) or self.gains.shape != (channels,):
+        offsets = np.zeros(channels) if offsets is None else np.asarray(offsets, dtype=float)
+        gains = np.ones(channels) if gains is None else np.asarray(gains, dtype=float)
+        if offsets.shape != (channels,) or gains.shape != (channels,):
             raise ValueError(f"load-cell offsets and gains need {channels} values each")
         self.noise_std = noise_std
         self.full_scale = full_scale
         self.rate_hz = rate_hz
         self.model = model or f"LC{channels}-SIM"
-        self._accuracy_error = rng.uniform(-accuracy * full_scale, accuracy * full_scale, channels)
+        accuracy_error = rng.uniform(-accuracy * full_scale, accuracy * full_scale, channels)
+        # per channel (gain, offset N, accuracy error N) as plain floats: read at every tick
+        self._errors = list(zip(gains.tolist(), offsets.tolist(), accuracy_error.tolist(), strict=True))
         self.seq = -1
         self._last = [0.0] * channels
         self._stuck = [False] * channels  # plain lists: read at every tick, numpy costs more than it saves
         self._open = [False] * channels
         self._decoder = loadcell.LineDecoder()
+        self._normals = GaussianBlocks(rng, channels)  # the per-sample noise, drawn after the accuracy errors
+
+    @property
+    def gains(self) -> np.ndarray:
+        """(n,) channel gains (fixed at construction)."""
+        return np.array([g for g, _, _ in self._errors])
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """(n,) channel offsets, N (fixed at construction)."""
+        return np.array([o for _, o, _ in self._errors])
 
     # ---- faults ----
     def stick(self, channel: int) -> None:
@@ -89,10 +102,10 @@ class LoadCellEmulator(PtyEmulator):
         """:meth:`measure` as plain floats (numpy costs more than it saves on 4 channels); the same arithmetic,
         in the same order, and numpy's rounding (half to even of value * 100)."""
         tau = np.asarray(true_tensions, dtype=float).reshape(self.n).tolist()
-        noise = self.rng.normal(0.0, self.noise_std, self.n).tolist()
-        value = [round((g * t + o + a + e) * 100.0) / 100.0
-                 for g, t, o, a, e in zip(self.gains.tolist(), tau, self.offsets.tolist(),
-                                          self._accuracy_error.tolist(), noise, strict=True)]
+        std = self.noise_std
+        # the noise is rng.normal(0.0, std, n), i.e. loc + scale * z for standard normal draws z
+        value = [round((g * t + o + a + (0.0 + std * z)) * 100.0) / 100.0
+                 for (g, o, a), t, z in zip(self._errors, tau, self._normals.take(), strict=True)]
         if any(self._stuck):
             value = [last if stuck else v for v, last, stuck in zip(value, self._last, self._stuck,
                                                                      strict=True)]

@@ -65,16 +65,54 @@ def read_master(fd: int, timeout: float) -> bytes:
         raise
 
 
+class GaussianBlocks:
+    """Standard normal values of a Generator served ``group`` at a time from blocks of ``per_block`` groups: one
+    Generator call per block instead of one per group (a call costs microseconds), and the same values in the same
+    order as drawing them group by group.
+
+    The generator may have other users: :meth:`release` first puts it back just after the last value served (it
+    draws the block again from the block's start state, up to there) and drops the rest of the block.
+    """
+
+    def __init__(self, rng: np.random.Generator, group: int, per_block: int = 64) -> None:
+        self._rng = rng
+        self._group = group
+        self._size = group * per_block
+        self._values: list[float] = []
+        self._next = 0  # index of the next value to serve
+        self._start: dict | None = None  # the bit generator's state before the block was drawn
+
+    def take(self) -> list[float]:
+        """The next ``group`` standard normal values."""
+        i = self._next
+        if i == len(self._values):
+            self._start = self._rng.bit_generator.state
+            self._values = self._rng.standard_normal(self._size).tolist()
+            i = 0
+        self._next = i + self._group
+        return self._values[i:self._next]
+
+    def release(self) -> None:
+        """Rewind the generator to just after the last value served, for another use of it."""
+        if self._start is None:
+            return
+        self._rng.bit_generator.state = self._start
+        self._rng.standard_normal(self._next)
+        self._values, self._next, self._start = [], 0, None
+
+
 class PtyEmulator:
     """What every emulated serial device shares: the pty master it owns, a thread answering the host's
     commands (``_serve``, implemented by the device), injected corruption (bit flips drawn from the
-    device's seeded generator) and byte counters."""
+    device's seeded generator) and byte counters. A device that draws noise at every sample takes it from
+    ``self._normals`` (a :class:`GaussianBlocks` on the same generator); :attr:`rng` is then given back in step."""
 
     thread_name = "pty-emulator"
 
     def __init__(self, master_fd: int, rng: np.random.Generator) -> None:
         self.fd = master_fd
-        self.rng = rng
+        self._rng = rng
+        self._normals: GaussianBlocks | None = None
         self._corrupt_left = 0
         self._silent = False
         self._lock = threading.Lock()
@@ -82,6 +120,13 @@ class PtyEmulator:
         self._thread: threading.Thread | None = None
         self.bytes_written = 0
         self.bytes_dropped = 0
+
+    @property
+    def rng(self) -> np.random.Generator:
+        """The device's seeded generator, just after every value drawn so far (block-drawn noise included)."""
+        if self._normals is not None:
+            self._normals.release()
+        return self._rng
 
     # ---- life cycle ----
     def start(self):

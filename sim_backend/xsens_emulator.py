@@ -26,7 +26,7 @@ from calib.kinematics import rotation
 from drivers import xbus
 from drivers.xbus import MID, XDI
 from sim_backend.physics import _euler
-from sim_backend.pty import PtyEmulator, free_run, read_master
+from sim_backend.pty import GaussianBlocks, PtyEmulator, free_run, read_master
 
 ORIENTATION_MAX_HZ = 400  # MTi-600 series orientation outputs
 TIMESTAMP_MAX_HZ = 2000
@@ -124,6 +124,7 @@ class XsensEmulator(PtyEmulator):
         self.packet_counter = 0
         self._last_slot: dict[int, int] = {}
         self._decoder = xbus.XbusDecoder()
+        self._normals = GaussianBlocks(rng, 3)  # per sample: roll, pitch, yaw noise, after the bias and drift draws
 
     @property
     def config(self) -> list[tuple[int, int]]:
@@ -156,10 +157,10 @@ class XsensEmulator(PtyEmulator):
         if self._yaw0 is None:
             self._yaw0, self._t0 = a_yaw, sim_time
         n = self.noise
-        d_roll, d_pitch = self.rng.normal(0.0, n.roll_pitch_std, 2).tolist()
-        a_roll += self._bias_roll + math.radians(d_roll)
-        a_pitch += self._bias_pitch + math.radians(d_pitch)
-        a_yaw += -self._yaw0 + self._drift * (sim_time - self._t0) + math.radians(self.rng.normal(0.0, n.yaw_std))
+        z_roll, z_pitch, z_yaw = self._normals.take()  # as rng.normal(0.0, std, 2) then rng.normal(0.0, yaw_std)
+        a_roll += self._bias_roll + math.radians(0.0 + n.roll_pitch_std * z_roll)
+        a_pitch += self._bias_pitch + math.radians(0.0 + n.roll_pitch_std * z_pitch)
+        a_yaw += -self._yaw0 + self._drift * (sim_time - self._t0) + math.radians(0.0 + n.yaw_std * z_yaw)
         a_yaw = (a_yaw + math.pi) % (2 * math.pi) - math.pi
         return a_roll, a_pitch, a_yaw
 
