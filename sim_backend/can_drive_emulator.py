@@ -355,8 +355,8 @@ class CanDriveEmulator(SimulatedNode):
     # -- object values ------------------------------------------------------------------------------
     @property
     def statusword(self) -> int:
-        sw = STATUSWORD_BITS[self.state] | SW_REMOTE
-        if self.state == OPERATION_ENABLED and self.mode in (MODE_CST, MODE_CSV):
+        sw = STATUSWORD_BITS[self._state] | SW_REMOTE
+        if self._state == OPERATION_ENABLED and self.mode in (MODE_CST, MODE_CSV):
             sw |= SW_FOLLOWS_COMMAND
         return sw
 
@@ -476,6 +476,8 @@ class CanDriveEmulator(SimulatedNode):
 
     def command(self, cw: int) -> None:
         """Apply a controlword (from SDO or the RPDO) to the CiA 402 state machine."""
+        if self._state == OPERATION_ENABLED and cw & 0x8F == 0x0F and cw == self.controlword:
+            return  # a running drive's RPDO at every SYNC: enable operation again changes nothing
         rising_reset = bool(cw & 0x80) and not (self.controlword & 0x80)
         self.controlword = cw
         s = self.state
@@ -569,7 +571,8 @@ class CanDriveEmulator(SimulatedNode):
     def apply_targets(self) -> None:
         """At SYNC, before the physics step: the last RPDO takes effect, the torque command goes to the plant."""
         with self.lock:
-            self._check_scheduled()
+            if self._scheduled:
+                self._check_scheduled()
             if self.node.nmt.state == "OPERATIONAL":
                 rx = self._rx
                 for cob_id, st, keys in self._rpdos:
@@ -593,7 +596,7 @@ class CanDriveEmulator(SimulatedNode):
 
     def _torque_law(self) -> float:
         limit = self.max_torque / 1000.0 * self.rated_torque
-        if self.state == OPERATION_ENABLED:
+        if self._state == OPERATION_ENABLED:
             self._hold = None
             if self.mode == MODE_CST:
                 tq = self.target_torque / 1000.0 * self.rated_torque
@@ -620,4 +623,5 @@ class CanDriveEmulator(SimulatedNode):
         return 0.0
 
     def before_tpdo(self) -> None:
-        self._check_scheduled()
+        if self._scheduled:
+            self._check_scheduled()
