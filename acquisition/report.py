@@ -12,6 +12,9 @@ import datetime as _dt
 import html
 import io
 import math
+import os
+import pickle
+import subprocess
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -200,10 +203,15 @@ def read_offsets(path: str | Path) -> dict[str, Any]:
     return doc
 
 
-def _png(fig) -> str:
+def _svg(fig) -> str:
+    """The figure as a data URI of an SVG image: vector, so the operator can zoom into a window, and about
+    half the time and size of a PNG of the tension plot (0.1 s and 180 kB against 0.22 s and 290 kB)."""
+    import matplotlib
+
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    return base64.b64encode(buf.getvalue()).decode("ascii")
+    with matplotlib.rc_context({"svg.hashsalt": "cdpr-report"}):  # the same page for the same run, byte for byte
+        fig.savefig(buf, format="svg", bbox_inches="tight", metadata={"Date": None})
+    return "data:image/svg+xml;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
 def plot_tensions(t: np.ndarray, tau: np.ndarray, tau_ref: np.ndarray, windows: Sequence[tuple[int, int]]):
@@ -247,7 +255,7 @@ def plot_residuals(residuals: Mapping[str, Any]):
 
 
 def render_html(summary: StartupSummary, t: np.ndarray, tau: np.ndarray, tau_ref: np.ndarray) -> str:
-    """A self-contained HTML page (plots embedded as base64 PNG)."""
+    """A self-contained HTML page (plots embedded as base64 SVG)."""
     esc = html.escape
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>cdpr startup report</title>",
@@ -282,10 +290,10 @@ def render_html(summary: StartupSummary, t: np.ndarray, tau: np.ndarray, tau_ref
                     parts.append(f"<tr><td>{ch}</td><td>{float(res[ch]['rms']):.4g} {UNITS[ch]}</td>"
                                  f"<td>{float(res[ch]['rms_normalized']):.3f}</td></tr>")
             parts.append("</table>")
-            parts.append(f"<img alt='residuals' src='data:image/png;base64,{_png(plot_residuals(res))}'>")
+            parts.append(f"<img alt='residuals' src='{_svg(plot_residuals(res))}'>")
     if len(t):
         fig = plot_tensions(t, tau, tau_ref, summary.windows)
-        parts.append(f"<h2>Tensions</h2><img alt='tensions' src='data:image/png;base64,{_png(fig)}'>")
+        parts.append(f"<h2>Tensions</h2><img alt='tensions' src='{_svg(fig)}'>")
     if summary.windows:
         parts.append("<h2>Equilibrium windows</h2><table><tr><th>#</th><th>first sample</th><th>last sample</th>"
                      "<th>from (s)</th><th>to (s)</th></tr>")
@@ -307,3 +315,91 @@ def write_html(path: str | Path, summary: StartupSummary, t: np.ndarray, tau: np
     path = Path(path)
     path.write_text(render_html(summary, t, tau, tau_ref), encoding="utf-8")
     return path
+
+
+class ReportRenderer:
+    """Writes report.html from a child process started ahead of time (:meth:`start`, when the routine begins):
+    the child imports matplotlib and draws a first figure (~0.5 s of CPU) on the machine's other core while
+    the control loop runs, then waits. :meth:`write` hands it the run's data once the solve is done; when the
+    child is not there or fails, the page is rendered in this process instead. The child runs in its own
+    session (Ctrl-C is the control loop's, not its) and ends with its stdin. As a context
+    manager it ends the child on the way out (:meth:`close`)."""
+
+    def __init__(self) -> None:
+        self._proc: subprocess.Popen | None = None
+
+    def __enter__(self) -> ReportRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def start(self) -> ReportRenderer:
+        if self._proc is None:
+            root = str(Path(__file__).resolve().parents[1])  # the child imports this very package
+            env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p))
+            try:
+                self._proc = subprocess.Popen(
+                    [sys.executable, "-c", "import sys; from acquisition.report import serve_report; "
+                     "sys.exit(serve_report())"],
+                    stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                    start_new_session=True)
+            except OSError:  # no child: write() renders here
+                self._proc = None
+        return self
+
+    def write(self, path: str | Path, summary: StartupSummary, t: np.ndarray, tau: np.ndarray,
+              tau_ref: np.ndarray) -> Path:
+        """report.html at ``path``, as :func:`write_html` writes it."""
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            try:
+                proc.communicate(pickle.dumps((str(path), summary, t, tau, tau_ref)), timeout=120.0)
+                if proc.returncode == 0:
+                    return Path(path)
+            except (OSError, subprocess.TimeoutExpired):
+                pass
+            _end(proc)
+        return write_html(path, summary, t, tau, tau_ref)
+
+    def close(self) -> None:
+        """End the child if no report was written (a stopped routine)."""
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            _end(proc)
+
+
+def _end(proc: subprocess.Popen) -> None:
+    """Kill the child if it still runs, reap it and close its pipes."""
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait()
+    for pipe in (proc.stdin, proc.stderr):
+        try:
+            if pipe is not None:
+                pipe.close()
+        except OSError:  # a broken pipe to a killed child: nothing left to flush
+            pass
+
+
+def serve_report() -> int:
+    """The :class:`ReportRenderer` child: import matplotlib and draw once now, then render the pickled
+    (path, summary, t, tau, tau_ref) that stdin brings to report.html. Exit status 0 when written (or when
+    nothing came); an exception exits non-zero and the parent renders the page itself."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(2, 1))  # fonts and renderer loaded before they are needed
+    ax.plot([0.0, 1.0], [0.0, 1.0], label="x")
+    ax.legend()
+    plt.close(fig)
+    fig.savefig(io.BytesIO(), format="svg", bbox_inches="tight")
+    data = sys.stdin.buffer.read()
+    if not data:
+        return 0
+    path, summary, t, tau, tau_ref = pickle.loads(data)  # from the parent process only
+    write_html(path, summary, t, tau, tau_ref)
+    sys.stderr.flush()
+    os._exit(0)  # the page is written and closed: skip the interpreter's teardown (~0.2 s with matplotlib)

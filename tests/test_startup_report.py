@@ -12,11 +12,13 @@ import yaml
 
 from acquisition.report import (
     ProgressBar,
+    ReportRenderer,
     StartupSummary,
     offsets_document,
     read_offsets,
     render_html,
     render_text,
+    write_html,
     write_offsets,
 )
 
@@ -59,15 +61,40 @@ def test_offsets_file_reads_back_with_every_field(tmp_path):
         read_offsets(bad)
 
 
-def test_html_is_self_contained_with_png_plots():
+def test_html_is_self_contained_with_svg_plots():
     t = np.arange(100) * 0.1
     tau = 100 + np.sin(t)[:, None] * np.arange(1, 5)
     page = render_html(summary(), t, tau, np.full_like(tau, 100.0))
-    imgs = re.findall(r"data:image/png;base64,([A-Za-z0-9+/=]+)", page)
+    imgs = [base64.b64decode(i) for i in re.findall(r"data:image/svg\+xml;base64,([A-Za-z0-9+/=]+)", page)]
     assert len(imgs) == 2  # residuals and tensions
-    assert all(base64.b64decode(i)[:8] == b"\x89PNG\r\n\x1a\n" for i in imgs)
+    assert all(i.startswith(b"<?xml") and b"<svg" in i and i.rstrip().endswith(b"</svg>") for i in imgs)
     assert "src='http" not in page and "<script" not in page
     assert "<td>1065.100</td><td>0.200</td>" in page
+
+
+def test_report_renderer_child_writes_the_same_page_and_falls_back_when_gone(tmp_path):
+    t = np.arange(200) * 0.1
+    tau = 100 + np.sin(t)[:, None] * np.arange(1, 5)
+    ref = np.full_like(tau, 100.0)
+    write_html(tmp_path / "here.html", summary(), t, tau, ref)
+    with ReportRenderer() as r:
+        r.start()
+        child = r._proc
+        assert child is not None and child.poll() is None  # waiting, matplotlib loaded meanwhile
+        assert r.write(tmp_path / "child.html", summary(), t, tau, ref) == tmp_path / "child.html"
+        assert child.returncode == 0  # the child wrote it
+    assert (tmp_path / "child.html").read_bytes() == (tmp_path / "here.html").read_bytes()
+    # the child killed (or never started): the page is rendered in this process
+    r = ReportRenderer().start()
+    r._proc.kill()
+    r._proc.wait()
+    r.write(tmp_path / "fallback.html", summary(), t, tau, ref)
+    assert (tmp_path / "fallback.html").read_bytes() == (tmp_path / "here.html").read_bytes()
+    # a routine that stopped before its report: close() ends the waiting child
+    r = ReportRenderer().start()
+    child = r._proc
+    r.close()
+    assert child.poll() is not None and r._proc is None
 
 
 def test_progress_bar_draws_on_a_tty_only():

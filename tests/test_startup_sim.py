@@ -54,7 +54,7 @@ def test_grid2_equilibrium_lands_within_3mm_and_0_3deg(tmp_path, capsys):
         np.testing.assert_allclose(run.tau[a : b + 1].mean(axis=0), run.setpoints[j], atol=1.6)
     off = yaml.safe_load((out / "offsets.yaml").read_text())
     assert off["pose"] == sol["initial_pose"] and len(off["lengths"]) == 4
-    assert "data:image/png;base64," in (out / "report.html").read_text()
+    assert (out / "report.html").read_text().count("data:image/svg+xml;base64,") == 2
     assert not run.events
 
 
@@ -204,7 +204,7 @@ def test_bad_options_and_absent_devices_end_with_one_sentence(tmp_path, capsys):
 
 def test_feedback_rates_halve_the_frames_and_every_log_tick_is_fresh():
     from acquisition.clock import SimClock
-    from acquisition.startup import connect, feedback_every
+    from acquisition.startup import ahrs_rate_for, connect, feedback_every
     from calib.robot import load_robot
     from sim_backend.backend import SimBackend
 
@@ -212,6 +212,7 @@ def test_feedback_rates_halve_the_frames_and_every_log_tick_is_fresh():
     assert feedback_every(500.0, 50) == (10, 10)  # gcd(50, 240) = 10
     assert feedback_every(250.0, 25) == (5, 5)
     assert feedback_every(200.0, 20, overflow=0) == (1, 1)  # no SYNC counter: every SYNC
+    assert [ahrs_rate_for(p) for p in (0.1, 0.05, 0.2, 0.03, 0.0071)] == [10, 20, 5, 100, 100]
     robot = load_robot("irma4u")
     period = 0.005
     with SimBackend(robot, None, seed=3, control_period=period) as sim:

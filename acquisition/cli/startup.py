@@ -22,7 +22,7 @@ import numpy as np
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.clock import RealClock, SimClock
 from acquisition.equilibrium import DetectorConfig
-from acquisition.report import ProgressBar, StartupSummary, read_offsets, render_text, write_html, write_offsets
+from acquisition.report import ProgressBar, ReportRenderer, StartupSummary, read_offsets, render_text, write_offsets
 from acquisition.safety import SafetyLimits, SafetySupervisor
 from acquisition.startup import Plan, StartupConfig, StartupRoutine, StartupStopped, connect, feedback_every
 
@@ -95,10 +95,15 @@ def run(args) -> int:
             raise UsageError("--backend hw needs --config FILE (the device configuration YAML).")
         if args.sim_config or args.truth:
             raise UsageError("--sim-config and --truth apply to --backend sim only.")
-        return _run_hw(args, robot, plan, cfg, out)
-    if args.config:
+    elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
-    return _run_sim(args, robot, plan, cfg, out)
+    args.report = ReportRenderer()
+    with args.report:
+        if not args.no_html:
+            args.report.start()  # report.html's plotting loads on the other core while the routine runs
+        if args.backend == "hw":
+            return _run_hw(args, robot, plan, cfg, out)
+        return _run_sim(args, robot, plan, cfg, out)
 
 
 def _progress(args) -> ProgressBar:
@@ -221,7 +226,7 @@ def _solve_and_report(args, robot, cfg, result, out: Path) -> StartupSummary:
     if args.offsets:
         summary.files["offsets_copy"] = str(write_offsets(args.offsets, data, robot.name, str(out)))
     if not args.no_html:
-        summary.files["report"] = str(write_html(out / "report.html", summary, run.t, run.tau, run.tau_ref))
+        summary.files["report"] = str(args.report.write(out / "report.html", summary, run.t, run.tau, run.tau_ref))
     return summary
 
 
