@@ -443,6 +443,17 @@ def feedback_every(rate: float, log_every: int, overflow: int = 240) -> tuple[in
     return drives, encoders
 
 
+def ahrs_rate_for(log_period: float, base: int = 400) -> int:
+    """The AHRS output rate (Hz) the routine needs: the lowest rate the MTi offers (a divisor of its ``base``
+    rate) that puts a sample on every log tick, i.e. a whole number of samples per log period (s); the roll,
+    pitch and yaw serve only the log. 10 Hz for the paper's 100 ms; 100 Hz when no divisor fits."""
+    for rate in range(1, base + 1):
+        k = rate * log_period
+        if base % rate == 0 and k > 1.0 - 1e-9 and abs(k - round(k)) < 1e-9:
+            return rate
+    return 100
+
+
 def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, timeout: float = 0.5,
             every: tuple[int, int] = (1, 1)) -> Rig:
     """Open and check every device of a :class:`drivers.config.DeviceConfig`; a :class:`Rig` over them.
