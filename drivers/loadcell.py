@@ -10,6 +10,7 @@ counter (+1 per sample, 32-bit), ``f_i`` the force of channel i in N with two de
 from __future__ import annotations
 
 import math
+import operator
 import re
 import threading
 import time
@@ -83,24 +84,38 @@ def unframe(line: bytes) -> str | None:
         return None
 
 
+# A sample as decoded, before it becomes a SampleLine: (sequence number, forces N with NaN where a flag stands,
+# flags). The driver takes it as it is (no SampleLine and array per line).
+_Sample = tuple[int, list[float], tuple[str, ...]]
+
+
 def parse_line(line: bytes) -> SampleLine | InfoLine | None:
     """Decode one line (garbage before its ``$`` is ignored); None when it is not a valid line."""
     start = line.rfind(b"$")
-    return None if start < 0 else _parse_from(line, start)
+    return None if start < 0 else _message(_decode(line, start))
 
 
-def _parse_from(line: bytes, start: int) -> SampleLine | InfoLine | None:
-    """:func:`parse_line` of ``line`` (its newline may be cut off) whose last ``$`` is at ``start`` (>= 0)."""
+def _message(decoded: _Sample | InfoLine | None) -> SampleLine | InfoLine | None:
+    """The SampleLine of a decoded sample; an InfoLine or None as it is."""
+    if type(decoded) is tuple:
+        seq, tau, flags = decoded
+        return SampleLine(seq=seq, tau=np.array(tau), flags=flags)
+    return decoded
+
+
+def _decode(line: bytes, start: int) -> _Sample | InfoLine | None:
+    """:func:`parse_line` of ``line`` (its newline may be cut off) whose last ``$`` is at ``start`` (>= 0), its
+    sample left as a :data:`_Sample`."""
     framed = _FRAMED_SAMPLE.fullmatch(line, start)
     if framed is not None:  # a well-formed sample line (one at every control tick): only its checksum is left
         body, seq_text, values, hh = framed.groups()
-        return _sample_line(seq_text, values.decode("ascii")) if int(hh, 16) == checksum(body) else None
+        return _sample(seq_text, values.decode("ascii")) if int(hh, 16) == checksum(body) else None
     body = unframe(line[start:])
     if body is None:
         return None
     sample = _SAMPLE.fullmatch(body)
     if sample is not None:
-        return _sample_line(*sample.groups())
+        return _sample(*sample.groups())
     parts = body.split(",")
     try:
         if parts[0] == "INFO" and len(parts) == 5 and _SEQ.fullmatch(parts[2]) and all(
@@ -112,7 +127,7 @@ def _parse_from(line: bytes, start: int) -> SampleLine | InfoLine | None:
     return None
 
 
-def _sample_line(seq_text: str | bytes, values: str) -> SampleLine | None:
+def _sample(seq_text: str | bytes, values: str) -> _Sample | None:
     """The sample of a body that matched ``_SAMPLE`` (sequence number, ``,f_1,...,f_n``); None past 32 bits."""
     seq = int(seq_text)
     if seq >= SEQ_MODULUS:
@@ -124,7 +139,7 @@ def _sample_line(seq_text: str | bytes, values: str) -> SampleLine | None:
     else:
         flags = ("",) * len(fields)
         tau = list(map(float, fields))
-    return SampleLine(seq=seq, tau=np.array(tau), flags=flags)
+    return seq, tau, flags
 
 
 @dataclass
@@ -137,19 +152,23 @@ class LineDecoder:
     _buf: bytearray = field(default_factory=bytearray, repr=False)
 
     def feed(self, data: bytes) -> list[SampleLine | InfoLine]:
+        return [_message(m) for m in self.decode(data)]
+
+    def decode(self, data: bytes) -> list[_Sample | InfoLine]:
+        """:meth:`feed`, each sample left as ``(seq, forces, flags)`` (a :data:`_Sample`)."""
         buf = self._buf
         if buf:  # the start of a line came with an earlier chunk
             buf += data
             data = bytes(buf)
             buf.clear()
-        out: list[SampleLine | InfoLine] = []
+        out: list[_Sample | InfoLine] = []
         end = data.rfind(b"\n") + 1
         if end:  # the complete lines, split at once
             lines = data[:end].split(b"\n")
             lines.pop()  # the empty rest after the last newline
             for line in lines:
                 start = line.rfind(b"$")
-                msg = None if start < 0 else _parse_from(line, start)
+                msg = None if start < 0 else _decode(line, start)
                 if msg is None:
                     self.bad_lines += 1
                     self.bytes_discarded += len(line) + 1  # with its newline
@@ -245,23 +264,23 @@ class LoadCellDriver(LoadCellBase):
 
     def _on_bytes(self, data: bytes, t: float) -> None:
         decoder = self._decoder
-        for msg in decoder.feed(data):
+        for msg in decoder.decode(data):
             if isinstance(msg, InfoLine):
                 self.info = msg
                 self._info_event.set()
             else:
-                self._on_sample(msg, t)
+                self._on_sample(*msg, t)
         stats = self._stats
         stats.checksum_errors = decoder.bad_lines
         stats.bytes_discarded = decoder.bytes_discarded
         stats.resyncs = decoder.resyncs
 
-    def _on_sample(self, s: SampleLine, t: float) -> None:
+    def _on_sample(self, seq: int, tau: list[float], flags: tuple[str, ...], t: float) -> None:
+        """One decoded sample line: sequence number, forces N (NaN where a flag stands), flags; ``t`` s."""
         stats = self._stats
-        if len(s.tau) != self.config.channels:
+        if len(tau) != self.config.channels:
             stats.extra["wrong_width"] = stats.extra.get("wrong_width", 0) + 1
             return
-        seq = s.seq
         if self._last_seq is not None:
             step = (seq - self._last_seq) % SEQ_MODULUS
             if step == 0:
@@ -271,16 +290,19 @@ class LoadCellDriver(LoadCellBase):
             elif step > 1:
                 stats.sequence_gaps += step - 1
         self._last_seq = seq
-        tau = s.tau.tolist()
         prev = self._prev
         if prev is not None:
-            isfinite = math.isfinite
-            self._same = [n + 1 if v == p and isfinite(v) else 0
-                          for v, p, n in zip(tau, prev, self._same, strict=True)]
+            same = self._same
+            if any(map(operator.eq, tau, prev)):  # some channel repeats its value: count the finite repeats
+                isfinite = math.isfinite
+                self._same = [n + 1 if v == p and isfinite(v) else 0
+                              for v, p, n in zip(tau, prev, same, strict=True)]
+            elif any(same):  # no channel repeats: every count starts again
+                self._same = [0] * len(same)
         self._prev = tau
-        self._flags = s.flags
+        self._flags = flags
         stats.frames += 1
-        self._box.put(TensionReading(t=t, seq=seq, tau=s.tau, device_seq=seq))
+        self._box.put(TensionReading(t=t, seq=seq, tau=np.array(tau), device_seq=seq))
 
     # ---- the LoadCellAmplifier interface ----
     def latest(self) -> TensionReading | None:
