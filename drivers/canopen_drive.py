@@ -106,6 +106,7 @@ class CanopenNodeDriver:
         self.heartbeat: HeartbeatMonitor | None = None
         self.emcy_faults: list[str] = []
         self._cond = threading.Condition()
+        self._waiters = 0  # threads in wait_for_sync's wait on _cond (under it): a new reading notifies only them
         self._parts: dict[int, tuple] = {}  # cob_id -> decoded values, TPDOs of the pending SYNC
         self._parts_sync = -1  # the SYNC they answer
         self._decoders: dict[int, tuple[struct.Struct, tuple[int, ...], int]] = {}  # cob_id -> struct, indices, every
@@ -241,23 +242,30 @@ class CanopenNodeDriver:
                 latest = self._latest
                 if latest is not None and latest.sync_count == count:  # it followed the TPDOs of its SYNC
                     self._latest = self._refresh(latest, self._slow)
-                    self._cond.notify_all()
+                    if self._waiters:
+                        self._cond.notify_all()
                 return
             parts = self._parts
-            if parts and self._parts_sync != count:
-                self.incomplete += 1
+            if not parts and self._cyclic == 1:  # the reading's only TPDO (the usual mapping): no assembly
+                self._parts_sync = count
+                merged = dict(self._slow)
+                merged.update(zip(indices, values, strict=True))
+            else:
+                if parts and self._parts_sync != count:
+                    self.incomplete += 1
+                    parts.clear()
+                self._parts_sync = count
+                parts[can_id] = values
+                if len(parts) < self._cyclic:
+                    return
+                merged = dict(self._slow)
+                for cid, vals in parts.items():
+                    merged.update(zip(self._decoders[cid][1], vals, strict=True))
                 parts.clear()
-            self._parts_sync = count
-            parts[can_id] = values
-            if len(parts) < self._cyclic:
-                return
-            merged = dict(self._slow)
-            for cid, vals in parts.items():
-                merged.update(zip(self._decoders[cid][1], vals, strict=True))
-            parts.clear()
             self._seq += 1
             self._latest = self._make_reading(self.clock(), self._seq, count, merged)
-            self._cond.notify_all()
+            if self._waiters:
+                self._cond.notify_all()
 
     def _make_reading(self, t: float, seq: int, sync_count: int, values: dict[int, int]):
         raise NotImplementedError
@@ -313,7 +321,11 @@ class CanopenNodeDriver:
                     have = -1 if self._latest is None else self._latest.sync_count
                     raise DeviceError(f"{self.name} (CAN node {self.node_id}) sent no PDOs for SYNC {count} "
                                       f"within {timeout:.3f} s (last complete SYNC {have})")
-                self._cond.wait(left if pump is None else min(left, 0.002))
+                self._waiters += 1
+                try:
+                    self._cond.wait(left if pump is None else min(left, 0.002))
+                finally:
+                    self._waiters -= 1
             return self._latest
 
     # -- state -------------------------------------------------------------------------------------------
