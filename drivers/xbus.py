@@ -273,10 +273,20 @@ _STREAMED_ITEMS = (XDI.PACKET_COUNTER, 2, XDI.SAMPLE_TIME_FINE, 4, XDI.EULER_ANG
 
 def decode_sample(payload: bytes) -> Mtdata2Sample | None:
     """Packet counter, SampleTimeFine, Euler angles and quaternion of an MTData2 payload (None if malformed)."""
+    fields = sample_fields(payload)
+    return None if fields is None else Mtdata2Sample(*fields)
+
+
+SampleFields = tuple[int | None, int | None, tuple[float, ...] | None, tuple[float, ...] | None]
+
+
+def sample_fields(payload: bytes) -> SampleFields | None:
+    """:func:`decode_sample` as a plain tuple (packet counter, SampleTimeFine, Euler angles in degrees, quaternion;
+    None where absent or malformed), for the driver's per-sample path."""
     if len(payload) == _STREAMED.size:  # the configured stream (at every sample): one unpack, the same result
         xdi_pc, n_pc, pc, xdi_stf, n_stf, stf, xdi_euler, n_euler, roll, pitch, yaw = _STREAMED.unpack(payload)
         if (xdi_pc, n_pc, xdi_stf, n_stf, xdi_euler, n_euler) == _STREAMED_ITEMS:
-            return Mtdata2Sample(packet_counter=pc, sample_time_fine=stf, euler_deg=(roll, pitch, yaw))
+            return pc, stf, (roll, pitch, yaw), None
     items = decode_mtdata2(payload)
     if items is None:
         return None
@@ -284,12 +294,10 @@ def decode_sample(payload: bytes) -> Mtdata2Sample | None:
     stf = items.get(XDI.SAMPLE_TIME_FINE)
     euler = find_item(items, XDI.EULER_ANGLES)
     quat = find_item(items, XDI.QUATERNION)
-    return Mtdata2Sample(
-        packet_counter=struct.unpack(">H", pc)[0] if pc is not None and len(pc) == 2 else None,
-        sample_time_fine=struct.unpack(">I", stf)[0] if stf is not None and len(stf) == 4 else None,
-        euler_deg=_floats(euler[1], 3, euler[0]) if euler else None,
-        quaternion=_floats(quat[1], 4, quat[0]) if quat else None,
-    )
+    return (struct.unpack(">H", pc)[0] if pc is not None and len(pc) == 2 else None,
+            struct.unpack(">I", stf)[0] if stf is not None and len(stf) == 4 else None,
+            _floats(euler[1], 3, euler[0]) if euler else None,
+            _floats(quat[1], 4, quat[0]) if quat else None)
 
 
 def encode_sample(

@@ -168,11 +168,11 @@ class XsensMti(AhrsBase):
         self._stats.resyncs = c.resyncs
 
     def _on_mtdata2(self, payload: bytes, t: float) -> None:
-        sample = xbus.decode_sample(payload)
-        if sample is None or sample.euler_deg is None:
+        fields = xbus.sample_fields(payload)
+        if fields is None or fields[2] is None:
             self._stats.extra["incomplete_mtdata2"] = self._stats.extra.get("incomplete_mtdata2", 0) + 1
             return
-        pc = sample.packet_counter
+        pc, stf, euler_deg, _ = fields
         if pc is not None:
             if self._last_raw_pc is None:
                 self._unwrapped = pc
@@ -186,11 +186,11 @@ class XsensMti(AhrsBase):
             self._last_raw_pc = pc
         else:
             self._unwrapped += 1
-        roll, pitch, yaw = map(math.radians, sample.euler_deg)
+        roll, pitch, yaw = map(math.radians, euler_deg)
         self._stats.frames += 1
         self._box.put(AhrsReading(t=t, seq=self._unwrapped, roll=roll, pitch=pitch, yaw=yaw,
                                   packet_counter=-1 if pc is None else pc,
-                                  sample_time_fine=-1 if sample.sample_time_fine is None else sample.sample_time_fine))
+                                  sample_time_fine=-1 if stf is None else stf))
 
     # ---- the Ahrs interface ----
     def latest(self) -> AhrsReading | None:
