@@ -226,11 +226,14 @@ class Network(canopen.Network):
             self._lane.pump()
 
     def _drain(self) -> None:
+        """Deliver the frames queued for this network (see :class:`Network`)."""
+        inbox = self._inbox
+        if inbox is not None and not inbox:  # nothing queued (most drains of a pass)
+            return
         bus = self.bus
         if bus is None:
             return
         listeners = self.listeners
-        inbox = self._inbox
         if (inbox is None or bus.filters or len(listeners) != 1
                 or not isinstance(listeners[0], canopen.network.MessageListener)):
             while bus.queue.qsize() and (msg := bus.recv(0.0)) is not None:
