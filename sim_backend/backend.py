@@ -89,7 +89,8 @@ class SimBackend:
     robot: the robot description the controller uses (the model); sim_config: a :class:`SimConfig`, a YAML
     path or None (nominal); seed: all randomness (power-on pose, sensor noise, frame loss); control_period:
     s of simulated time per SYNC; initial_pose: (6,) to start from instead of the seeded power-on pose (the
-    platform is let settle there with the brakes on before power-on).
+    platform is let settle there with the brakes on before power-on); ahrs_rate: the AHRS output rate (Hz)
+    that :attr:`devices` asks the driver to request, as the ``ahrs: rate`` of a device file does.
     """
 
     def __init__(
@@ -100,6 +101,7 @@ class SimBackend:
         control_period: float = 0.005,
         initial_pose: np.ndarray | None = None,
         heartbeat_period: float = 0.1,
+        ahrs_rate: float = 100.0,
     ):
         if not 0.0 < control_period <= 0.1:
             raise SimConfigError(f"SimBackend: control_period = {control_period!r} s must be in (0, 0.1].")
@@ -108,6 +110,7 @@ class SimBackend:
         self.seed = int(seed)
         self.control_period = float(control_period)
         self.heartbeat_period = float(heartbeat_period)
+        self.ahrs_rate = float(ahrs_rate)
         self.true_robot = self.config.true_robot(robot)
         self.initial_pose = None if initial_pose is None else np.asarray(initial_pose, float).reshape(6)
         self.physics: CablePhysics | None = None
@@ -176,7 +179,7 @@ class SimBackend:
                 drives=tuple(NodeConfig(f"winch {i + 1}", DRIVE_IDS[i]) for i in range(n)),
                 encoders=tuple(NodeConfig(f"swivel {i + 1}", ENCODER_IDS[i]) for i in range(n)),
                 loadcells=SerialConfig(lc_path, 115200),
-                ahrs=AhrsConfig(ahrs_path, 115200, 100.0),
+                ahrs=AhrsConfig(ahrs_path, 115200, self.ahrs_rate),
                 source=f"<simulated prototype, seed {self.seed}>",
             )
             self._record()

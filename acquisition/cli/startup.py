@@ -24,7 +24,15 @@ from acquisition.clock import RealClock, SimClock
 from acquisition.equilibrium import DetectorConfig
 from acquisition.report import ProgressBar, ReportRenderer, StartupSummary, read_offsets, render_text, write_offsets
 from acquisition.safety import SafetyLimits, SafetySupervisor
-from acquisition.startup import Plan, StartupConfig, StartupRoutine, StartupStopped, connect, feedback_every
+from acquisition.startup import (
+    Plan,
+    StartupConfig,
+    StartupRoutine,
+    StartupStopped,
+    ahrs_rate_for,
+    connect,
+    feedback_every,
+)
 
 
 def register(sub) -> None:
@@ -122,7 +130,8 @@ def _run_sim(args, robot, plan, cfg, out: Path) -> int:
     clock = RealClock(period, lockstep=True) if args.realtime else SimClock(period)
     supervisor = _supervisor(robot, cfg)
     try:
-        with SimBackend(robot, sim_config, args.seed, period) as sim:
+        # the simulated MTi sends at the log rate: its angles serve only the log (ahrs_rate_for)
+        with SimBackend(robot, sim_config, args.seed, period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
             rig = _connect(sim.devices, robot, clock, True, period, cfg)
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
                                      supervisor=supervisor, meta=args.run_meta)
