@@ -280,10 +280,13 @@ class CanopenNodeDriver:
 
     def due(self, count: int) -> bool:
         """Whether the node answers SYNC ``count`` with its readings (every ``every``-th SYNC once started)."""
-        if self.every == 1:
+        every = self.every
+        if every == 1:
             return True
         first = self._first_due
-        return first is not None and count >= first and self.sync.wire_counter(count) % self.every == 1 % self.every
+        # the first due SYNC carries counter 1 and ``every`` divides the counter's overflow (check_every): the SYNCs
+        # whose counter is 1 modulo ``every`` are those a multiple of ``every`` after it
+        return first is not None and count >= first and (count - first) % every == 0
 
     def last_due(self, count: int) -> int | None:
         """The last SYNC count <= ``count`` that the node answers, None if none yet."""
