@@ -118,7 +118,6 @@ def _solve_spd(a: list[list[float]], b: list[float]) -> list[float]:
     return x
 
 
-
 def _active_set_solve(a: list[list[float]], b: list[float]) -> list[float]:
     """Tensions (n,) >= 0 solving ``a tau = b`` (a symmetric positive definite, not modified): a cable whose
     solved tension is negative is slack (0) and the system is solved again without it."""
@@ -138,6 +137,7 @@ def _active_set_solve(a: list[list[float]], b: list[float]) -> list[float]:
         idx = taut
         a_idx = [[a[i][j] for j in idx] for i in idx]
         b_idx = [b[i] for i in idx]
+
 
 class CablePhysics:
     """The simulated prototype (implements ``sim_backend.plant.Plant``).

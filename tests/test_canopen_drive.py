@@ -454,3 +454,33 @@ def test_a_node_without_sync_start_value_is_one_sentence_naming_the_fallback(rig
     drv = rig.winch(velocity_every=1)  # every SYNC needs no start value
     rig.ticks(3)
     assert drv.latest().sync_count == 3
+
+
+def test_a_pumped_send_delivers_what_virtualbus_send_delivers():
+    """The pumped network builds the receivers' frames itself (drivers.can_bus._virtual_send): a plain python-can
+    virtual bus on the channel must get from it exactly what VirtualBus.send gives, and in the order sent."""
+    channel = f"pump-vs-send-{next(_channels)}"
+    pumped_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+    sender = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+    plain = can.Bus(interface="virtual", channel=channel)
+    net = open_network(pumped_bus, pumped=True)
+    try:
+        frames = [(0x080, b"\x05"), (0x201, bytes(range(8))), (0x601, b"\x40\x41\x60\x00\x00\x00\x00\x00"),
+                  (0x1ABCDE, b""), (0x701, b"\x7f")]
+        for can_id, data in frames:
+            net.send_message(can_id, data)
+        got = [plain.recv(1.0) for _ in frames]
+        for can_id, data in frames:
+            sender.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF))
+        want = [plain.recv(1.0) for _ in frames]
+        assert plain.recv(0.0) is None
+        for g, w in zip(got, want, strict=True):
+            assert g.equals(w, timestamp_delta=None, check_channel=True, check_direction=True), (g, w)
+            assert g.is_rx and g.dlc == len(g.data) and isinstance(g.data, bytearray)
+        net.send_message(0x202, b"\x01", remote=True)
+        r = plain.recv(1.0)
+        assert r.is_remote_frame and r.arbitration_id == 0x202 and r.dlc == 0
+    finally:
+        net.disconnect()
+        for b in (pumped_bus, sender, plain):
+            b.shutdown()
