@@ -123,7 +123,7 @@ def render_text(summary: StartupSummary) -> str:
         lines.append(f"  {summary.message}")
     t = summary.timing
     if t:
-        lines.append("  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
+        lines.append("  time: " + ", ".join(f"{k} {v:.2f} {'ms' if k.endswith('_ms') else 's'}" for k, v in t.items()))
     sol = summary.solution
     if sol:
         lines.append(f"initial pose (sample {sol.get('reference_sample')}):")

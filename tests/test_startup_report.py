@@ -35,7 +35,7 @@ SOLUTION = {
 
 def summary():
     return StartupSummary("ok", "RUN", "equilibrium", 9, solution=SOLUTION, windows=[(0, 19), (60, 79)],
-                          timing={"acquisition_s": 120.0, "solve_s": 0.02})
+                          timing={"acquisition_s": 120.0, "solve_s": 0.02, "control_p99_ms": 0.11})
 
 
 def test_text_summary_shows_pose_in_mm_and_degrees_with_sigma():
@@ -44,6 +44,7 @@ def test_text_summary_shows_pose_in_mm_and_degrees_with_sigma():
     assert f"yaw   {math.degrees(0.0031):10.3f} +- {math.degrees(0.0003):.3f} deg" in text
     assert "  tension             0.31       0.031 N" in text
     assert "[0, 19], [60, 79]" in text
+    assert "  time: acquisition_s 120.00 s, solve_s 0.02 s, control_p99_ms 0.11 ms" in text
 
 
 def test_offsets_file_reads_back_with_every_field(tmp_path):
