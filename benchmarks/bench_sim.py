@@ -3,6 +3,7 @@
     python benchmarks/bench_sim.py                 # physics, backend tick and driver lockstep at 200 and 500 Hz
     python benchmarks/bench_sim.py --startup 2     # plus the full 'cdpr startup --backend sim --grid 2'
     python benchmarks/bench_sim.py --startup 2 --repeat 5   # five startups: range and median
+    python benchmarks/bench_sim.py --startup 2 --split      # plus where the routine's tick goes, method by method
 
 The target (issue 4): the whole 8-pose startup routine at >= 20x real time on 2 cores, device traffic
 included. Reports wall microseconds per control tick, where they go, and the real-time factor
@@ -169,11 +170,60 @@ def bench_startup(grid: int) -> tuple[float, float, dict]:
     return wall, float(timing["acquisition_s"]), timing
 
 
+# (module, class, method) timed by --split: the routine's tick and where it goes, on both sides of the wire
+_SPLIT = [
+    ("acquisition.startup", "StartupRoutine", "_tick"), ("acquisition.control", "Rig", "tick"),
+    ("drivers.can_bus", "SyncProducer", "send_sync"), ("sim_backend.backend", "SimBackend", "tick"),
+    ("sim_backend.physics", "CablePhysics", "step"), ("sim_backend.loadcell_emulator", "LoadCellEmulator", "emit"),
+    ("sim_backend.xsens_emulator", "XsensEmulator", "emit"), ("sim_backend.can_drive_emulator", "SimulatedNode",
+                                                              "on_sync"),
+    ("sim_backend.can_drive_emulator", "CanDriveEmulator", "apply_targets"),
+    ("drivers.loadcell", "LoadCellDriver", "latest"), ("drivers.xsens", "XsensMti", "latest"),
+    ("acquisition.startup", "StartupRoutine", "_supervise"), ("acquisition.control", "Rig", "faults"),
+    ("acquisition.control", "Rig", "command"), ("acquisition.control", "TensionController", "update"),
+    ("acquisition.startup", "StartupRoutine", "_log"),
+]
+
+
+def bench_split(grid: int) -> tuple[int, dict[str, tuple[float, float]]]:
+    """The startup with the methods of _SPLIT timed (class-level wrappers, ~0.3 us each): (SYNC ticks,
+    {Class.method: (wall us per tick, calls per tick)})."""
+    import collections
+    import importlib
+
+    acc: dict[str, float] = collections.Counter()
+    calls: dict[str, int] = collections.Counter()
+    saved = []
+    for module, cls_name, name in _SPLIT:
+        cls = getattr(importlib.import_module(module), cls_name)
+        orig = cls.__dict__[name]
+        key = f"{cls_name}.{name}"
+
+        def timed(*a, _orig=orig, _key=key, **kw):
+            t = time.perf_counter()
+            try:
+                return _orig(*a, **kw)
+            finally:
+                acc[_key] += time.perf_counter() - t
+                calls[_key] += 1
+
+        setattr(cls, name, timed)
+        saved.append((cls, name, orig))
+    try:
+        bench_startup(grid)
+    finally:
+        for cls, name, orig in saved:
+            setattr(cls, name, orig)
+    ticks = max(calls["SimBackend.tick"], 1)
+    return ticks, {k: (v / ticks * 1e6, calls[k] / ticks) for k, v in sorted(acc.items(), key=lambda kv: -kv[1])}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ticks", type=int, default=2000)
     ap.add_argument("--startup", type=int, default=0, metavar="GRID", help="also time the full startup")
     ap.add_argument("--repeat", type=int, default=1, help="startup runs (the VM's speed drifts between runs)")
+    ap.add_argument("--split", action="store_true", help="with --startup: one more run, timed method by method")
     args = ap.parse_args(argv)
     robot = load_robot("irma4u")
     print(f"physics step (5 ms, substeps 1): {bench_physics(robot):.1f} us")
@@ -200,6 +250,11 @@ def main(argv: list[str] | None = None) -> int:
     if len(factors) > 1:
         print(f"startup over {len(factors)} runs: {min(factors):.1f}x to {max(factors):.1f}x real time, "
               f"median {statistics.median(factors):.1f}x")
+    if args.startup and args.split:
+        ticks, split = bench_split(args.startup)
+        print(f"where a tick of the startup goes ({ticks} SYNCs; nested: a row includes the rows it calls):")
+        for key, (us, per) in split.items():
+            print(f"  {key:34s} {us:7.1f} us/tick  ({per:.2f} calls/tick)")
     return 0
 
 
