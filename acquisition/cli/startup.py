@@ -105,20 +105,19 @@ def run(args) -> int:
             raise UsageError("--sim-config and --truth apply to --backend sim only.")
     elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
-    args.report = ReportRenderer()
-    with args.report:
+    with ReportRenderer() as report:
         if not args.no_html:
-            args.report.start()  # report.html's plotting loads on the other core while the routine runs
+            report.start()  # report.html's plotting loads on the other core while the routine runs
         if args.backend == "hw":
-            return _run_hw(args, robot, plan, cfg, out)
-        return _run_sim(args, robot, plan, cfg, out)
+            return _run_hw(args, robot, plan, cfg, out, report)
+        return _run_sim(args, robot, plan, cfg, out, report)
 
 
 def _progress(args) -> ProgressBar:
     return ProgressBar(1.0, stream=sys.stderr)
 
 
-def _run_sim(args, robot, plan, cfg, out: Path) -> int:
+def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
     from sim_backend.backend import SimBackend
     from sim_backend.config import SimConfigError, load_sim_config
 
@@ -140,7 +139,7 @@ def _run_sim(args, robot, plan, cfg, out: Path) -> int:
             finally:
                 rig.close()
                 supervisor.restore_signals()
-            summary = _solve_and_report(args, robot, cfg, result, out)
+            summary = _solve_and_report(args, robot, cfg, result, out, report)
             if args.truth and summary.solution:
                 sample = int(summary.solution["reference_sample"])
                 tick = int(result.ticks[sample])
@@ -154,7 +153,7 @@ def _run_sim(args, robot, plan, cfg, out: Path) -> int:
     return _print(args, summary)
 
 
-def _run_hw(args, robot, plan, cfg, out: Path) -> int:
+def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
     from drivers.config import DeviceConfigError, load_device_config
 
     try:
@@ -175,7 +174,7 @@ def _run_hw(args, robot, plan, cfg, out: Path) -> int:
             rig.close()
     finally:
         supervisor.restore_signals()
-    return _print(args, _solve_and_report(args, robot, cfg, result, out))
+    return _print(args, _solve_and_report(args, robot, cfg, result, out, report))
 
 
 def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
@@ -209,7 +208,7 @@ def _acquire(routine: StartupRoutine):
         raise OperationError(f"device error: {str(exc).rstrip('.')}.") from exc
 
 
-def _solve_and_report(args, robot, cfg, result, out: Path) -> StartupSummary:
+def _solve_and_report(args, robot, cfg, result, out: Path, report: ReportRenderer) -> StartupSummary:
     import time
 
     from acquisition.runlog import read_run, write_solution
@@ -235,7 +234,7 @@ def _solve_and_report(args, robot, cfg, result, out: Path) -> StartupSummary:
     if args.offsets:
         summary.files["offsets_copy"] = str(write_offsets(args.offsets, data, robot.name, str(out)))
     if not args.no_html:
-        summary.files["report"] = str(args.report.write(out / "report.html", summary, run.t, run.tau, run.tau_ref))
+        summary.files["report"] = str(report.write(out / "report.html", summary, run.t, run.tau, run.tau_ref))
     return summary
 
 
