@@ -246,22 +246,17 @@ class CanopenNodeDriver:
                         self._cond.notify_all()
                 return
             parts = self._parts
-            if not parts and self._cyclic == 1:  # the reading's only TPDO (the usual mapping): no assembly
-                self._parts_sync = count
-                merged = dict(self._slow)
-                merged.update(zip(indices, values, strict=True))
-            else:
-                if parts and self._parts_sync != count:
-                    self.incomplete += 1
-                    parts.clear()
-                self._parts_sync = count
-                parts[can_id] = values
-                if len(parts) < self._cyclic:
-                    return
-                merged = dict(self._slow)
-                for cid, vals in parts.items():
-                    merged.update(zip(self._decoders[cid][1], vals, strict=True))
+            if parts and self._parts_sync != count:
+                self.incomplete += 1
                 parts.clear()
+            self._parts_sync = count
+            parts[can_id] = values
+            if len(parts) < self._cyclic:
+                return
+            merged = dict(self._slow)
+            for cid, vals in parts.items():
+                merged.update(zip(self._decoders[cid][1], vals, strict=True))
+            parts.clear()
             self._seq += 1
             self._latest = self._make_reading(self.clock(), self._seq, count, merged)
             if self._waiters:
@@ -295,7 +290,7 @@ class CanopenNodeDriver:
         first = self._first_due
         if first is None or count < first:
             return None
-        return count - (self.sync.wire_counter(count) - 1) % self.every
+        return count - (count - first) % self.every  # as due(): the multiples of every after the first
 
     def wait_for_sync(self, count: int, timeout: float = 1.0):
         """Block (wall time) until the reading answering SYNC ``count`` (or a later one) has arrived. A node that

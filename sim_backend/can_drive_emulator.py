@@ -370,9 +370,7 @@ class CanDriveEmulator(SimulatedNode):
             return lambda: _wrap32(float(plant.motor_position()[i]) * scale)
         if index == 0x606C:
             return lambda: _wrap32(float(plant.motor_velocity()[i]) * scale)
-        if index == 0x6077:
-            return lambda: clamp_int("h", self.process_value(0x6077, 0))
-        return None
+        return None  # the torque actual 0x6077 and the rest: process_value, rounded and saturated
 
     def process_value(self, index: int, subindex: int):
         if index == 0x6041:
