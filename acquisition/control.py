@@ -30,8 +30,11 @@ class ControllerConfig:
     """Gains and limits of the tension controller. Tension-equivalent units unless named otherwise."""
 
     rate: float = 500.0  # Hz, control rate (200-500)
-    kp: float = 1.0  # N of command per N of tension error
-    ki: float = 30.0  # N of command per N s of error (1/s)
+    # the drives apply a target at the SYNC after it arrives (CiA 402 synchronous RPDO): the tension read at
+    # SYNC n answers a torque first at SYNC n + 2. With that delay kp 0.5, ki 15 keeps the loop stable from a
+    # soft cable (EA 10 kN, winch-cable resonance near 6 Hz) to the nominal one (EA 2 MN); kp 1, ki 30 does not
+    kp: float = 0.5  # N of command per N of tension error
+    ki: float = 15.0  # N of command per N s of error (1/s)
     integral_limit: float = 60.0  # N, bound of |I|
     min_command: float = 5.0  # N, lowest tension command (cables only pull)
     max_command: float = 400.0  # N, highest tension command

@@ -5,22 +5,26 @@ unique name carrying the emulated CiA 402 drives and CiA 406 encoders (canopen L
 the load-cell amplifier and the AHRS, and one SYNC subscriber that runs the lockstep. The nodes' network is
 pumped (``drivers.can_bus.Network``): no receive thread, a frame the master sends is handled in the master's
 own thread before its send returns, answers included, and a master network that joins the channel is pumped
-too (``drivers.can_bus.open_network``). For each SYNC the master sends:
+too (``drivers.can_bus.open_network``). The physics and the serial devices run one control period ahead of
+the CAN nodes, in a child process on a machine with two cores (``sim_backend.plant_link``). For each SYNC
+``count`` the master sends:
 
-1. every drive applies the last RPDO targets (``apply_targets``); the drives engage the winch brakes
-   (``CablePhysics.set_brake``) in every state but operation enabled, as a servo's holding brake does;
-2. the faults due are injected, the physics advances by one control period;
-3. the load-cell amplifier writes the tick's line and the AHRS its sample (first: serial drivers with a
-   reader thread parse them while the CAN frames are being built), then every node transmits its TPDOs
-   (``on_sync``).
+1. the state of the plant at ``count * control_period`` is published to the nodes (:attr:`physics`);
+2. every drive applies the last RPDO targets (``apply_targets``) and engages the winch brake in every state
+   but operation enabled, as a servo's holding brake does;
+3. the plant core takes these commands: it injects the serial and cable faults due, the load-cell amplifier
+   writes the tick's line and the AHRS its sample (when one is due), and the physics steps to the next
+   SYNC with the new commands: a synchronous target acts from the SYNC after it arrives, as on a CiA 402
+   drive, so the torque computed from the readings of SYNC ``count`` acts from SYNC ``count + 1`` on;
+4. every node transmits its TPDOs (``on_sync``).
 
-The simulated clock is the physics time, exactly ``count * control_period`` after SYNC ``count`` (0 at
+The simulated clock is the physics time, exactly ``count * control_period`` at SYNC ``count`` (0 at
 power-on); the load-cell line written at SYNC ``count`` has device sequence ``count - 1``, the AHRS samples
 on its own output-rate grid of that clock. Nothing here reads wall time, so a run costs far less wall time
-than robot time and the same seed gives the same frames and bytes. An exception inside the lockstep (it
-runs inside the master's SYNC send) is kept in :attr:`SimBackend.errors`; the nodes then stay silent. The
-drivers connect through :attr:`SimBackend.devices` (a ``drivers.config.DeviceConfig``);
-:meth:`SimBackend.truth` gives the true pose now or at an earlier tick.
+than robot time and the same seed gives the same frames and bytes, with or without the child process. An
+exception inside the lockstep (it runs inside the master's SYNC send) is kept in :attr:`SimBackend.errors`;
+the nodes then stay silent. The drivers connect through :attr:`SimBackend.devices` (a
+``drivers.config.DeviceConfig``); :meth:`SimBackend.truth` gives the true pose now or at an earlier tick.
 """
 
 from __future__ import annotations
@@ -42,13 +46,22 @@ from drivers.can_bus import SYNC_COB_ID, open_network
 from drivers.config import AhrsConfig, CanConfig, DeviceConfig, NodeConfig, SerialConfig
 from sim_backend.can_drive_emulator import CanDriveEmulator
 from sim_backend.can_encoder_emulator import CanEncoderEmulator
-from sim_backend.config import Fault, SimConfig, SimConfigError, load_sim_config
+from sim_backend.config import SimConfig, SimConfigError, load_sim_config
 from sim_backend.loadcell_emulator import LoadCellEmulator
 from sim_backend.physics import CablePhysics, pose_of
+from sim_backend.plant_link import (
+    ChildPlantLink,
+    InProcessPlantLink,
+    PlantCore,
+    PlantLink,
+    PlantView,
+    child_process_possible,
+)
 from sim_backend.pty import open_pty_pair
 from sim_backend.xsens_emulator import XsensEmulator
 
 DRIVE_IDS = (1, 2, 3, 4, 5, 6, 7, 8)
+_CAN_FAULTS = ("can_frames_lost", "drive_fault")  # faults the CAN nodes act out; the plant core has the others
 ENCODER_IDS = (11, 12, 13, 14, 15, 16, 17, 18)
 PRETENSION = 50.0  # N, the power-on pretension around which the resting tensions are drawn
 _channel_ids = itertools.count(1)
@@ -90,7 +103,11 @@ class SimBackend:
     path or None (nominal); seed: all randomness (power-on pose, sensor noise, frame loss); control_period:
     s of simulated time per SYNC; initial_pose: (6,) to start from instead of the seeded power-on pose (the
     platform is let settle there with the brakes on before power-on); ahrs_rate: the AHRS output rate (Hz)
-    that :attr:`devices` asks the driver to request, as the ``ahrs: rate`` of a device file does.
+    that :attr:`devices` asks the driver to request, as the ``ahrs: rate`` of a device file does;
+    plant_process: run the physics and the serial devices in a child process (None: when the machine has a
+    second core for it; the results are the same either way).
+
+    :attr:`physics` is the plant as the CAN nodes see it at the last SYNC (``sim_backend.plant_link.PlantView``).
     """
 
     def __init__(
@@ -102,6 +119,7 @@ class SimBackend:
         initial_pose: np.ndarray | None = None,
         heartbeat_period: float = 0.1,
         ahrs_rate: float = 100.0,
+        plant_process: bool | None = None,
     ):
         if not 0.0 < control_period <= 0.1:
             raise SimConfigError(f"SimBackend: control_period = {control_period!r} s must be in (0, 0.1].")
@@ -113,17 +131,16 @@ class SimBackend:
         self.ahrs_rate = float(ahrs_rate)
         self.true_robot = self.config.true_robot(robot)
         self.initial_pose = None if initial_pose is None else np.asarray(initial_pose, float).reshape(6)
-        self.physics: CablePhysics | None = None
+        self.plant_process = plant_process
+        self.physics: PlantView | None = None
         self.devices: DeviceConfig | None = None
         self.drives: list[CanDriveEmulator] = []
         self.encoders: list[CanEncoderEmulator] = []
-        self.loadcells: LoadCellEmulator | None = None
-        self.ahrs: XsensEmulator | None = None
         self.sync_count = 0
         self.errors: list[str] = []  # exceptions raised inside the lockstep (the SYNC handler)
         self._lock = threading.RLock()
         self._history: list[tuple[int, float, tuple, tuple, tuple]] = []
-        self._pending: list[Fault] = []  # serial and cable faults, by time
+        self._link: PlantLink | None = None
         self._fds: list[int] = []
         self._bus: can.BusABC | None = None
         self._network = None
@@ -146,11 +163,31 @@ class SimBackend:
             raise SimConfigError(f"robot '{self.robot.name}': the simulator handles at most {len(DRIVE_IDS)} cables.")
         seeds = np.random.SeedSequence(self.seed).spawn(2 * n + 2)  # drives, encoders, load cells, AHRS
         rngs = [np.random.default_rng(s) for s in seeds]
-        self.physics = self._make_physics()
-        channel = f"cdpr-sim-{os.getpid()}-{next(_channel_ids)}-{id(self):x}"
-        self._bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-        self._network = open_network(self._bus, pumped=True)  # answers in the sender's thread (lockstep)
         try:
+            physics = self._make_physics()
+            lc_fd, lc_path = open_pty_pair()
+            self._fds.append(lc_fd)
+            loadcells = LoadCellEmulator(
+                lc_fd, rngs[2 * n], channels=n, offsets=self.config.tension_offset(n),
+                gains=self.config.tension_gain(n), rate_hz=1.0 / self.control_period,
+                full_scale=self.robot.sensors.load_cell_full_scale, accuracy=self.robot.sensors.load_cell_accuracy,
+            )
+            ahrs_fd, ahrs_path = open_pty_pair()
+            self._fds.append(ahrs_fd)
+            roll, pitch = self.config.ahrs_mounting()
+            ahrs = XsensEmulator(ahrs_fd, rngs[2 * n + 1], mounting_roll=roll, mounting_pitch=pitch,
+                                 input_convention=self.robot.orientation,
+                                 output_convention=self.robot.ahrs_convention)
+            core = PlantCore(physics, loadcells, ahrs, self.control_period,
+                             [f for f in self.config.faults if f.kind not in _CAN_FAULTS])
+            torques = [float(x) for x in physics.motor_torque()]
+            brakes = [physics.brake(i) for i in range(n)]
+            self.physics = PlantView(n, physics.snapshot(), torques, brakes, self.robot.orientation)
+            self._link = self._open_link(core)
+            self._link.advance(0, torques, brakes)  # the state of the first SYNC
+            channel = f"cdpr-sim-{os.getpid()}-{next(_channel_ids)}-{id(self):x}"
+            self._bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+            self._network = open_network(self._bus, pumped=True)  # answers in the sender's thread (lockstep)
             for i in range(n):
                 self.drives.append(
                     CanDriveEmulator(self._network, DRIVE_IDS[i], self.physics, i, rng=rngs[i],
@@ -159,19 +196,6 @@ class SimBackend:
             for i in range(n):
                 self.encoders.append(CanEncoderEmulator(self._network, ENCODER_IDS[i], self.physics, i,
                                                         rng=rngs[n + i]))
-            lc_fd, lc_path = open_pty_pair()
-            self._fds.append(lc_fd)
-            self.loadcells = LoadCellEmulator(
-                lc_fd, rngs[2 * n], channels=n, offsets=self.config.tension_offset(n),
-                gains=self.config.tension_gain(n), rate_hz=1.0 / self.control_period,
-                full_scale=self.robot.sensors.load_cell_full_scale, accuracy=self.robot.sensors.load_cell_accuracy,
-            ).start()
-            ahrs_fd, ahrs_path = open_pty_pair()
-            self._fds.append(ahrs_fd)
-            roll, pitch = self.config.ahrs_mounting()
-            self.ahrs = XsensEmulator(ahrs_fd, rngs[2 * n + 1], mounting_roll=roll, mounting_pitch=pitch,
-                                      input_convention=self.robot.orientation,
-                                      output_convention=self.robot.ahrs_convention).start()
             self._schedule_faults()
             self.devices = DeviceConfig(
                 can=CanConfig(interface="virtual", channel=channel, bitrate=1_000_000,
@@ -198,9 +222,9 @@ class SimBackend:
                 net.unsubscribe(SYNC_COB_ID, self._on_sync)
             except (KeyError, ValueError):
                 pass
-        for emu in (self.loadcells, self.ahrs):
-            if emu is not None:
-                emu.close()
+        link, self._link = self._link, None
+        if link is not None:
+            link.close()
         for node in self.drives + self.encoders:
             node.close()
         self.drives, self.encoders = [], []
@@ -238,30 +262,26 @@ class SimBackend:
         ph.rezero()
         return ph
 
+    def _open_link(self, core: PlantCore) -> PlantLink:
+        """The core in a child process when asked or possible (forked here, before the CAN bus and its nodes
+        exist: it needs none of them), else in this process."""
+        if self.plant_process is False or (self.plant_process is None and not child_process_possible()):
+            return InProcessPlantLink(core)
+        try:
+            return ChildPlantLink(core)
+        except OSError:  # no process left to fork: the same simulation, on one core
+            if self.plant_process:
+                raise
+            return InProcessPlantLink(core)
+
     def _schedule_faults(self) -> None:
-        """CAN faults go to the nodes (they act on their own sim time); the others wait for their tick."""
+        """CAN faults go to the nodes (they act on their own sim time); the plant core has the others."""
         for f in self.config.faults:
             if f.kind == "can_frames_lost":
                 for node in self.drives + self.encoders:
                     node.lose_frames(f.fraction, start=f.t, duration=f.duration)
             elif f.kind == "drive_fault":
                 self.drives[f.target].schedule_fault(f.t)
-            else:
-                self._pending.append(f)
-        self._pending.sort(key=lambda x: x.t)
-
-    def _inject_due_faults(self) -> None:
-        t = self.physics.time
-        while self._pending and self._pending[0].t <= t + 1e-12:
-            f = self._pending.pop(0)
-            if f.kind == "loadcell_stuck":
-                self.loadcells.stick(f.target)
-            elif f.kind == "loadcell_disconnected":
-                self.loadcells.disconnect()
-            elif f.kind == "ahrs_corrupt":
-                self.ahrs.corrupt(f.n_bytes)
-            elif f.kind == "cable_slack":
-                self.physics.slip_cable(f.target, f.length)
 
     # -- the lockstep -------------------------------------------------------------------------------------
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -271,19 +291,15 @@ class SimBackend:
             self.errors.append(f"{type(exc).__name__}: {exc}")
 
     def tick(self, counter: int = 0) -> int:
-        """One SYNC (``counter``: its counter byte, 0 if none): targets -> faults -> physics step -> serial
-        samples and TPDOs. Returns the SYNC count."""
+        """One SYNC (``counter``: its counter byte, 0 if none): the state of this SYNC -> targets -> the plant
+        core (faults, serial samples, physics step to the next SYNC) -> TPDOs. Returns the SYNC count."""
         with self._lock:
-            ph = self.physics
+            view = self.physics
+            view.publish(self._link.collect())  # raises SimulationError if the core failed: nodes stay silent
             self.sync_count += 1
             for drive in self.drives:
                 drive.apply_targets()  # the drive also engages or releases its winch's brake with its state
-            self._inject_due_faults()
-            ph.step(self.control_period, t_end=self.sync_count * self.control_period)
-            t = ph.time
-            self.loadcells.emit(t, ph.cable_tension())
-            if self.ahrs.due(t):  # the AHRS samples at its own rate: the angles only for the ticks it sends
-                self.ahrs.emit(t, *ph.euler())
+            self._link.sync(self.sync_count, view.torques, view.brakes)  # in the child: while the nodes answer
             for node in self.drives:
                 node.on_sync(self.sync_count, counter)
             for node in self.encoders:
@@ -292,8 +308,8 @@ class SimBackend:
             return self.sync_count
 
     def _record(self) -> None:
-        ph = self.physics
-        self._history.append((self.sync_count, ph.time, tuple(ph._xg), tuple(ph._q), tuple(ph._tau_cell)))
+        v = self.physics
+        self._history.append((self.sync_count, v.time, v.xg, v.q, v._tau_cell))
 
     # -- truth --------------------------------------------------------------------------------------------
     @property

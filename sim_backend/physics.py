@@ -275,6 +275,14 @@ class CablePhysics:
         """(n,) cable tension along the straight segment (at the anchor for massless cables), N."""
         return np.array(self._tau)
 
+    def snapshot(self) -> tuple[float, ...]:
+        """The state the devices read, as one flat tuple (``sim_backend.plant_link.PlantView`` unpacks it):
+        time s, motor angles (n) rad, motor velocities (n) rad/s, load-cell tensions (n) N, swivel angles (n)
+        rad, unstretched lengths (n) m, centre of mass (3) m, orientation quaternion (4) [w, x, y, z]."""
+        n, k, th = self.n, self._k, self._th
+        return (self._t, *th, *self._thd, *self._tau_cell, *[g[4] for g in self._geo],
+                *[self._l00[i] + k[i] * th[i] for i in range(n)], *self._xg, *self._q)
+
     def state(self) -> PhysicsState:
         return PhysicsState(self._t, self.pose(), self.motor_position(), self.cable_tension())
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import signal
 
 import can
 import numpy as np
@@ -17,6 +19,8 @@ from drivers.swivel_encoder import CanopenSwivelEncoder
 from drivers.xsens import XsensConfig, XsensMti
 from sim_backend.backend import SimBackend, power_on_state
 from sim_backend.config import SimConfigError, sim_config_from_dict
+from sim_backend.physics import CablePhysics, SimulationError
+from sim_backend.plant_link import child_process_possible
 
 ROBOT = load_robot("irma4u")
 LPR = np.asarray(ROBOT.sensors.length_per_motor_rev)
@@ -126,8 +130,8 @@ def test_real_drivers_stream_in_lockstep_with_the_simulated_prototype():
             rig.close()
 
 
-def _record_run(seed: int) -> tuple[list, list, dict]:
-    with SimBackend(ROBOT, None, seed=seed, control_period=PERIOD) as sim:
+def _record_run(seed: int, plant_process: bool | None = None) -> tuple[list, list, dict]:
+    with SimBackend(ROBOT, None, seed=seed, control_period=PERIOD, plant_process=plant_process) as sim:
         rig = Rig(sim, listen=True)
         try:
             rig.hold(sim.truth().tensions * 1.05)  # a little more than holding: the platform moves
@@ -145,9 +149,10 @@ def _record_run(seed: int) -> tuple[list, list, dict]:
             rig.close()
 
 
+@pytest.mark.skipif(not child_process_possible(), reason="the plant's child process needs fork and two cores")
 def test_same_seed_gives_the_same_frames_and_bytes():
-    frames_a, cells_a, angles_a = _record_run(11)
-    frames_b, cells_b, angles_b = _record_run(11)
+    frames_a, cells_a, angles_a = _record_run(11, plant_process=True)
+    frames_b, cells_b, angles_b = _record_run(11, plant_process=False)  # the plant in this process
     frames_c, cells_c, _ = _record_run(12)
     assert len(frames_a) > 120 * 8  # SDO set-up, then 1 TPDO per drive and per encoder every SYNC
     assert frames_a == frames_b
@@ -156,6 +161,75 @@ def test_same_seed_gives_the_same_frames_and_bytes():
     assert len(common) > 20
     assert all(angles_a[k] == angles_b[k] for k in common)
     assert frames_a != frames_c and cells_a != cells_c
+
+
+def test_a_torque_target_acts_from_the_sync_after_it_arrives():
+    # CiA 402 synchronous RPDO: the target received before SYNC n is applied at SYNC n; the tensions the
+    # load cells read at SYNC n are those of that instant, before the new torque has acted
+    with SimBackend(ROBOT, None, seed=2, control_period=PERIOD) as sim:
+        rig = Rig(sim)
+        try:
+            hold = sim.truth().tensions
+            rig.hold(hold)
+            for d in rig.drives:
+                d.enable()
+            for _ in range(40):
+                rig.tick()
+            _, _, _, before = rig.tick()
+            rig.hold(hold * 1.3)  # the step, sent before the next SYNC
+            _, _, _, at = rig.tick()
+            _, _, _, after = rig.tick()
+            # at the SYNC that applies the step the platform has not felt it yet; one period later it has
+            assert np.abs(at.tau - before.tau).max() < 0.3
+            assert (after.tau - at.tau).min() > 1.0
+        finally:
+            rig.close()
+
+
+@pytest.mark.parametrize("plant_process", [True, False], ids=["child", "in-process"])
+def test_a_failing_plant_silences_the_nodes_with_its_reason(monkeypatch, plant_process):
+    if plant_process and not child_process_possible():
+        pytest.skip("the plant's child process needs fork and two cores")
+    real_step = CablePhysics.step
+
+    def step(self, dt, t_end=None):
+        if t_end is not None and t_end > 10 * PERIOD + 1e-9:
+            raise SimulationError(f"the simulated platform diverged at t = {self.time:.3f} s (test)")
+        real_step(self, dt, t_end)
+
+    monkeypatch.setattr(CablePhysics, "step", step)  # before the backend starts: the child inherits it
+    with SimBackend(ROBOT, None, seed=1, control_period=PERIOD, plant_process=plant_process) as sim:
+        for _ in range(10):
+            sim.tick()
+        with pytest.raises(SimulationError, match=r"diverged at t = 0\.050 s \(test\)"):
+            sim.tick()  # SYNC 11 would publish the state the failed step was to give
+        with pytest.raises(SimulationError, match="diverged at t = 0.050 s"):
+            sim.tick()  # and it stays failed
+        assert sim.sync_count == 10 and sim.truth().sync_count == 10
+
+
+@pytest.mark.skipif(not child_process_possible(), reason="the plant's child process needs fork and two cores")
+def test_the_plant_process_dies_loudly_and_holds_no_pipe_of_its_parent():
+    r, w = os.pipe()  # a pipe the parent holds to someone else (cdpr's report renderer has one)
+    try:
+        with SimBackend(ROBOT, None, seed=1, control_period=PERIOD, plant_process=True) as sim:
+            os.close(w)
+            w = -1
+            os.set_blocking(r, False)
+            assert os.read(r, 1) == b""  # end of file: the child did not keep a copy of the write end
+            pid = sim._link.pid
+            sim.tick()
+            sim._link.collect()  # its answer to that SYNC is in
+            os.kill(pid, signal.SIGKILL)
+            sim.tick()  # publishes that answer, hands over commands nobody will take
+            with pytest.raises(SimulationError, match=rf"process \(pid {pid}\) ended \(killed by signal 9\)"):
+                sim.tick()
+        with pytest.raises(ChildProcessError):
+            os.waitpid(pid, os.WNOHANG)  # reaped
+    finally:
+        os.close(r)
+        if w >= 0:
+            os.close(w)
 
 
 def test_load_cell_offset_gain_and_ahrs_tilt_reach_the_drivers():

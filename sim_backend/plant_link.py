@@ -1,0 +1,424 @@
+"""The physics and the serial devices, one control period ahead of the CAN nodes: on the second core or here.
+
+A CiA 402 drive applies a synchronous target at the SYNC after it arrives, so the torque a master computes
+from the readings of SYNC n acts from SYNC n + 1 on. The simulated prototype keeps that timing:
+
+* at SYNC n the CAN nodes (this process) read the plant at t_n = n * period through a :class:`PlantView`
+  and write their commands into it (motor torques, holding brakes);
+* the commands go to the :class:`PlantCore`, which injects the faults due at t_n, writes the load-cell line
+  and the AHRS sample of t_n on their ptys, then steps the physics to t_{n+1} with the new commands;
+* the state at t_{n+1} is published to the view at SYNC n + 1.
+
+Nothing the core does at SYNC n is needed before SYNC n + 1, so on a machine with two cores the core runs in
+a child process (:class:`ChildPlantLink`, forked, with its serial emulators' threads): its physics step
+overlaps the master's work on tick n. The two processes share one page (commands in, state out) and hand
+it over with two POSIX semaphores, whose atomic operations order the page's reads and writes; the waiting
+side first polls its semaphore (the other side answers within microseconds in a lockstep run), then
+blocks. :class:`InProcessPlantLink` makes the same calls in the same order in this process: both links
+give the same bytes on every wire for the same seed. An exception of the core is raised by the next
+:meth:`collect` in both, and again at every later one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import mmap
+import multiprocessing
+import os
+import signal
+import struct
+import sys
+import time
+import traceback
+from typing import Protocol
+
+import numpy as np
+
+from sim_backend.config import Fault
+from sim_backend.physics import CablePhysics, SimulationError, _euler, _quat_to_matrix
+
+_HEADER = struct.Struct("<qq")  # operation, SYNC count
+_OP_ADVANCE, _OP_SYNC, _OP_STOP = 1, 2, 3
+_OK, _FAILED = 0, 1
+_STATE_AT = 512  # byte offset of the state block in the shared page
+_ERROR_AT = 2048  # byte offset of the error message
+_PAGE = 4096
+CHILD_POLL = 2e-3  # s the child polls for the next command before blocking (a lockstep SYNC comes sooner)
+PARENT_POLL = 1e-3  # s the parent polls for the state before blocking
+ANSWER_TIMEOUT = 30.0  # s without an answer from a living child before the link gives up
+
+
+class PlantView:
+    """The plant as the CAN nodes see it at a SYNC (implements ``sim_backend.plant.Plant``): the state
+    published for this SYNC, and the commands the drives have given since the last one.
+
+    n: cables; state: a :meth:`CablePhysics.snapshot` tuple; torques (n) N m and brakes (n) the commands in
+    force; convention: the robot's orientation convention (for :meth:`orientation`)."""
+
+    def __init__(self, n: int, state: tuple[float, ...], torques, brakes, convention: str) -> None:
+        self.n = n
+        self.convention = convention
+        self.torques = [float(x) for x in torques]
+        self.brakes = [bool(x) for x in brakes]
+        self.publish(state)
+
+    def publish(self, state: tuple[float, ...]) -> None:
+        """Take the state of a new SYNC."""
+        n = self.n
+        self._t = state[0]
+        self._th = state[1:1 + n]
+        self._thd = state[1 + n:1 + 2 * n]
+        self._tau_cell = state[1 + 2 * n:1 + 3 * n]
+        self._sigma = state[1 + 3 * n:1 + 4 * n]
+        self._l0 = state[1 + 4 * n:1 + 5 * n]
+        self.xg = state[1 + 5 * n:4 + 5 * n]
+        self.q = state[4 + 5 * n:8 + 5 * n]
+
+    @property
+    def time(self) -> float:
+        """Simulated time of the published state, s."""
+        return self._t
+
+    def motor_position(self) -> np.ndarray:
+        return np.array(self._th)
+
+    def motor_velocity(self) -> np.ndarray:
+        return np.array(self._thd)
+
+    def motor_torque(self) -> np.ndarray:
+        """(n,) the torques commanded, N m (the motors deliver them from the next physics step on)."""
+        return np.array(self.torques)
+
+    def set_motor_torque(self, i: int, torque: float) -> None:
+        self.torques[i] = float(torque)
+
+    def cable_tension(self) -> np.ndarray:
+        return np.array(self._tau_cell)
+
+    def swivel_angle(self) -> np.ndarray:
+        return np.array(self._sigma)
+
+    def orientation(self) -> np.ndarray:
+        return np.array(_euler(_quat_to_matrix(list(self.q)), self.convention))
+
+    def unstretched_lengths(self) -> np.ndarray:
+        """(n,) unstretched cable lengths paid out by the winches, m."""
+        return np.array(self._l0)
+
+    def set_brake(self, i: int, engaged: bool) -> None:
+        """Engage or release the holding brake of winch i (from the next physics step on)."""
+        self.brakes[i] = bool(engaged)
+
+    def brake(self, i: int) -> bool:
+        return self.brakes[i]
+
+
+class PlantCore:
+    """The physics with the devices that read it on serial lines: the load-cell amplifier and the AHRS
+    (``sim_backend.loadcell_emulator``, ``sim_backend.xsens_emulator``), and the faults that act on them.
+
+    physics: at the power-on state; period: s per SYNC; faults: the serial and cable faults, by time."""
+
+    def __init__(self, physics: CablePhysics, loadcells, ahrs, period: float, faults: list[Fault]) -> None:
+        self.physics = physics
+        self.loadcells = loadcells
+        self.ahrs = ahrs
+        self.period = float(period)
+        self.pending = sorted(faults, key=lambda f: f.t)
+
+    def start(self) -> None:
+        """Let the serial devices answer their hosts' commands (their threads)."""
+        self.loadcells.start()
+        self.ahrs.start()
+
+    def close(self) -> None:
+        for emu in (self.loadcells, self.ahrs):
+            emu.close()
+
+    def fds(self) -> list[int]:
+        """The file descriptors the core uses (the serial devices' pty masters)."""
+        return [self.loadcells.fd, self.ahrs.fd]
+
+    def advance(self, count: int, torques, brakes) -> tuple[float, ...]:
+        """Apply the commands given at SYNC ``count`` and step to its next SYNC; returns the new state."""
+        ph = self.physics
+        for i, (tq, b) in enumerate(zip(torques, brakes, strict=True)):
+            ph.set_motor_torque(i, tq)
+            if ph.brake(i) != b:
+                ph.set_brake(i, b)
+        ph.step(self.period, t_end=(count + 1) * self.period)
+        return ph.snapshot()
+
+    def sync(self, count: int, torques, brakes) -> tuple[float, ...]:
+        """SYNC ``count``: the faults due, the serial samples of this instant, then :meth:`advance`."""
+        ph = self.physics
+        t = ph.time
+        while self.pending and self.pending[0].t <= t + 1e-12:
+            self._inject(self.pending.pop(0))
+        self.loadcells.emit(t, ph._tau_cell)
+        if self.ahrs.due(t):  # the AHRS samples at its own rate: the angles only for the ticks it sends
+            self.ahrs.emit(t, *ph.euler())
+        return self.advance(count, torques, brakes)
+
+    def _inject(self, f: Fault) -> None:
+        if f.kind == "loadcell_stuck":
+            self.loadcells.stick(f.target)
+        elif f.kind == "loadcell_disconnected":
+            self.loadcells.disconnect()
+        elif f.kind == "ahrs_corrupt":
+            self.ahrs.corrupt(f.n_bytes)
+        elif f.kind == "cable_slack":
+            self.physics.slip_cable(f.target, f.length)
+
+
+class PlantLink(Protocol):
+    """Hands the commands of a SYNC to a :class:`PlantCore` and brings back the state of the next one."""
+
+    def advance(self, count: int, torques, brakes) -> None:
+        """Power-on: step from SYNC ``count`` (0) to the first SYNC with these commands, nothing emitted."""
+
+    def sync(self, count: int, torques, brakes) -> None:
+        """SYNC ``count``: the core's :meth:`PlantCore.sync` with these commands (returns at once)."""
+
+    def collect(self) -> tuple[float, ...]:
+        """The state the last call produced (raises ``SimulationError`` if the core failed)."""
+
+    def close(self) -> None:
+        """Stop the core and its serial devices (safe to call twice)."""
+
+
+class InProcessPlantLink:
+    """The core run in this process, at the same points of the SYNC as in the child."""
+
+    def __init__(self, core: PlantCore) -> None:
+        self.core = core
+        self._state: tuple[float, ...] | None = None
+        self._error: str | None = None
+        core.start()
+
+    def _run(self, method, count: int, torques, brakes) -> None:
+        if self._error is not None:
+            return
+        try:
+            self._state = method(count, torques, brakes)
+        except Exception as exc:  # as the child reports it: raised at the next collect
+            self._error = _reason(exc)
+
+    def advance(self, count: int, torques, brakes) -> None:
+        self._run(self.core.advance, count, torques, brakes)
+
+    def sync(self, count: int, torques, brakes) -> None:
+        self._run(self.core.sync, count, torques, brakes)
+
+    def collect(self) -> tuple[float, ...]:
+        if self._error is not None:
+            raise SimulationError(self._error)
+        return self._state
+
+    def close(self) -> None:
+        self.core.close()
+
+
+def cores_available() -> int:
+    """CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def child_process_possible() -> bool:
+    """Whether a :class:`ChildPlantLink` can run here: fork, and a second core to run it on."""
+    return hasattr(os, "fork") and "fork" in multiprocessing.get_all_start_methods() and cores_available() >= 2
+
+
+class ChildPlantLink:
+    """The core in a forked child process, on the other core; see the module docstring for the protocol.
+
+    The child keeps only the file descriptors the core needs (its ptys, and stdin, stdout and stderr): a pipe
+    the parent holds to some other child must see its end when the parent closes it. It ignores SIGINT
+    (Ctrl-C stops the run in the parent, which then closes the link) and exits when the parent does.
+    ``pid`` is the child's process ID."""
+
+    def __init__(self, core: PlantCore) -> None:
+        n = core.physics.n
+        self.n = n
+        self._command = struct.Struct(f"<{n}d{n}?")
+        self._state = struct.Struct(f"<q{8 + 5 * n}d")  # status, then the snapshot
+        self._page = mmap.mmap(-1, _PAGE)  # anonymous and shared: the child sees the same page
+        ctx = multiprocessing.get_context("fork")
+        self._to_child = ctx.Semaphore(0)
+        self._to_parent = ctx.Semaphore(0)
+        self._error: str | None = None
+        self._closed = False
+        self._waiting = False  # a command is out and its answer not yet collected
+        self._exit: int | None = None  # the child's wait status once reaped
+        parent = os.getpid()
+        keep = sorted({0, 1, 2, *core.fds()})
+        self.pid = os.fork()
+        if self.pid == 0:  # the child: never returns
+            code = 1
+            try:
+                _close_fds_but(keep)
+                _child_main(core, self._page, self._to_child, self._to_parent, parent, self._command,
+                            self._state)
+                code = 0
+            except BaseException:
+                with contextlib.suppress(BaseException):
+                    traceback.print_exc()
+            finally:
+                os._exit(code)
+
+    def _send(self, op: int, count: int, torques, brakes) -> None:
+        if self._error is not None or self._closed:
+            return
+        if self._waiting:  # the previous answer was never collected: take it now, in order
+            self._receive()
+        _HEADER.pack_into(self._page, 0, op, count)
+        self._command.pack_into(self._page, _HEADER.size, *torques, *brakes)
+        self._waiting = True
+        self._to_child.release()
+
+    def advance(self, count: int, torques, brakes) -> None:
+        self._send(_OP_ADVANCE, count, torques, brakes)
+
+    def sync(self, count: int, torques, brakes) -> None:
+        self._send(_OP_SYNC, count, torques, brakes)
+
+    def _receive(self) -> None:
+        self._waiting = False
+        sem = self._to_parent
+        if not sem.acquire(False):
+            end = time.perf_counter() + PARENT_POLL
+            while not sem.acquire(False):
+                if time.perf_counter() > end:
+                    if not self._block(sem):
+                        return
+                    break
+        status, *state = self._state.unpack_from(self._page, _STATE_AT)
+        if status != _OK:
+            (size,) = struct.unpack_from("<q", self._page, _ERROR_AT)
+            self._error = bytes(self._page[_ERROR_AT + 8:_ERROR_AT + 8 + size]).decode("utf-8", "replace")
+        else:
+            self._last = tuple(state)
+
+    def alive(self) -> bool:
+        """Whether the child still runs (reaps it once it has ended)."""
+        if self._exit is None:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            if pid == 0:
+                return True
+            self._exit = status
+        return False
+
+    def _block(self, sem) -> bool:
+        """Wait for the child's answer; False (with the reason in ``_error``) if it died or fell silent."""
+        waited = 0.0
+        while not sem.acquire(True, 0.1):
+            waited += 0.1
+            if not self.alive():
+                self._error = (f"the simulated plant's process (pid {self.pid}) ended "
+                               f"({_describe(self._exit)}) without answering SYNC")
+                return False
+            if waited >= ANSWER_TIMEOUT:
+                self._error = f"the simulated plant's process (pid {self.pid}) gave no answer in {waited:.0f} s"
+                return False
+        return True
+
+    def collect(self) -> tuple[float, ...]:
+        if self._waiting and self._error is None:
+            self._receive()
+        if self._error is not None:
+            raise SimulationError(self._error)
+        return self._last
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self.alive():
+            with contextlib.suppress(Exception):
+                if self._waiting and self._error is None:
+                    self._receive()
+                _HEADER.pack_into(self._page, 0, _OP_STOP, 0)
+                self._to_child.release()
+            end = time.monotonic() + 5.0
+            while self.alive() and time.monotonic() < end:
+                time.sleep(0.005)
+            if self.alive():
+                os.kill(self.pid, signal.SIGKILL)
+                os.waitpid(self.pid, 0)
+        self._page.close()
+
+
+def _reason(exc: Exception) -> str:
+    """The message a failure of the core is raised with (a ``SimulationError`` keeps its own)."""
+    return str(exc) if isinstance(exc, SimulationError) else f"{type(exc).__name__}: {exc}"
+
+
+def _describe(status: int | None) -> str:
+    if status is None:
+        return "status unknown"
+    if os.WIFSIGNALED(status):
+        return f"killed by signal {os.WTERMSIG(status)}"
+    return f"exit code {os.waitstatus_to_exitcode(status)}"
+
+
+def _close_fds_but(keep: list[int]) -> None:
+    """Close every file descriptor of this process except ``keep`` (sorted)."""
+    lo = 0
+    for fd in keep:
+        if fd > lo:
+            os.closerange(lo, fd)
+        lo = fd + 1
+    os.closerange(lo, _max_fd())
+
+
+def _max_fd() -> int:
+    try:
+        return max(int(x) for x in os.listdir("/proc/self/fd")) + 1
+    except (OSError, ValueError):
+        return os.sysconf("SC_OPEN_MAX") if hasattr(os, "sysconf") else 1024
+
+
+def _child_main(core: PlantCore, page: mmap.mmap, to_child, to_parent, parent: int, command: struct.Struct,
+                state: struct.Struct) -> None:
+    """The child's loop: wait for a command, run it on the core, post the state (or the error)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the run and closes us
+    sys.setswitchinterval(1e-4)  # the serial devices' threads get the interpreter soon while this one polls
+    core.start()
+    failed = False
+    try:
+        while _wait_for_command(to_child, parent):
+            op, count = _HEADER.unpack_from(page, 0)
+            if op == _OP_STOP:
+                break
+            if not failed:
+                values = command.unpack_from(page, _HEADER.size)
+                n = len(values) // 2
+                try:
+                    run = core.sync if op == _OP_SYNC else core.advance
+                    state.pack_into(page, _STATE_AT, _OK, *run(count, values[:n], values[n:]))
+                except Exception as exc:
+                    failed = True
+                    msg = _reason(exc).encode()[:_PAGE - _ERROR_AT - 8]
+                    struct.pack_into("<q", page, _STATE_AT, _FAILED)
+                    struct.pack_into(f"<q{len(msg)}s", page, _ERROR_AT, len(msg), msg)
+            to_parent.release()
+    finally:
+        core.close()
+
+
+def _wait_for_command(sem, parent: int) -> bool:
+    """Poll, then block for the next command; False when the parent has gone."""
+    if sem.acquire(False):
+        return True
+    end = time.perf_counter() + CHILD_POLL
+    while time.perf_counter() < end:
+        for _ in range(64):
+            if sem.acquire(False):
+                return True
+    while not sem.acquire(True, 0.1):
+        if os.getppid() != parent:
+            return False
+    return True
