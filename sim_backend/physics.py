@@ -407,9 +407,18 @@ class CablePhysics:
             (t0, t1, t2), (jw0, jw1, jw2) = g[1], g[3]
             l0 = l00 + k[i] * th
             kc = ea / l0
+            stretch = g[0] + g[5] - l0
+            if g[5] > 0.0:
+                # the sag shortens as the tension grows (d sag / d tau = -2 sag / tau): taken into the implicit
+                # solve, linearised at the last tension, it gives Ernst's equivalent stiffness
+                # kc / (1 + kc 2 sag / tau). Left explicit it is a loop of gain kc 2 sag / tau (6 for a 0.08 kg/m
+                # cable at 44 N), which threw the platform off its cables
+                slope = 2.0 * g[5] / max(self._tau[i], 1.0)
+                stretch += slope * max(self._tau[i], 1.0)
+                kc = kc / (1.0 + kc * slope)
             s = kc * sc
             ed = t0 * vs0 + t1 * vs1 + t2 * vs2 + jw0 * ws0 + jw1 * ws1 + jw2 * ws2 - k[i] * thd
-            rhs.append(kc * (g[0] + g[5] - l0) / s + ed)
+            rhs.append(kc * stretch / s + ed)
             inv_s.append(1.0 / s)
             ijw.append((j00 * jw0 + j01 * jw1 + j02 * jw2, j10 * jw0 + j11 * jw1 + j12 * jw2,
                         j20 * jw0 + j21 * jw1 + j22 * jw2))
