@@ -4,7 +4,9 @@ import base64
 import datetime as dt
 import io
 import math
+import os
 import re
+import signal
 
 import numpy as np
 import pytest
@@ -80,22 +82,25 @@ def test_report_renderer_child_writes_the_same_page_and_falls_back_when_gone(tmp
     write_html(tmp_path / "here.html", summary(), t, tau, ref)
     with ReportRenderer() as r:
         r.start()
-        child = r._proc
-        assert child is not None and child.poll() is None  # waiting, matplotlib loaded meanwhile
+        child = r.pid
+        assert child is not None and r.alive()  # waiting, matplotlib loaded meanwhile
         assert r.write(tmp_path / "child.html", summary(), t, tau, ref) == tmp_path / "child.html"
-        assert child.returncode == 0  # the child wrote it
+        assert r.pid is None
+        with pytest.raises(ChildProcessError):
+            os.waitpid(child, os.WNOHANG)  # it wrote the page, ended and was reaped
     assert (tmp_path / "child.html").read_bytes() == (tmp_path / "here.html").read_bytes()
     # the child killed (or never started): the page is rendered in this process
     r = ReportRenderer().start()
-    r._proc.kill()
-    r._proc.wait()
+    os.kill(r.pid, signal.SIGKILL)
     r.write(tmp_path / "fallback.html", summary(), t, tau, ref)
     assert (tmp_path / "fallback.html").read_bytes() == (tmp_path / "here.html").read_bytes()
     # a routine that stopped before its report: close() ends the waiting child
     r = ReportRenderer().start()
-    child = r._proc
+    child = r.pid
     r.close()
-    assert child.poll() is not None and r._proc is None
+    assert r.pid is None
+    with pytest.raises(ChildProcessError):
+        os.waitpid(child, os.WNOHANG)
 
 
 def test_progress_bar_draws_on_a_tty_only():
