@@ -4,6 +4,7 @@
     python benchmarks/bench_sim.py --startup 2     # plus the full 'cdpr startup --backend sim --grid 2'
     python benchmarks/bench_sim.py --startup 2 --repeat 5   # five startups: range and median
     python benchmarks/bench_sim.py --startup 2 --split      # plus where the routine's tick goes, method by method
+    python benchmarks/bench_sim.py --startup 2 --no-html    # the startup without its HTML report
 
 The target (issue 4): the whole 8-pose startup routine at >= 20x real time on 2 cores, device traffic
 included. Reports wall microseconds per control tick, where they go, and the real-time factor
@@ -57,22 +58,24 @@ def _wrap(obj, name: str, acc: dict, key: str) -> None:
 
 
 def _instrument(sim: SimBackend) -> dict:
-    acc = {"tick": 0.0, "physics": 0.0, "apply_targets": 0.0, "can_tpdos": 0.0, "loadcell_emit": 0.0,
-           "ahrs_emit": 0.0}
-    _wrap(sim.physics, "step", acc, "physics")
+    """Time the backend's SYNC handler and its parts: the plant (physics, load-cell line and AHRS sample, or,
+    with the plant in its child process, handing the commands over and taking the state back), the drives'
+    targets and the CAN nodes' TPDOs."""
+    acc = {"tick": 0.0, "plant": 0.0, "apply_targets": 0.0, "can_tpdos": 0.0}
+    link = sim._link
+    _wrap(link, "collect", acc, "plant")
+    _wrap(link, "sync", acc, "plant")
     for d in sim.drives:
         _wrap(d, "apply_targets", acc, "apply_targets")
     for node in sim.drives + sim.encoders:
         _wrap(node, "on_sync", acc, "can_tpdos")
-    _wrap(sim.loadcells, "emit", acc, "loadcell_emit")
-    _wrap(sim.ahrs, "emit", acc, "ahrs_emit")
     _wrap(sim, "tick", acc, "tick")
     return acc
 
 
-def bench_backend_tick(robot, period: float, ticks: int = 2000) -> tuple[float, dict]:
+def bench_backend_tick(robot, period: float, ticks: int = 2000, plant_process: bool = True) -> tuple[float, dict]:
     """Backend ticks called directly (no master, no drivers): wall µs per tick and its split."""
-    with SimBackend(robot, None, seed=1, control_period=period) as sim:
+    with SimBackend(robot, None, seed=1, control_period=period, plant_process=plant_process) as sim:
         acc = _instrument(sim)
         t0 = time.perf_counter()
         for _ in range(ticks):
@@ -81,7 +84,7 @@ def bench_backend_tick(robot, period: float, ticks: int = 2000) -> tuple[float, 
     return wall / ticks * 1e6, {k: v / ticks * 1e6 for k, v in acc.items()}
 
 
-def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict]:
+def bench_lockstep(robot, period: float, ticks: int = 2000, plant_process: bool = True) -> tuple[float, dict]:
     """A simple force loop through the real drivers in lockstep, set up as the startup's connect() does (pumped
     CAN network, polled serial ports, the drives and encoders answering every n-th SYNC as feedback_every
     says): torque targets -> SYNC -> wait for the TPDOs due and the load-cell line of that tick. Wall µs per
@@ -94,7 +97,7 @@ def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict
 
     lpr = np.asarray(robot.sensors.length_per_motor_rev)
     radius = np.abs(lpr) / (2 * math.pi)
-    with SimBackend(robot, None, seed=1, control_period=period) as sim:
+    with SimBackend(robot, None, seed=1, control_period=period, plant_process=plant_process) as sim:
         cfg = sim.devices
         bus = open_bus_from_config(cfg.can)
         net = open_network(bus)
@@ -148,7 +151,7 @@ def bench_lockstep(robot, period: float, ticks: int = 2000) -> tuple[float, dict
     return wall / ticks * 1e6, {k: v / ticks * 1e6 for k, v in acc.items()}
 
 
-def bench_startup(grid: int) -> tuple[float, float, dict]:
+def bench_startup(grid: int, extra: tuple[str, ...] = ()) -> tuple[float, float, dict]:
     """The operator's routine: 'cdpr startup --backend sim --grid N'; (wall s, simulated s, the timing it reports:
     acquisition_s simulated, wall_s of the routine's loop, solve_s)."""
     import contextlib
@@ -161,7 +164,7 @@ def bench_startup(grid: int) -> tuple[float, float, dict]:
         out = io.StringIO()
         t0 = time.perf_counter()
         with contextlib.redirect_stdout(out):
-            status = main(["startup", "--backend", "sim", "--grid", str(grid), "--out", str(Path(tmp) / "run"),
+            status = main(["startup", "--backend", "sim", "--grid", str(grid), "--out", str(Path(tmp) / "run"), *extra,
                            "--json"])
         wall = time.perf_counter() - t0
     if status:
@@ -174,9 +177,8 @@ def bench_startup(grid: int) -> tuple[float, float, dict]:
 _SPLIT = [
     ("acquisition.startup", "StartupRoutine", "_tick"), ("acquisition.control", "Rig", "tick"),
     ("drivers.can_bus", "SyncProducer", "send_sync"), ("sim_backend.backend", "SimBackend", "tick"),
-    ("sim_backend.physics", "CablePhysics", "step"), ("sim_backend.loadcell_emulator", "LoadCellEmulator", "emit"),
-    ("sim_backend.xsens_emulator", "XsensEmulator", "emit"), ("sim_backend.can_drive_emulator", "SimulatedNode",
-                                                              "on_sync"),
+    ("sim_backend.plant_link", "ChildPlantLink", "collect"), ("sim_backend.plant_link", "ChildPlantLink", "sync"),
+    ("sim_backend.can_drive_emulator", "SimulatedNode", "on_sync"),
     ("sim_backend.can_drive_emulator", "CanDriveEmulator", "apply_targets"),
     ("drivers.loadcell", "LoadCellDriver", "latest"), ("drivers.xsens", "XsensMti", "latest"),
     ("acquisition.startup", "StartupRoutine", "_supervise"), ("acquisition.control", "Rig", "faults"),
@@ -224,23 +226,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--startup", type=int, default=0, metavar="GRID", help="also time the full startup")
     ap.add_argument("--repeat", type=int, default=1, help="startup runs (the VM's speed drifts between runs)")
     ap.add_argument("--split", action="store_true", help="with --startup: one more run, timed method by method")
+    ap.add_argument("--no-html", action="store_true", help="time the startup without its report (its --no-html)")
     args = ap.parse_args(argv)
     robot = load_robot("irma4u")
     print(f"physics step (5 ms, substeps 1): {bench_physics(robot):.1f} us")
-    for rate in (200, 500):
+    for rate, child in ((200, True), (200, False), (500, True)):
         period = 1.0 / rate
-        us, split = bench_backend_tick(robot, period, args.ticks)
+        where = "plant in its child process" if child else "plant in this process"
+        us, split = bench_backend_tick(robot, period, args.ticks, child)
         parts = ", ".join(f"{k} {v:.0f}" for k, v in split.items() if k != "tick")
-        print(f"{rate} Hz backend tick alone: {us:.0f} us/tick ({parts}) -> {period * 1e6 / us:.1f}x real time")
-        us, split = bench_lockstep(robot, period, args.ticks)
+        print(f"{rate} Hz backend tick alone, {where}: {us:.0f} us/tick ({parts}) -> {period * 1e6 / us:.1f}x "
+              f"real time")
+        us, split = bench_lockstep(robot, period, args.ticks, child)
         frames = split.pop("frames")
         parts = ", ".join(f"{k} {v:.0f}" for k, v in split.items())
-        print(f"{rate} Hz lockstep through the real drivers: {us:.0f} us/tick -> {period * 1e6 / us:.1f}x real "
-              f"time, {frames:.1f} CAN frames/tick; in the backend's SYNC handler: {parts}; master side, bus and "
-              f"thread hand-offs: {us - split['tick']:.0f}")
+        print(f"{rate} Hz lockstep through the real drivers, {where}: {us:.0f} us/tick -> "
+              f"{period * 1e6 / us:.1f}x real time, {frames:.1f} CAN frames/tick; in the backend's SYNC handler: "
+              f"{parts}; master side and bus: {us - split['tick']:.0f}")
     factors = []
     for _ in range(args.startup and args.repeat):
-        wall, sim_s, timing = bench_startup(args.startup)
+        wall, sim_s, timing = bench_startup(args.startup, ("--no-html",) if args.no_html else ())
         loop = float(timing["wall_s"])
         factors.append(sim_s / wall)
         print(f"cdpr startup --backend sim --grid {args.startup}: {sim_s:.1f} s simulated in {wall:.1f} s wall "
