@@ -61,8 +61,8 @@ from sim_backend.pty import open_pty_pair
 from sim_backend.xsens_emulator import XsensEmulator
 
 DRIVE_IDS = (1, 2, 3, 4, 5, 6, 7, 8)
-_CAN_FAULTS = ("can_frames_lost", "drive_fault")  # faults the CAN nodes act out; the plant core has the others
 ENCODER_IDS = (11, 12, 13, 14, 15, 16, 17, 18)
+_CAN_FAULTS = ("can_frames_lost", "drive_fault")  # faults the CAN nodes act out; the plant core has the others
 PRETENSION = 50.0  # N, the power-on pretension around which the resting tensions are drawn
 _channel_ids = itertools.count(1)
 
@@ -309,7 +309,7 @@ class SimBackend:
 
     def _record(self) -> None:
         v = self.physics
-        self._history.append((self.sync_count, v.time, v.xg, v.q, v._tau_cell))
+        self._history.append((self.sync_count, v.time, v.xg, v.q, v.tau_cell))
 
     # -- truth --------------------------------------------------------------------------------------------
     @property

@@ -68,11 +68,11 @@ class PlantView:
         self._t = state[0]
         self._th = state[1:1 + n]
         self._thd = state[1 + n:1 + 2 * n]
-        self._tau_cell = state[1 + 2 * n:1 + 3 * n]
+        self.tau_cell = state[1 + 2 * n:1 + 3 * n]  # (n) N, as a tuple
         self._sigma = state[1 + 3 * n:1 + 4 * n]
         self._l0 = state[1 + 4 * n:1 + 5 * n]
-        self.xg = state[1 + 5 * n:4 + 5 * n]
-        self.q = state[4 + 5 * n:8 + 5 * n]
+        self.xg = state[1 + 5 * n:4 + 5 * n]  # (3) m, the centre of mass
+        self.q = state[4 + 5 * n:8 + 5 * n]  # (4) orientation quaternion [w, x, y, z]
 
     @property
     def time(self) -> float:
@@ -93,7 +93,7 @@ class PlantView:
         self.torques[i] = float(torque)
 
     def cable_tension(self) -> np.ndarray:
-        return np.array(self._tau_cell)
+        return np.array(self.tau_cell)
 
     def swivel_angle(self) -> np.ndarray:
         return np.array(self._sigma)
