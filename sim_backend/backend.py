@@ -12,10 +12,11 @@ the CAN nodes, in a child process on a machine with two cores (``sim_backend.pla
 1. the state of the plant at ``count * control_period`` is published to the nodes (:attr:`physics`);
 2. every drive applies the last RPDO targets (``apply_targets``) and engages the winch brake in every state
    but operation enabled, as a servo's holding brake does;
-3. the plant core takes these commands: it injects the serial and cable faults due, the load-cell amplifier
-   writes the tick's line and the AHRS its sample (when one is due), and the physics steps to the next
-   SYNC with the new commands: a synchronous target acts from the SYNC after it arrives, as on a CiA 402
-   drive, so the torque computed from the readings of SYNC ``count`` acts from SYNC ``count + 1`` on;
+3. the plant core takes these commands: the load-cell amplifier writes the tick's line and the AHRS its
+   sample (when one is due), the physics steps to the next SYNC with the new commands (a synchronous target
+   acts from the SYNC after it arrives, as on a CiA 402 drive, so the torque computed from the readings of
+   SYNC ``count`` acts from SYNC ``count + 1`` on), then the serial and cable faults due at the next SYNC
+   are injected and its load-cell line is made;
 4. every node transmits its TPDOs (``on_sync``).
 
 The simulated clock is the physics time, exactly ``count * control_period`` at SYNC ``count`` (0 at

@@ -114,6 +114,15 @@ class LoadCellEmulator(PtyEmulator):
 
     def emit(self, sim_time: float, true_tensions: np.ndarray) -> int | None:
         """One control tick: write one line; returns its sequence number (None while silent)."""
+        line = self.prepare(sim_time, true_tensions)
+        if line is None:
+            return None
+        self.send(line)
+        return self.seq
+
+    def prepare(self, sim_time: float, true_tensions: np.ndarray) -> bytes | None:
+        """The line of one control tick, measured and encoded (its sequence number counted, the noise drawn),
+        for :meth:`send` to write when it is due; None while silent. ``emit`` is prepare, then send."""
         value = self._measure(true_tensions)
         with self._lock:
             self.seq += 1
@@ -122,8 +131,12 @@ class LoadCellEmulator(PtyEmulator):
             over = 1.1 * self.full_scale
             fields: list[float | str] = [loadcell.OPEN if is_open else loadcell.OVER if abs(v) > over else v
                                          for v, is_open in zip(value, self._open, strict=True)]
-            self._write(self._maybe_corrupt(loadcell.encode_sample(self.seq, fields)))
-            return self.seq
+            return self._maybe_corrupt(loadcell.encode_sample(self.seq, fields))
+
+    def send(self, line: bytes) -> None:
+        """Write a line made by :meth:`prepare`."""
+        with self._lock:
+            self._write(line)
 
     def info_line(self) -> bytes:
         return loadcell.frame(f"INFO,{self.model},{self.n},{self.full_scale:.3f},{self.rate_hz:g}")

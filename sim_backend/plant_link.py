@@ -5,8 +5,9 @@ from the readings of SYNC n acts from SYNC n + 1 on. The simulated prototype kee
 
 * at SYNC n the CAN nodes (this process) read the plant at t_n = n * period through a :class:`PlantView`
   and write their commands into it (motor torques, holding brakes);
-* the commands go to the :class:`PlantCore`, which injects the faults due at t_n, writes the load-cell line
-  and the AHRS sample of t_n on their ptys, then steps the physics to t_{n+1} with the new commands;
+* the commands go to the :class:`PlantCore`, which writes the load-cell line and the AHRS sample of t_n on
+  their ptys, steps the physics to t_{n+1} with the new commands, injects the faults due at t_{n+1} and
+  makes the load-cell line of t_{n+1} (written at SYNC n + 1);
 * the state at t_{n+1} is published to the view at SYNC n + 1.
 
 Nothing the core does at SYNC n is needed before SYNC n + 1, so on a machine with two cores the core runs in
@@ -125,6 +126,7 @@ class PlantCore:
         self.ahrs = ahrs
         self.period = float(period)
         self.pending = sorted(faults, key=lambda f: f.t)
+        self._line: bytes | None = None  # the load-cell line of the next SYNC
 
     def start(self) -> None:
         """Let the serial devices answer their hosts' commands (their threads)."""
@@ -140,22 +142,30 @@ class PlantCore:
         return [self.loadcells.fd, self.ahrs.fd]
 
     def advance(self, count: int, torques, brakes) -> tuple[float, ...]:
-        """Apply the commands given at SYNC ``count`` and step to its next SYNC; returns the new state."""
+        """Apply the commands given at SYNC ``count`` and step to its next SYNC; returns the new state. The
+        faults due then are injected and that SYNC's load-cell line is made (written by :meth:`sync`)."""
         ph = self.physics
         for i, (tq, b) in enumerate(zip(torques, brakes, strict=True)):
             ph.set_motor_torque(i, tq)
             if ph.brake(i) != b:
                 ph.set_brake(i, b)
         ph.step(self.period, t_end=(count + 1) * self.period)
-        return ph.snapshot()
-
-    def sync(self, count: int, torques, brakes) -> tuple[float, ...]:
-        """SYNC ``count``: the faults due, the serial samples of this instant, then :meth:`advance`."""
-        ph = self.physics
         t = ph.time
         while self.pending and self.pending[0].t <= t + 1e-12:
             self._inject(self.pending.pop(0))
-        self.loadcells.emit(t, ph._tau_cell)
+        # measured and encoded now, written at the SYNC: the line is on the wire a few microseconds after
+        # the SYNC, when the master reads it, and not before
+        self._line = self.loadcells.prepare(t, ph._tau_cell)
+        return ph.snapshot()
+
+    def sync(self, count: int, torques, brakes) -> tuple[float, ...]:
+        """SYNC ``count``: the serial samples of this instant (the load-cell line made at the last step, the
+        AHRS sample when one is due), then :meth:`advance`."""
+        line, self._line = self._line, None
+        if line is not None:
+            self.loadcells.send(line)
+        ph = self.physics
+        t = ph.time
         if self.ahrs.due(t):  # the AHRS samples at its own rate: the angles only for the ticks it sends
             self.ahrs.emit(t, *ph.euler())
         return self.advance(count, torques, brakes)
