@@ -8,6 +8,7 @@ form of ``cdpr solve --json``), so it can be tested and re-run on any run folder
 from __future__ import annotations
 
 import base64
+import contextlib
 import datetime as _dt
 import html
 import io
@@ -355,6 +356,22 @@ class ReportRenderer:
         os.close(r)
         self.pid, self._pipe = pid, w
         return self
+
+    @contextlib.contextmanager
+    def paused(self):
+        """The child stopped (SIGSTOP) for the duration, continued (SIGCONT) after: around the control loop, where
+        a renderer still loading matplotlib on a two-core machine takes CPU from the loop (and from the
+        simulated plant's process), and where a real robot's loop wants no jitter."""
+        pid = self.pid
+        if pid is not None:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGSTOP)
+        try:
+            yield self
+        finally:
+            if pid is not None and self.pid == pid:
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGCONT)
 
     def alive(self) -> bool:
         """Whether the child still runs."""

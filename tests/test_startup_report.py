@@ -103,6 +103,33 @@ def test_report_renderer_child_writes_the_same_page_and_falls_back_when_gone(tmp
         os.waitpid(child, os.WNOHANG)
 
 
+def _state(pid: int, want: str) -> str:
+    """The process state letter of ``pid`` once it is one of ``want`` (signals land asynchronously), or the
+    last one seen after 2 s."""
+    import time
+
+    end = time.monotonic() + 2.0
+    while True:
+        with open(f"/proc/{pid}/stat") as f:
+            state = f.read().rsplit(")", 1)[1].split()[0]
+        if state in want or time.monotonic() > end:
+            return state
+        time.sleep(0.005)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="reads process states from /proc")
+def test_report_renderer_is_stopped_while_the_control_loop_runs(tmp_path):
+    t = np.arange(50) * 0.1
+    tau = np.full((50, 4), 100.0)
+    with ReportRenderer() as r:
+        r.start()
+        with r.paused():
+            assert _state(r.pid, "T") == "T"  # stopped: it takes no CPU from the loop
+        assert _state(r.pid, "RSD") in "RSD"  # continued
+        assert r.write(tmp_path / "report.html", summary(), t, tau, tau) == tmp_path / "report.html"
+    assert (tmp_path / "report.html").read_text().startswith("<!DOCTYPE html>")
+
+
 def test_progress_bar_draws_on_a_tty_only():
     class Tty(io.StringIO):
         def isatty(self):

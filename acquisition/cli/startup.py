@@ -74,6 +74,15 @@ def _config(args, robot) -> StartupConfig:
 
 
 def run(args) -> int:
+    with ReportRenderer() as report:
+        if not args.no_html:
+            # forked first: it loads matplotlib while the robot is planned and connected. During the control
+            # loop the simulated plant needs the second core, and a renderer still loading then slows it down
+            report.start()
+        return _run(args, report)
+
+
+def _run(args, report: ReportRenderer) -> int:
     from calib.planning import PlanningError
     from calib.robot import RobotDescriptionError, load_robot
 
@@ -105,12 +114,9 @@ def run(args) -> int:
             raise UsageError("--sim-config and --truth apply to --backend sim only.")
     elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
-    with ReportRenderer() as report:
-        if not args.no_html:
-            report.start()  # report.html's plotting loads on the other core while the routine runs
-        if args.backend == "hw":
-            return _run_hw(args, robot, plan, cfg, out, report)
-        return _run_sim(args, robot, plan, cfg, out, report)
+    if args.backend == "hw":
+        return _run_hw(args, robot, plan, cfg, out, report)
+    return _run_sim(args, robot, plan, cfg, out, report)
 
 
 def _progress(args) -> ProgressBar:
@@ -135,7 +141,8 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
                                      supervisor=supervisor, meta=args.run_meta)
             try:
-                result = _acquire(routine)
+                with report.paused():
+                    result = _acquire(routine)
             finally:
                 rig.close()
                 supervisor.restore_signals()
@@ -169,7 +176,8 @@ def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
         routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args),
                                  supervisor=supervisor, meta=args.run_meta)
         try:
-            result = _acquire(routine)
+            with report.paused():
+                result = _acquire(routine)
         finally:
             rig.close()
     finally:
