@@ -140,7 +140,7 @@ class SimBackend:
         self.sync_count = 0
         self.errors: list[str] = []  # exceptions raised inside the lockstep (the SYNC handler)
         self._lock = threading.RLock()
-        self._history: list[tuple[int, float, tuple, tuple, tuple]] = []
+        self._history: list[tuple[int, tuple[float, ...]]] = []  # (SYNC count, PlantView state) per tick
         self._link: PlantLink | None = None
         self._fds: list[int] = []
         self._bus: can.BusABC | None = None
@@ -309,8 +309,7 @@ class SimBackend:
             return self.sync_count
 
     def _record(self) -> None:
-        v = self.physics
-        self._history.append((self.sync_count, v.time, v.xg, v.q, v.tau_cell))
+        self._history.append((self.sync_count, self.physics.state))
 
     # -- truth --------------------------------------------------------------------------------------------
     @property
@@ -319,7 +318,10 @@ class SimBackend:
         return self.physics.time
 
     def _sample(self, rec) -> TruthSample:
-        count, t, xg, q, tau = rec
+        count, state = rec
+        n = self.robot.n
+        t, tau = state[0], state[1 + 2 * n:1 + 3 * n]
+        xg, q = state[1 + 5 * n:4 + 5 * n], state[4 + 5 * n:8 + 5 * n]
         pose = pose_of(xg, q, self.true_robot.com.tolist(), self.robot.orientation)
         return TruthSample(count, t, np.array(pose), np.array(tau))
 
@@ -341,7 +343,7 @@ class SimBackend:
             lo, hi = 0, len(hist) - 1
             while lo < hi:  # last record with time <= at_time
                 mid = (lo + hi + 1) // 2
-                if hist[mid][1] <= at_time + 1e-12:
+                if hist[mid][1][0] <= at_time + 1e-12:
                     lo = mid
                 else:
                     hi = mid - 1
@@ -351,4 +353,4 @@ class SimBackend:
         """(times (k,), poses (k, 6)) of every tick so far, for plots and tests."""
         with self._lock:
             recs = list(self._history)
-        return np.array([r[1] for r in recs]), np.array([self._sample(r).pose for r in recs])
+        return np.array([r[1][0] for r in recs]), np.array([self._sample(r).pose for r in recs])

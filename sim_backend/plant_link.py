@@ -64,16 +64,27 @@ class PlantView:
         self.publish(state)
 
     def publish(self, state: tuple[float, ...]) -> None:
-        """Take the state of a new SYNC."""
-        n = self.n
+        """Take the state of a new SYNC (its parts are cut out when asked for)."""
+        self.state = state
         self._t = state[0]
-        self._th = state[1:1 + n]
-        self._thd = state[1 + n:1 + 2 * n]
-        self.tau_cell = state[1 + 2 * n:1 + 3 * n]  # (n) N, as a tuple
-        self._sigma = state[1 + 3 * n:1 + 4 * n]
-        self._l0 = state[1 + 4 * n:1 + 5 * n]
-        self.xg = state[1 + 5 * n:4 + 5 * n]  # (3) m, the centre of mass
-        self.q = state[4 + 5 * n:8 + 5 * n]  # (4) orientation quaternion [w, x, y, z]
+
+    @property
+    def tau_cell(self) -> tuple[float, ...]:
+        """(n) load-cell tensions, N."""
+        n = self.n
+        return self.state[1 + 2 * n:1 + 3 * n]
+
+    @property
+    def xg(self) -> tuple[float, ...]:
+        """(3) the centre of mass, m."""
+        n = self.n
+        return self.state[1 + 5 * n:4 + 5 * n]
+
+    @property
+    def q(self) -> tuple[float, ...]:
+        """(4) the orientation quaternion [w, x, y, z]."""
+        n = self.n
+        return self.state[4 + 5 * n:8 + 5 * n]
 
     @property
     def time(self) -> float:
@@ -81,10 +92,11 @@ class PlantView:
         return self._t
 
     def motor_position(self) -> np.ndarray:
-        return np.array(self._th)
+        return np.array(self.state[1:1 + self.n])
 
     def motor_velocity(self) -> np.ndarray:
-        return np.array(self._thd)
+        n = self.n
+        return np.array(self.state[1 + n:1 + 2 * n])
 
     def motor_torque(self) -> np.ndarray:
         """(n,) the torques commanded, N m (the motors deliver them from the next physics step on)."""
@@ -97,14 +109,16 @@ class PlantView:
         return np.array(self.tau_cell)
 
     def swivel_angle(self) -> np.ndarray:
-        return np.array(self._sigma)
+        n = self.n
+        return np.array(self.state[1 + 3 * n:1 + 4 * n])
 
     def orientation(self) -> np.ndarray:
         return np.array(_euler(_quat_to_matrix(list(self.q)), self.convention))
 
     def unstretched_lengths(self) -> np.ndarray:
         """(n,) unstretched cable lengths paid out by the winches, m."""
-        return np.array(self._l0)
+        n = self.n
+        return np.array(self.state[1 + 4 * n:1 + 5 * n])
 
     def set_brake(self, i: int, engaged: bool) -> None:
         """Engage or release the holding brake of winch i (from the next physics step on)."""
