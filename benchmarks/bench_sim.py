@@ -64,7 +64,8 @@ def _instrument(sim: SimBackend) -> dict:
     acc = {"tick": 0.0, "plant": 0.0, "apply_targets": 0.0, "can_tpdos": 0.0}
     link = sim._link
     _wrap(link, "collect", acc, "plant")
-    _wrap(link, "sync", acc, "plant")
+    _wrap(link, "emit", acc, "plant")
+    _wrap(link, "advance", acc, "plant")
     for d in sim.drives:
         _wrap(d, "apply_targets", acc, "apply_targets")
     for node in sim.drives + sim.encoders:
@@ -177,7 +178,8 @@ def bench_startup(grid: int, extra: tuple[str, ...] = ()) -> tuple[float, float,
 _SPLIT = [
     ("acquisition.startup", "StartupRoutine", "_tick"), ("acquisition.control", "Rig", "tick"),
     ("drivers.can_bus", "SyncProducer", "send_sync"), ("sim_backend.backend", "SimBackend", "tick"),
-    ("sim_backend.plant_link", "ChildPlantLink", "collect"), ("sim_backend.plant_link", "ChildPlantLink", "sync"),
+    ("sim_backend.plant_link", "ChildPlantLink", "collect"), ("sim_backend.plant_link", "ChildPlantLink", "emit"),
+    ("sim_backend.plant_link", "ChildPlantLink", "advance"),
     ("sim_backend.can_drive_emulator", "SimulatedNode", "on_sync"),
     ("sim_backend.can_drive_emulator", "CanDriveEmulator", "apply_targets"),
     ("drivers.loadcell", "LoadCellDriver", "latest"), ("drivers.xsens", "XsensMti", "latest"),

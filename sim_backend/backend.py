@@ -137,6 +137,7 @@ class SimBackend:
         self.devices: DeviceConfig | None = None
         self.drives: list[CanDriveEmulator] = []
         self.encoders: list[CanEncoderEmulator] = []
+        self._nodes: list = []  # drives then encoders
         self.sync_count = 0
         self.errors: list[str] = []  # exceptions raised inside the lockstep (the SYNC handler)
         self._lock = threading.RLock()
@@ -197,6 +198,7 @@ class SimBackend:
             for i in range(n):
                 self.encoders.append(CanEncoderEmulator(self._network, ENCODER_IDS[i], self.physics, i,
                                                         rng=rngs[n + i]))
+            self._nodes = self.drives + self.encoders  # in the order they answer a SYNC
             self._schedule_faults()
             self.devices = DeviceConfig(
                 can=CanConfig(interface="virtual", channel=channel, bitrate=1_000_000,
@@ -228,7 +230,7 @@ class SimBackend:
             link.close()
         for node in self.drives + self.encoders:
             node.close()
-        self.drives, self.encoders = [], []
+        self.drives, self.encoders, self._nodes = [], [], []
         if net is not None:
             net.disconnect()
             self._network = None
@@ -298,13 +300,16 @@ class SimBackend:
             view = self.physics
             view.publish(self._link.collect())  # raises SimulationError if the core failed: nodes stay silent
             self.sync_count += 1
+            count, t = self.sync_count, view.time
+            self._link.emit(count)  # the serial samples first: on the wire by the time the master reads them
             for drive in self.drives:
                 drive.apply_targets()  # the drive also engages or releases its winch's brake with its state
-            self._link.sync(self.sync_count, view.torques, view.brakes)  # in the child: while the nodes answer
-            for node in self.drives:
-                node.on_sync(self.sync_count, counter)
-            for node in self.encoders:
-                node.on_sync(self.sync_count, counter)
+            self._link.advance(count, view.torques, view.brakes)  # in the child: while the nodes answer
+            for node in self._nodes:
+                if node.idle_at(count, t):  # nothing due: the node counts this SYNC at its next full one
+                    node.last_sync_count = count
+                else:
+                    node.on_sync(count, counter)
             self._record()
             return self.sync_count
 

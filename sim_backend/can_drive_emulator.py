@@ -135,8 +135,9 @@ class SimulatedNode:
         self.losses: list[FrameLoss] = []
         self.frames_sent = 0
         self.frames_lost = 0
-        self.last_sync_count = -1
-        self._quiet = 0  # SYNCs ahead at which nothing is due (on_sync's fast path)
+        self.last_sync_count = -1  # the last SYNC seen, skipped ones included (see idle_at)
+        self.quiet_until = -1  # the last SYNC count of the quiet run ahead (see idle_at), -1 for none
+        self._counted = -1  # the SYNC count the TPDO counters stand at
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         self.boot()
@@ -152,7 +153,7 @@ class SimulatedNode:
 
     def boot(self) -> None:
         """Power-on: boot-up frame, then pre-operational (heartbeat from 0x1017)."""
-        self._quiet = 0
+        self._end_quiet()
         self.node.nmt.state = "INITIALISING"  # sends the boot-up frame
         self.node.nmt.state = "PRE-OPERATIONAL"
 
@@ -163,7 +164,7 @@ class SimulatedNode:
 
     def _on_nmt(self, can_id, data, timestamp) -> None:
         if len(data) >= 2 and data[1] in (0, self.node.id):
-            self._quiet = 0  # the state may change: the next SYNC takes the full path
+            self._end_quiet()  # the state may change: the next SYNC takes the full path
             if data[0] == 1:  # start remote node: the PDO configuration written by SDO takes effect
                 self.load_pdo_config()
             elif data[0] in (129, 130):  # reset node (every object) / communication (0x1000-0x1FFF)
@@ -180,8 +181,8 @@ class SimulatedNode:
     def load_pdo_config(self) -> None:
         """Read the PDO communication and mapping objects of the local OD (as written by the master)."""
         with self.lock:
+            self._end_quiet()
             self._tpdos = []
-            self._quiet = 0
             self.node.tpdo.read()
             for pdo_map in self.node.tpdo.map.values():
                 if not pdo_map.enabled or not pdo_map.map or not 1 <= (pdo_map.trans_type or 0) <= 240:
@@ -251,14 +252,8 @@ class SimulatedNode:
         with a counting SYNC) the SYNC with counter s is the first one counted and carries the first
         transmission."""
         with self.lock:
-            if self._quiet and self.plant.time < self._next_heartbeat - 1e-9:
-                # a SYNC at which nothing is due (see _quiet_syncs): only the transmission counters advance
-                self._quiet -= 1
-                self.last_sync_count = sync_count
-                for tp in self._tpdos:
-                    tp.left -= 1
-                return
-            self.last_sync_count = sync_count
+            self._catch_up(sync_count - 1)
+            self._counted = self.last_sync_count = sync_count
             self.before_tpdo()
             now = self.plant.time
             if now >= self._next_heartbeat - 1e-9:
@@ -278,16 +273,36 @@ class SimulatedNode:
                         self.send(tp.cob_id, tp.st.pack(*[g() for g in tp.getters]), "tpdo")
                     else:
                         tp.left = left - 1
-            self._quiet = self._quiet_syncs()
+            quiet = self._quiet_syncs()
+            self.quiet_until = sync_count + quiet if quiet else -1
+
+    def idle_at(self, sync_count: int, sim_time: float) -> bool:
+        """Whether SYNC ``sync_count`` at ``sim_time`` (s) needs nothing of this node but advancing its
+        transmission counters (no TPDO, heartbeat or scheduled fault due): the caller may then skip
+        :meth:`on_sync` and only set :attr:`last_sync_count`; the next full SYNC counts the skipped ones."""
+        return sync_count <= self.quiet_until and sim_time < self._next_heartbeat - 1e-9
 
     def _quiet_syncs(self) -> int:
         """How many of the next SYNCs need nothing of this node but its transmission counters (its heartbeat
-        is checked at each): operational, every TPDO counted from the start and none due before then. Reset
-        to 0 by anything that changes that (NMT, PDO configuration, a scheduled fault)."""
+        is checked at each): operational, every TPDO counted from the start and none due before then. Ended
+        by anything that changes that (NMT, PDO configuration, a scheduled fault: :meth:`_end_quiet`)."""
         if not self._tpdos or self.node.nmt.state != "OPERATIONAL":
             return 0
         least = min(tp.left for tp in self._tpdos)
         return least - 1 if least > 1 else 0
+
+    def _catch_up(self, upto: int) -> None:
+        """Advance the TPDO counters over the quiet SYNCs skipped since the last full one, up to ``upto``."""
+        lag = min(upto, self.quiet_until) - self._counted
+        if lag > 0:
+            for tp in self._tpdos:
+                tp.left -= lag
+            self._counted += lag
+
+    def _end_quiet(self) -> None:
+        """Count the SYNCs skipped so far and take the full path from the next one on."""
+        self._catch_up(self.last_sync_count)
+        self.quiet_until = -1
 
     def before_tpdo(self) -> None:
         """Hook run at each SYNC before the TPDOs are built."""
@@ -580,7 +595,7 @@ class CanDriveEmulator(SimulatedNode):
         with self.lock:
             self._scheduled.append((float(at_time), int(code)))
             self._scheduled.sort()
-            self._quiet = 0
+            self._end_quiet()
 
     def _check_scheduled(self) -> None:
         while self._scheduled and self.plant.time >= self._scheduled[0][0] - 1e-12:

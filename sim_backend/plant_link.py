@@ -5,9 +5,9 @@ from the readings of SYNC n acts from SYNC n + 1 on. The simulated prototype kee
 
 * at SYNC n the CAN nodes (this process) read the plant at t_n = n * period through a :class:`PlantView`
   and write their commands into it (motor torques, holding brakes);
-* the commands go to the :class:`PlantCore`, which writes the load-cell line and the AHRS sample of t_n on
-  their ptys, steps the physics to t_{n+1} with the new commands, injects the faults due at t_{n+1} and
-  makes the load-cell line of t_{n+1} (written at SYNC n + 1);
+* the :class:`PlantCore` writes the load-cell line and the AHRS sample of t_n on their ptys as the SYNC's
+  first act (:meth:`PlantLink.emit`), then takes the commands: it steps the physics to t_{n+1}, injects
+  the faults due at t_{n+1} and makes the load-cell line of t_{n+1} (written at SYNC n + 1);
 * the state at t_{n+1} is published to the view at SYNC n + 1.
 
 Nothing the core does at SYNC n is needed before SYNC n + 1, so on a machine with two cores the core runs in
@@ -38,8 +38,10 @@ import numpy as np
 from sim_backend.config import Fault
 from sim_backend.physics import CablePhysics, SimulationError, _euler, _quat_to_matrix
 
-_HEADER = struct.Struct("<qq")  # operation, SYNC count
-_OP_ADVANCE, _OP_SYNC, _OP_STOP = 1, 2, 3
+_EMIT = struct.Struct("<q")  # at byte 0: the SYNC count whose serial samples are to go out
+_HEADER = struct.Struct("<qq")  # at _COMMAND_AT: operation, SYNC count, then the commands
+_COMMAND_AT = 64
+_OP_ADVANCE, _OP_STOP = 1, 3
 _OK, _FAILED = 0, 1
 _STATE_AT = 512  # byte offset of the state block in the shared page
 _ERROR_AT = 2048  # byte offset of the error message
@@ -172,9 +174,9 @@ class PlantCore:
         self._line = self.loadcells.prepare(t, ph._tau_cell)
         return ph.snapshot()
 
-    def sync(self, count: int, torques, brakes) -> tuple[float, ...]:
-        """SYNC ``count``: the serial samples of this instant (the load-cell line made at the last step, the
-        AHRS sample when one is due), then :meth:`advance`."""
+    def emit(self, count: int) -> None:
+        """SYNC ``count``: the serial samples of this instant go out (the load-cell line made at the last step,
+        the AHRS sample when one is due); :meth:`advance` follows with the SYNC's commands."""
         line, self._line = self._line, None
         if line is not None:
             self.loadcells.send(line)
@@ -182,7 +184,6 @@ class PlantCore:
         t = ph.time
         if self.ahrs.due(t):  # the AHRS samples at its own rate: the angles only for the ticks it sends
             self.ahrs.emit(t, *ph.euler())
-        return self.advance(count, torques, brakes)
 
     def _inject(self, f: Fault) -> None:
         if f.kind == "loadcell_stuck":
@@ -198,11 +199,12 @@ class PlantCore:
 class PlantLink(Protocol):
     """Hands the commands of a SYNC to a :class:`PlantCore` and brings back the state of the next one."""
 
-    def advance(self, count: int, torques, brakes) -> None:
-        """Power-on: step from SYNC ``count`` (0) to the first SYNC with these commands, nothing emitted."""
+    def emit(self, count: int) -> None:
+        """SYNC ``count``: the core's :meth:`PlantCore.emit` (returns at once)."""
 
-    def sync(self, count: int, torques, brakes) -> None:
-        """SYNC ``count``: the core's :meth:`PlantCore.sync` with these commands (returns at once)."""
+    def advance(self, count: int, torques, brakes) -> None:
+        """The core's :meth:`PlantCore.advance` with the commands of SYNC ``count`` (returns at once); at
+        power-on (``count`` 0) without an emit before it."""
 
     def collect(self) -> tuple[float, ...]:
         """The state the last call produced (raises ``SimulationError`` if the core failed)."""
@@ -220,19 +222,19 @@ class InProcessPlantLink:
         self._error: str | None = None
         core.start()
 
-    def _run(self, method, count: int, torques, brakes) -> None:
-        if self._error is not None:
-            return
-        try:
-            self._state = method(count, torques, brakes)
-        except Exception as exc:  # as the child reports it: raised at the next collect
-            self._error = _reason(exc)
+    def emit(self, count: int) -> None:
+        if self._error is None:
+            try:
+                self.core.emit(count)
+            except Exception as exc:  # as the child reports it: raised at the next collect
+                self._error = _reason(exc)
 
     def advance(self, count: int, torques, brakes) -> None:
-        self._run(self.core.advance, count, torques, brakes)
-
-    def sync(self, count: int, torques, brakes) -> None:
-        self._run(self.core.sync, count, torques, brakes)
+        if self._error is None:
+            try:
+                self._state = self.core.advance(count, torques, brakes)
+            except Exception as exc:
+                self._error = _reason(exc)
 
     def collect(self) -> tuple[float, ...]:
         if self._error is not None:
@@ -270,6 +272,7 @@ class ChildPlantLink:
         self._command = struct.Struct(f"<{n}d{n}?")
         self._state = struct.Struct(f"<q{8 + 5 * n}d")  # status, then the snapshot
         self._page = mmap.mmap(-1, _PAGE)  # anonymous and shared: the child sees the same page
+        _EMIT.pack_into(self._page, 0, -1)
         ctx = multiprocessing.get_context("fork")
         self._to_child = ctx.Semaphore(0)
         self._to_parent = ctx.Semaphore(0)
@@ -293,21 +296,23 @@ class ChildPlantLink:
             finally:
                 os._exit(code)
 
-    def _send(self, op: int, count: int, torques, brakes) -> None:
+    def emit(self, count: int) -> None:
         if self._error is not None or self._closed:
             return
         if self._waiting:  # the previous answer was never collected: take it now, in order
             self._receive()
-        _HEADER.pack_into(self._page, 0, op, count)
-        self._command.pack_into(self._page, _HEADER.size, *torques, *brakes)
-        self._waiting = True
+        _EMIT.pack_into(self._page, 0, count)
         self._to_child.release()
 
     def advance(self, count: int, torques, brakes) -> None:
-        self._send(_OP_ADVANCE, count, torques, brakes)
-
-    def sync(self, count: int, torques, brakes) -> None:
-        self._send(_OP_SYNC, count, torques, brakes)
+        if self._error is not None or self._closed:
+            return
+        if self._waiting:
+            self._receive()
+        _HEADER.pack_into(self._page, _COMMAND_AT, _OP_ADVANCE, count)
+        self._command.pack_into(self._page, _COMMAND_AT + _HEADER.size, *torques, *brakes)
+        self._waiting = True
+        self._to_child.release()
 
     def _receive(self) -> None:
         self._waiting = False
@@ -364,7 +369,7 @@ class ChildPlantLink:
             with contextlib.suppress(Exception):
                 if self._waiting and self._error is None:
                     self._receive()
-                _HEADER.pack_into(self._page, 0, _OP_STOP, 0)
+                _HEADER.pack_into(self._page, _COMMAND_AT, _OP_STOP, 0)
                 self._to_child.release()
             end = time.monotonic() + 5.0
             while self.alive() and time.monotonic() < end:
@@ -407,27 +412,42 @@ def _max_fd() -> int:
 
 def _child_main(core: PlantCore, page: mmap.mmap, to_child, to_parent, parent: int, command: struct.Struct,
                 state: struct.Struct) -> None:
-    """The child's loop: wait for a command, run it on the core, post the state (or the error)."""
+    """The child's loop: wait for a message; a new emit count sends that SYNC's serial samples, otherwise the
+    command block is read: advance the core and post the state (or the error), or stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the run and closes us
     sys.setswitchinterval(1e-4)  # the serial devices' threads get the interpreter soon while this one polls
     core.start()
     failed = False
+    emitted = -1
+
+    def fail(exc: Exception) -> None:
+        msg = _reason(exc).encode()[:_PAGE - _ERROR_AT - 8]
+        struct.pack_into("<q", page, _STATE_AT, _FAILED)
+        struct.pack_into(f"<q{len(msg)}s", page, _ERROR_AT, len(msg), msg)
+
     try:
         while _wait_for_command(to_child, parent):
-            op, count = _HEADER.unpack_from(page, 0)
+            (count,) = _EMIT.unpack_from(page, 0)
+            if count != emitted:  # a SYNC: its samples first; its commands come with the next message
+                emitted = count
+                if not failed:
+                    try:
+                        core.emit(count)
+                    except Exception as exc:  # reported with the answer to the SYNC's commands
+                        failed = True
+                        fail(exc)
+                continue
+            op, count = _HEADER.unpack_from(page, _COMMAND_AT)
             if op == _OP_STOP:
                 break
             if not failed:
-                values = command.unpack_from(page, _HEADER.size)
+                values = command.unpack_from(page, _COMMAND_AT + _HEADER.size)
                 n = len(values) // 2
                 try:
-                    run = core.sync if op == _OP_SYNC else core.advance
-                    state.pack_into(page, _STATE_AT, _OK, *run(count, values[:n], values[n:]))
+                    state.pack_into(page, _STATE_AT, _OK, *core.advance(count, values[:n], values[n:]))
                 except Exception as exc:
                     failed = True
-                    msg = _reason(exc).encode()[:_PAGE - _ERROR_AT - 8]
-                    struct.pack_into("<q", page, _STATE_AT, _FAILED)
-                    struct.pack_into(f"<q{len(msg)}s", page, _ERROR_AT, len(msg), msg)
+                    fail(exc)
             to_parent.release()
     finally:
         core.close()

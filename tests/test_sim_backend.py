@@ -18,6 +18,7 @@ from drivers.loadcell import LoadCellConfig, LoadCellDriver
 from drivers.swivel_encoder import CanopenSwivelEncoder
 from drivers.xsens import XsensConfig, XsensMti
 from sim_backend.backend import SimBackend, power_on_state
+from sim_backend.can_drive_emulator import SimulatedNode
 from sim_backend.config import SimConfigError, sim_config_from_dict
 from sim_backend.physics import CablePhysics, SimulationError
 from sim_backend.plant_link import child_process_possible
@@ -30,7 +31,7 @@ PERIOD = 0.005
 class Rig:
     """The real drivers connected to a running SimBackend on its simulated clock (what the acquisition does)."""
 
-    def __init__(self, sim: SimBackend, listen: bool = False):
+    def __init__(self, sim: SimBackend, listen: bool = False, every: tuple[int, int] = (1, 1)):
         cfg = sim.devices
         self.sim = sim
         self.listener = can.Bus(interface="virtual", channel=cfg.can.channel) if listen else None
@@ -39,11 +40,12 @@ class Rig:
         self.sync = SyncProducer(self.net)
         clock = lambda: sim.time  # noqa: E731
         self.drives = [
-            CanopenWinchDrive(self.net, n.node_id, self.sync, LPR[i], clock=clock, heartbeat_period=0.1)
+            CanopenWinchDrive(self.net, n.node_id, self.sync, LPR[i], clock=clock, heartbeat_period=0.1,
+                              every=every[0])
             for i, n in enumerate(cfg.drives)
         ]
         self.encoders = [
-            CanopenSwivelEncoder(self.net, n.node_id, self.sync, clock=clock, heartbeat_period=0.1)
+            CanopenSwivelEncoder(self.net, n.node_id, self.sync, clock=clock, heartbeat_period=0.1, every=every[1])
             for n in cfg.encoders
         ]
         self.loadcells = LoadCellDriver(LoadCellConfig(cfg.loadcells.port, rate_hz=1 / PERIOD))
@@ -59,8 +61,8 @@ class Rig:
         c = self.sync.send_sync()
         if not nodes:
             return c, None, None, None
-        win = [d.wait_for_sync(c, timeout) for d in self.drives]
-        sw = [e.wait_for_sync(c, timeout) for e in self.encoders]
+        win = [d.wait_for_sync(c, timeout) if d.due(c) else d.latest() for d in self.drives]
+        sw = [e.wait_for_sync(c, timeout) if e.due(c) else e.latest() for e in self.encoders]
         lc = self.loadcells.wait_for(c - 1, timeout)  # the amplifier's line of SYNC c has sequence c - 1
         return c, win, sw, lc
 
@@ -130,9 +132,10 @@ def test_real_drivers_stream_in_lockstep_with_the_simulated_prototype():
             rig.close()
 
 
-def _record_run(seed: int, plant_process: bool | None = None) -> tuple[list, list, dict]:
+def _record_run(seed: int, plant_process: bool | None = None, every: tuple[int, int] = (1, 1)) -> tuple[list, list,
+                                                                                                         dict]:
     with SimBackend(ROBOT, None, seed=seed, control_period=PERIOD, plant_process=plant_process) as sim:
-        rig = Rig(sim, listen=True)
+        rig = Rig(sim, listen=True, every=every)
         try:
             rig.hold(sim.truth().tensions * 1.05)  # a little more than holding: the platform moves
             for d in rig.drives:
@@ -161,6 +164,18 @@ def test_same_seed_gives_the_same_frames_and_bytes():
     assert len(common) > 20
     assert all(angles_a[k] == angles_b[k] for k in common)
     assert frames_a != frames_c and cells_a != cells_c
+
+
+def test_nodes_skipping_their_quiet_syncs_send_the_same_frames(monkeypatch):
+    # a drive answers every 4th SYNC and an encoder every 20th (feedback_every): the backend skips a node at
+    # the SYNCs where it has nothing to send, and its counters catch up at the next one it answers
+    frames_skipping, cells_skipping, _ = _record_run(5, every=(4, 20))
+    monkeypatch.setattr(SimulatedNode, "idle_at", lambda self, count, t: False)  # every node at every SYNC
+    frames_full, cells_full, _ = _record_run(5, every=(4, 20))
+    tpdos = [f for f in frames_full if 0x180 <= f[0] < 0x500]
+    assert 120 // 4 * 4 <= len(tpdos) < 120 * 8  # the drives' and encoders' TPDOs at their own rates
+    assert frames_skipping == frames_full
+    assert cells_skipping == cells_full
 
 
 def test_a_torque_target_acts_from_the_sync_after_it_arrives():
