@@ -313,13 +313,13 @@ def write_html(path: str | Path, summary: StartupSummary, t: np.ndarray, tau: np
 
 
 class ReportRenderer:
-    """Writes report.html from a child process forked ahead of time (:meth:`start`, before the robot is planned):
-    the child imports matplotlib and draws a first figure (~0.4 s of CPU) while the routine plans and
-    connects (stopped during the control loop, :meth:`paused`), then waits. :meth:`write` hands it the run's data through a pipe once the solve is done; when
-    the child is not there or fails, the page is rendered in this process instead. The child runs in its own
-    session (Ctrl-C is the control loop's, not its), keeps no file of this process but its pipe (stdout and
-    stderr go to /dev/null) and ends with the page. As a context manager it ends the child on the way out
-    (:meth:`close`)."""
+    """Writes report.html from a child process forked ahead of time (:meth:`start`, before the robot is
+    planned): the child imports matplotlib and draws a first figure (~0.4 s of CPU) while the routine plans
+    and connects (stopped during the control loop, :meth:`paused`), then waits. :meth:`write` hands it the
+    run's data through a pipe once the solve is done; when the child is not there or fails, the page is
+    rendered in this process instead. The child runs in its own session (Ctrl-C is the control loop's, not
+    its), keeps no file of this process but its pipe (stdout and stderr go to /dev/null) and ends with the
+    page. As a context manager it ends the child on the way out (:meth:`close`)."""
 
     def __init__(self) -> None:
         self.pid: int | None = None

@@ -1,11 +1,12 @@
 """Emulated CiA 402 winch servo drives on a canopen LocalNode (object dictionary drivers/od/cia402_winch.eds).
 
-The nodes act on SYNC, never on wall time (see the simulator backend): for each SYNC the backend calls
-:meth:`CanDriveEmulator.apply_targets` (the RPDO received since the last SYNC takes effect, CiA 301
-synchronous RPDO) for every drive, steps the physics, then :meth:`on_sync` for every node, which reads the
-plant and transmits the TPDOs whose transmission type is due; heartbeats follow the simulated time
-(every 0x1017 ms of ``plant.time``). SDO requests are answered at once by the canopen SDO server, with live
-values for the process objects (statusword, position, velocity, torque).
+The nodes act on SYNC, never on wall time (see the simulator backend): for each SYNC the backend publishes
+the plant's state of that instant, calls :meth:`CanDriveEmulator.apply_targets` (the RPDO received since
+the last SYNC takes effect, CiA 301 synchronous RPDO: the plant steps with it towards the next SYNC) for
+every drive, then :meth:`on_sync` for every node with something due (:meth:`SimulatedNode.idle_at`),
+which reads the plant and transmits the TPDOs whose transmission type is due; heartbeats follow the
+simulated time (every 0x1017 ms of ``plant.time``). SDO requests are answered at once by the canopen SDO
+server, with live values for the process objects (statusword, position, velocity, torque).
 
 Holding brake: when the plant has one (``set_brake(i, engaged)``, as ``sim_backend.physics`` does), the
 drive releases it on entering operation enabled and engages it on leaving (disable, fault, quick stop), as

@@ -413,8 +413,9 @@ class CablePhysics:
                 # solve, linearised at the last tension, it gives Ernst's equivalent stiffness
                 # kc / (1 + kc 2 sag / tau). Left explicit it is a loop of gain kc 2 sag / tau (6 for a 0.08 kg/m
                 # cable at 44 N), which threw the platform off its cables
-                slope = 2.0 * g[5] / max(self._tau[i], 1.0)
-                stretch += slope * max(self._tau[i], 1.0)
+                tau0 = max(self._tau[i], 1.0)  # the tension the sag was computed with (_geometry)
+                slope = 2.0 * g[5] / tau0
+                stretch += slope * tau0
                 kc = kc / (1.0 + kc * slope)
             s = kc * sc
             ed = t0 * vs0 + t1 * vs1 + t2 * vs2 + jw0 * ws0 + jw1 * ws1 + jw2 * ws2 - k[i] * thd

@@ -159,7 +159,7 @@ class PlantCore:
 
     def advance(self, count: int, torques, brakes) -> tuple[float, ...]:
         """Apply the commands given at SYNC ``count`` and step to its next SYNC; returns the new state. The
-        faults due then are injected and that SYNC's load-cell line is made (written by :meth:`sync`)."""
+        faults due then are injected and that SYNC's load-cell line is made (written by :meth:`emit`)."""
         ph = self.physics
         for i, (tq, b) in enumerate(zip(torques, brakes, strict=True)):
             ph.set_motor_torque(i, tq)
