@@ -268,7 +268,6 @@ class ChildPlantLink:
 
     def __init__(self, core: PlantCore) -> None:
         n = core.physics.n
-        self.n = n
         self._command = struct.Struct(f"<{n}d{n}?")
         self._state = struct.Struct(f"<q{8 + 5 * n}d")  # status, then the snapshot
         self._page = mmap.mmap(-1, _PAGE)  # anonymous and shared: the child sees the same page
