@@ -15,6 +15,7 @@ import io
 import math
 import os
 import pickle
+import select
 import signal
 import sys
 import time
@@ -335,15 +336,19 @@ class ReportRenderer:
         if self.pid is not None or not hasattr(os, "fork"):
             return self
         r, w = os.pipe()
+        ready_r, ready_w = os.pipe()  # the child says when it is set to die with this process
+        parent = os.getpid()
         try:
             pid = os.fork()
         except OSError:  # no child: write() renders here
-            os.close(r)
-            os.close(w)
+            for fd in (r, w, ready_r, ready_w):
+                os.close(fd)
             return self
         if pid == 0:  # the child: never returns
             code = 1
             try:
+                _die_with_parent(parent)  # even while stopped (paused): a killed routine leaves no renderer
+                os.write(ready_w, b"1")
                 os.setsid()
                 null = os.open(os.devnull, os.O_RDWR)
                 for fd in (1, 2):
@@ -354,6 +359,11 @@ class ReportRenderer:
             finally:
                 os._exit(code)
         os.close(r)
+        os.close(ready_w)
+        try:  # a millisecond or two: not stopped (paused) before it can die with this process
+            select.select([ready_r], [], [], 2.0)
+        finally:
+            os.close(ready_r)
         self.pid, self._pipe = pid, w
         return self
 
@@ -400,6 +410,19 @@ class ReportRenderer:
         self.pid = self._pipe = None
         if pid is not None:
             _end(pid, pipe)
+
+
+def _die_with_parent(parent: int) -> None:
+    """This process gets SIGKILL when its parent ends (Linux's PR_SET_PDEATHSIG; elsewhere nothing), or exits
+    now if the parent has already gone."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # no prctl: not Linux
+        pass
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def _wait(pid: int, timeout: float) -> int | None:

@@ -254,8 +254,9 @@ def cores_available() -> int:
 
 
 def child_process_possible() -> bool:
-    """Whether a :class:`ChildPlantLink` can run here: fork, and a second core to run it on."""
-    return hasattr(os, "fork") and "fork" in multiprocessing.get_all_start_methods() and cores_available() >= 2
+    """Whether a :class:`ChildPlantLink` can run here: Linux (a fork without exec is safe there; macOS's
+    system libraries are not fork-safe) and a second core to run it on."""
+    return sys.platform.startswith("linux") and cores_available() >= 2
 
 
 class ChildPlantLink:

@@ -7,6 +7,9 @@ import math
 import os
 import re
 import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -128,6 +131,33 @@ def test_report_renderer_is_stopped_while_the_control_loop_runs(tmp_path):
         assert _state(r.pid, "RSD") in "RSD"  # continued
         assert r.write(tmp_path / "report.html", summary(), t, tau, tau) == tmp_path / "report.html"
     assert (tmp_path / "report.html").read_text().startswith("<!DOCTYPE html>")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_killed_routine_leaves_no_stopped_renderer_behind():
+    # the routine killed outright (no finally runs) while its renderer is stopped for the control loop
+    code = ("import sys, time; from acquisition.report import ReportRenderer; r = ReportRenderer().start(); "
+            "p = r.paused(); p.__enter__(); print(r.pid, flush=True); time.sleep(60)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        renderer = int(proc.stdout.readline())
+        assert _state(renderer, "T") == "T"
+    finally:
+        proc.kill()
+    proc.wait()
+    end = time.monotonic() + 5.0
+    while time.monotonic() < end:
+        try:
+            with open(f"/proc/{renderer}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] in "ZX":
+                    break  # killed, waiting for init to reap it
+        except FileNotFoundError:
+            break  # killed and reaped
+        time.sleep(0.01)
+    else:
+        os.kill(renderer, signal.SIGKILL)
+        pytest.fail("the stopped renderer outlived its routine")
+    proc.stdout.close()
 
 
 def test_progress_bar_draws_on_a_tty_only():
