@@ -49,7 +49,7 @@ from sim_backend.can_drive_emulator import CanDriveEmulator
 from sim_backend.can_encoder_emulator import CanEncoderEmulator
 from sim_backend.config import SimConfig, SimConfigError, load_sim_config
 from sim_backend.loadcell_emulator import LoadCellEmulator
-from sim_backend.physics import CablePhysics, pose_of
+from sim_backend.physics import CablePhysics, pose_of, snapshot_parts
 from sim_backend.plant_link import (
     ChildPlantLink,
     InProcessPlantLink,
@@ -324,11 +324,9 @@ class SimBackend:
 
     def _sample(self, rec) -> TruthSample:
         count, state = rec
-        n = self.robot.n
-        t, tau = state[0], state[1 + 2 * n:1 + 3 * n]
-        xg, q = state[1 + 5 * n:4 + 5 * n], state[4 + 5 * n:8 + 5 * n]
-        pose = pose_of(xg, q, self.true_robot.com.tolist(), self.robot.orientation)
-        return TruthSample(count, t, np.array(pose), np.array(tau))
+        parts = snapshot_parts(self.robot.n)
+        pose = pose_of(state[parts["xg"]], state[parts["q"]], self.true_robot.com.tolist(), self.robot.orientation)
+        return TruthSample(count, state[0], np.array(pose), np.array(state[parts["cable_tension"]]))
 
     def truth(self, at_time: float | None = None, sync_count: int | None = None) -> TruthSample:
         """The true state now, at the last tick at or before sim time ``at_time`` (s), or at SYNC ``sync_count``."""

@@ -28,6 +28,7 @@ lists (n = 4): numpy calls on arrays of four elements cost more than the arithme
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -137,6 +138,20 @@ def _active_set_solve(a: list[list[float]], b: list[float]) -> list[float]:
         idx = taut
         a_idx = [[a[i][j] for j in idx] for i in idx]
         b_idx = [b[i] for i in idx]
+
+
+@functools.cache  # one layout per cable count, shared: do not change the dict
+def snapshot_parts(n: int) -> dict[str, slice]:
+    """Where each part of a :meth:`CablePhysics.snapshot` of ``n`` cables lies, in order: time s, motor angles
+    (n) rad, motor velocities (n) rad/s, load-cell tensions (n) N, swivel angles (n) rad, unstretched lengths
+    (n) m, centre of mass (3) m, orientation quaternion (4) [w, x, y, z]; the last part ends the tuple."""
+    widths = (("time", 1), ("motor_position", n), ("motor_velocity", n), ("cable_tension", n),
+              ("swivel_angle", n), ("unstretched_lengths", n), ("xg", 3), ("q", 4))
+    parts, at = {}, 0
+    for name, width in widths:
+        parts[name] = slice(at, at + width)
+        at += width
+    return parts
 
 
 class CablePhysics:
@@ -276,9 +291,7 @@ class CablePhysics:
         return np.array(self._tau)
 
     def snapshot(self) -> tuple[float, ...]:
-        """The state the devices read, as one flat tuple (``sim_backend.plant_link.PlantView`` unpacks it):
-        time s, motor angles (n) rad, motor velocities (n) rad/s, load-cell tensions (n) N, swivel angles (n)
-        rad, unstretched lengths (n) m, centre of mass (3) m, orientation quaternion (4) [w, x, y, z]."""
+        """The state the devices read, as one flat tuple laid out as :func:`snapshot_parts` says."""
         n, k, th = self.n, self._k, self._th
         return (self._t, *th, *self._thd, *self._tau_cell, *[g[4] for g in self._geo],
                 *[self._l00[i] + k[i] * th[i] for i in range(n)], *self._xg, *self._q)

@@ -36,7 +36,7 @@ from typing import Protocol
 import numpy as np
 
 from sim_backend.config import Fault
-from sim_backend.physics import CablePhysics, SimulationError, _euler, _quat_to_matrix
+from sim_backend.physics import CablePhysics, SimulationError, _euler, _quat_to_matrix, snapshot_parts
 
 _EMIT = struct.Struct("<q")  # at byte 0: the SYNC count whose serial samples are to go out
 _HEADER = struct.Struct("<qq")  # at _COMMAND_AT: operation, SYNC count, then the commands
@@ -63,42 +63,38 @@ class PlantView:
         self.convention = convention
         self.torques = [float(x) for x in torques]
         self.brakes = [bool(x) for x in brakes]
+        self._parts = snapshot_parts(n)
         self.publish(state)
 
     def publish(self, state: tuple[float, ...]) -> None:
         """Take the state of a new SYNC (its parts are cut out when asked for)."""
         self.state = state
-        self._t = state[0]
 
     @property
     def tau_cell(self) -> tuple[float, ...]:
         """(n) load-cell tensions, N."""
-        n = self.n
-        return self.state[1 + 2 * n:1 + 3 * n]
+        return self.state[self._parts["cable_tension"]]
 
     @property
     def xg(self) -> tuple[float, ...]:
         """(3) the centre of mass, m."""
-        n = self.n
-        return self.state[1 + 5 * n:4 + 5 * n]
+        return self.state[self._parts["xg"]]
 
     @property
     def q(self) -> tuple[float, ...]:
         """(4) the orientation quaternion [w, x, y, z]."""
-        n = self.n
-        return self.state[4 + 5 * n:8 + 5 * n]
+        return self.state[self._parts["q"]]
 
     @property
     def time(self) -> float:
         """Simulated time of the published state, s."""
-        return self._t
+        return self.state[0]
 
     def motor_position(self) -> np.ndarray:
-        return np.array(self.state[1:1 + self.n])
+        return np.array(self.state[self._parts["motor_position"]])
 
     def motor_velocity(self) -> np.ndarray:
-        n = self.n
-        return np.array(self.state[1 + n:1 + 2 * n])
+        return np.array(self.state[self._parts["motor_velocity"]])
 
     def motor_torque(self) -> np.ndarray:
         """(n,) the torques commanded, N m (the motors deliver them from the next physics step on)."""
@@ -111,16 +107,14 @@ class PlantView:
         return np.array(self.tau_cell)
 
     def swivel_angle(self) -> np.ndarray:
-        n = self.n
-        return np.array(self.state[1 + 3 * n:1 + 4 * n])
+        return np.array(self.state[self._parts["swivel_angle"]])
 
     def orientation(self) -> np.ndarray:
         return np.array(_euler(_quat_to_matrix(list(self.q)), self.convention))
 
     def unstretched_lengths(self) -> np.ndarray:
         """(n,) unstretched cable lengths paid out by the winches, m."""
-        n = self.n
-        return np.array(self.state[1 + 4 * n:1 + 5 * n])
+        return np.array(self.state[self._parts["unstretched_lengths"]])
 
     def set_brake(self, i: int, engaged: bool) -> None:
         """Engage or release the holding brake of winch i (from the next physics step on)."""
@@ -270,7 +264,7 @@ class ChildPlantLink:
     def __init__(self, core: PlantCore) -> None:
         n = core.physics.n
         self._command = struct.Struct(f"<{n}d{n}?")
-        self._state = struct.Struct(f"<q{8 + 5 * n}d")  # status, then the snapshot
+        self._state = struct.Struct(f"<q{snapshot_parts(n)['q'].stop}d")  # status, then the snapshot
         self._page = mmap.mmap(-1, _PAGE)  # anonymous and shared: the child sees the same page
         _EMIT.pack_into(self._page, 0, -1)
         ctx = multiprocessing.get_context("fork")
