@@ -71,21 +71,6 @@ class PlantView:
         self.state = state
 
     @property
-    def tau_cell(self) -> tuple[float, ...]:
-        """(n) load-cell tensions, N."""
-        return self.state[self._parts["cable_tension"]]
-
-    @property
-    def xg(self) -> tuple[float, ...]:
-        """(3) the centre of mass, m."""
-        return self.state[self._parts["xg"]]
-
-    @property
-    def q(self) -> tuple[float, ...]:
-        """(4) the orientation quaternion [w, x, y, z]."""
-        return self.state[self._parts["q"]]
-
-    @property
     def time(self) -> float:
         """Simulated time of the published state, s."""
         return self.state[0]
@@ -104,13 +89,13 @@ class PlantView:
         self.torques[i] = float(torque)
 
     def cable_tension(self) -> np.ndarray:
-        return np.array(self.tau_cell)
+        return np.array(self.state[self._parts["cable_tension"]])
 
     def swivel_angle(self) -> np.ndarray:
         return np.array(self.state[self._parts["swivel_angle"]])
 
     def orientation(self) -> np.ndarray:
-        return np.array(_euler(_quat_to_matrix(list(self.q)), self.convention))
+        return np.array(_euler(_quat_to_matrix(list(self.state[self._parts["q"]])), self.convention))
 
     def unstretched_lengths(self) -> np.ndarray:
         """(n,) unstretched cable lengths paid out by the winches, m."""
