@@ -10,6 +10,7 @@ SYNC producer, one driver per drive and encoder) for the acquisition and ``cdpr 
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -328,15 +329,25 @@ class HeartbeatMonitor:
         self.state: int | None = None  # last NMT state reported (0 boot-up, 4, 5, 127)
         self.count = 0
         self._started: float | None = None
+        self._safe_until = math.inf  # clock time before which the node cannot be lost (see describe_loss)
         node.nmt.add_heartbeat_callback(self._on_heartbeat)
 
     def _on_heartbeat(self, state: int) -> None:
         self.last = self.clock()
         self.state = state
         self.count += 1
+        self._watch()
 
     def start(self) -> None:
         self._started = self.clock()
+        self._watch()
+
+    def _watch(self) -> None:
+        if self._started is None or self.period <= 0:
+            self._safe_until = math.inf
+            return
+        ref = self.last if self.last is not None and self.last >= self._started else self._started
+        self._safe_until = ref + 0.999 * self.factor * self.period  # the exact test runs from there on
 
     def silence(self) -> float | None:
         """Time since the last heartbeat (or since start), s; None when not monitoring."""
@@ -350,6 +361,10 @@ class HeartbeatMonitor:
         return silence is not None and silence > self.factor * self.period
 
     def describe_loss(self, name: str) -> str | None:
+        """One sentence when the node is lost, else None (asked at every control tick: one clock reading and
+        one comparison while heartbeats come in time)."""
+        if self.clock() < self._safe_until:
+            return None
         silence = self.silence()
         if silence is None or silence <= self.factor * self.period:
             return None
