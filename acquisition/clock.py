@@ -28,6 +28,7 @@ class Clock(abc.ABC):
             raise ValueError(f"clock period must be positive, got {period!r} s.")
         self.period = float(period)
         self._index = -1
+        self._now = 0.0  # time of the last tick handed out (0 before the first)
 
     @property
     @abc.abstractmethod
@@ -44,8 +45,14 @@ class Clock(abc.ABC):
         return self._index
 
     def now(self) -> float:
-        """Time of the last tick, s."""
-        return max(self._index, 0) * self.period
+        """Time of the last tick, s (read by every device driver at every tick: kept, not computed)."""
+        return self._now
+
+    def _hand_out(self) -> Tick:
+        """The next tick: index and time advanced together."""
+        self._index += 1
+        self._now = t = self._index * self.period
+        return Tick(self._index, t)
 
 
 class SimClock(Clock):
@@ -56,8 +63,7 @@ class SimClock(Clock):
         return True
 
     def advance(self) -> Tick:
-        self._index += 1
-        return Tick(self._index, self._index * self.period)
+        return self._hand_out()
 
 
 @dataclass
@@ -100,16 +106,15 @@ class RealClock(Clock):
     def advance(self) -> Tick:
         if self._t0 is None:
             self.start()
-        self._index += 1
-        deadline = self._t0 + self._index * self.period
+        deadline = self._t0 + (self._index + 1) * self.period
         now = self._monotonic()
         if now < deadline:
             self._sleep(deadline - now)
-        elif self._index > 0 and now - deadline > 0.5 * self.period:
+        elif self._index >= 0 and now - deadline > 0.5 * self.period:  # not the first tick
             lateness = now - deadline
             self.overruns.count += 1
             self.overruns.worst = max(self.overruns.worst, lateness)
-        return Tick(self._index, self._index * self.period)
+        return self._hand_out()
 
     def elapsed(self) -> float:
         """Wall time since start, s."""
