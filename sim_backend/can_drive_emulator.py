@@ -30,7 +30,7 @@ import numpy as np
 from canopen.objectdictionary import datatypes
 
 from drivers.config import eds_path
-from sim_backend.plant import Plant
+from sim_backend.plant import Plant, scalar_reader
 
 # CiA 402 states
 NOT_READY = "not ready to switch on"
@@ -399,14 +399,12 @@ class CanDriveEmulator(SimulatedNode):
 
     def live_getter(self, index: int, subindex: int):
         """Wire values of the objects a drive sends at SYNC, read straight from the plant (the TPDO hot path)."""
-        plant, i = self.plant, self.index
         scale = self.counts_per_rev / (2 * math.pi)
         if index == 0x6041:
             return lambda: self.statusword
-        if index == 0x6064:
-            return lambda: _wrap32(float(plant.motor_position()[i]) * scale)
-        if index == 0x606C:
-            return lambda: _wrap32(float(plant.motor_velocity()[i]) * scale)
+        if index in (0x6064, 0x606C):
+            read = scalar_reader(self.plant, "motor_position" if index == 0x6064 else "motor_velocity", self.index)
+            return lambda: _wrap32(read() * scale)
         return None  # the torque actual 0x6077 and the rest: process_value, rounded and saturated
 
     def process_value(self, index: int, subindex: int):
@@ -645,7 +643,7 @@ class CanDriveEmulator(SimulatedNode):
                     self._v_integral += err * self.control_period
             else:
                 tq = 0.0
-            return min(max(tq, -limit), limit)
+            return -limit if tq < -limit else limit if tq > limit else tq  # min(max()) without the two calls
         if self.state == QUICK_STOP_ACTIVE:
             vel = float(self.plant.motor_velocity()[self.index])
             if self.quick_stop_option in (1, 2) and abs(vel) < self.config.stop_velocity:

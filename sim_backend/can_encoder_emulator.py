@@ -14,7 +14,7 @@ import canopen
 import numpy as np
 
 from sim_backend.can_drive_emulator import SimulatedNode
-from sim_backend.plant import Plant
+from sim_backend.plant import Plant, scalar_reader
 
 
 class CanEncoderEmulator(SimulatedNode):
@@ -25,7 +25,8 @@ class CanEncoderEmulator(SimulatedNode):
     def __init__(self, network: canopen.Network, node_id: int, plant: Plant, index: int,
                  noise: float = 0.0, rng: np.random.Generator | None = None, eds: str | Path | None = None):
         self.noise = float(noise)  # rad, standard deviation
-        self._angle0 = float(plant.swivel_angle()[index])  # power-on angle, the zero of the counts
+        self._angle = scalar_reader(plant, "swivel_angle", index)  # rad, absolute
+        self._angle0 = self._angle()  # power-on angle, the zero of the counts
         self._preset_offset = 0
         super().__init__(network, node_id, plant, index, rng, eds)
         self.resolution = int(self.node.object_dictionary[0x6001].default)
@@ -34,7 +35,7 @@ class CanEncoderEmulator(SimulatedNode):
 
     def raw_counts(self) -> int:
         """Counts since power-on before preset and wrap (rounded to the resolution)."""
-        angle = float(self.plant.swivel_angle()[self.index]) - self._angle0
+        angle = self._angle() - self._angle0
         if self.noise:
             angle += self.noise * self.rng.standard_normal()
         c = int(round(angle * self.resolution / (2 * math.pi)))

@@ -8,6 +8,7 @@ model (resolution, noise, offsets) and the hidden effects of the simulation conf
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -40,3 +41,14 @@ class Plant(Protocol):
 
     def orientation(self) -> np.ndarray:
         """(3,) platform roll, pitch, yaw in the robot's convention, rad (absolute)."""
+
+
+def scalar_reader(plant: Plant, quantity: str, i: int) -> Callable[[], float]:
+    """A zero-argument function giving ``float(getattr(plant, quantity)()[i])`` (``quantity``: a method of
+    :class:`Plant` that returns an (n,) array), for the emulators' per-SYNC reads. A plant with a
+    ``reader(quantity, i)`` of its own gives the same value without building the array."""
+    own = getattr(plant, "reader", None)
+    if own is not None:
+        return own(quantity, i)
+    get = getattr(plant, quantity)
+    return lambda: float(get()[i])

@@ -31,6 +31,7 @@ import struct
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -87,6 +88,16 @@ class PlantView:
 
     def set_motor_torque(self, i: int, torque: float) -> None:
         self.torques[i] = float(torque)
+
+    def reader(self, quantity: str, i: int) -> Callable[[], float]:
+        """Element ``i`` of ``quantity`` (a per-cable part of the state, or ``motor_torque``), read from the
+        state in force at each call (``sim_backend.plant.scalar_reader``): no array per reading."""
+        if quantity == "motor_torque":
+            return lambda: self.torques[i]
+        if quantity not in self._parts or quantity in ("time", "xg", "q") or not 0 <= i < self.n:
+            raise ValueError(f"PlantView.reader: no per-cable quantity {quantity!r} with cable {i}.")
+        k = self._parts[quantity].start + i
+        return lambda: self.state[k]
 
     def cable_tension(self) -> np.ndarray:
         return np.array(self.state[self._parts["cable_tension"]])
@@ -303,12 +314,12 @@ class ChildPlantLink:
                     if not self._block(sem):
                         return
                     break
-        status, *state = self._state.unpack_from(self._page, _STATE_AT)
-        if status != _OK:
+        block = self._state.unpack_from(self._page, _STATE_AT)  # status, then the state
+        if block[0] != _OK:
             (size,) = struct.unpack_from("<q", self._page, _ERROR_AT)
             self._error = bytes(self._page[_ERROR_AT + 8:_ERROR_AT + 8 + size]).decode("utf-8", "replace")
         else:
-            self._last = tuple(state)
+            self._last = block[1:]
 
     def alive(self) -> bool:
         """Whether the child still runs (reaps it once it has ended)."""
