@@ -367,3 +367,26 @@ def test_initial_pose_is_honoured_and_the_platform_rests_there():
         assert np.abs(sim.truth().pose - t.pose).max() < 1e-4
         # the clock sits exactly on the SYNC grid (summing 0.005 s a hundred times would give 0.5000000000000002)
         assert sim.time == 100 * 0.005
+
+
+def test_scalar_readers_follow_the_published_state_and_name_a_bad_quantity():
+    from sim_backend.plant import scalar_reader
+
+    robot = load_robot("irma4u")
+    with SimBackend(robot, seed=2, plant_process=False) as sim:
+        view = sim.physics
+        physics = sim._link.core.physics  # a plant without readers of its own: the generic path
+        readers = {q: [scalar_reader(view, q, i) for i in range(4)]
+                   for q in ("motor_position", "motor_velocity", "cable_tension", "swivel_angle", "motor_torque")}
+        generic = [scalar_reader(physics, "cable_tension", i) for i in range(4)]
+        for _ in range(30):
+            sim.tick()
+            for q, rs in readers.items():
+                assert [r() for r in rs] == [float(v) for v in getattr(view, q)()]
+        view.set_motor_torque(2, 0.125)  # a command given now is read at once
+        assert readers["motor_torque"][2]() == 0.125
+        assert [g() for g in generic] == physics.cable_tension().tolist()
+        with pytest.raises(ValueError, match="no per-cable quantity 'q' with cable 0"):
+            view.reader("q", 0)
+        with pytest.raises(ValueError, match="'swivel_angle' with cable 4"):
+            view.reader("swivel_angle", 4)
