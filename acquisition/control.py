@@ -162,7 +162,8 @@ class TensionController:
 
 @dataclass
 class Snapshot:
-    """What the loop saw at one tick. Lengths and swivels are deltas since the devices' power-on (m, rad)."""
+    """What the loop saw at one tick. Lengths and swivels are deltas since the devices' power-on (m, rad).
+    Read-only: a snapshot shares the arrays that did not change with the one before it."""
 
     tick: int  # clock tick index
     t: float  # s, tick time on the loop's clock
@@ -316,14 +317,21 @@ class Rig:
         prev = self._last
         n = self.n
         missing = []
-        dl = np.full(n, np.nan) if prev is None else prev.dl.copy()
-        dsigma = np.full(n, np.nan) if prev is None else prev.dsigma.copy()
+        # the arrays of the last snapshot stand where nothing new came (most ticks: the CAN nodes answer every
+        # n-th SYNC); one is copied only when a reading changes it (snapshots are read, never written)
+        if prev is None:
+            dl, dsigma = np.full(n, np.nan), np.full(n, np.nan)
+        else:
+            dl, dsigma = prev.dl, prev.dsigma
+        dl_own = dsigma_own = prev is None
         lockstep, seqs, fresh = self.lockstep, self._seq, self._last_fresh
         for i, (name, d, due) in enumerate(self._drive_slots):
             if due is not None and not due(count):  # not answering this SYNC: its last values stand
                 continue
             r = self._wait_sync(name, d, count, deadline)
             if r is not None and (not lockstep or r.sync_count >= count) and (prev is None or r.seq != seqs.get(name)):
+                if not dl_own:
+                    dl, dl_own = dl.copy(), True
                 dl[i] = r.delta_length
                 seqs[name] = r.seq
                 fresh[name] = t
@@ -334,12 +342,14 @@ class Rig:
                 continue
             r = self._wait_sync(name, e, count, deadline)
             if r is not None and (not lockstep or r.sync_count >= count) and (prev is None or r.seq != seqs.get(name)):
+                if not dsigma_own:
+                    dsigma, dsigma_own = dsigma.copy(), True
                 dsigma[i] = r.delta_angle
                 seqs[name] = r.seq
                 fresh[name] = t
             else:
                 missing.append(name)
-        tau = np.full(n, np.nan) if prev is None else prev.tau.copy()
+        tau = np.full(n, np.nan) if prev is None else prev.tau
         r = self.loadcells.latest()
         if self.lockstep and "load cells" not in self.dead:
             try:
