@@ -91,6 +91,11 @@ def _wrap32(value: float) -> int:
     return (int(round(value)) + 0x80000000) % 0x100000000 - 0x80000000
 
 
+# what an object mapped in an RPDO sets on the drive at SYNC (the controlword goes through the state machine);
+# other objects mapped there are ignored
+_RPDO_FIELDS = {0x6040: "controlword", 0x6071: "target_torque", 0x60FF: "target_velocity", 0x6060: "mode"}
+
+
 @dataclass(slots=True)
 class _Tpdo:
     """One synchronous TPDO of an emulated node and its SYNC countdown."""
@@ -377,7 +382,8 @@ class CanDriveEmulator(SimulatedNode):
         self.error_code = 0
         self.error_register = 0
         self.torque_command = 0.0  # N m sent to the plant
-        self._rpdos: list[tuple[int, struct.Struct, list]] = []  # (cob_id, struct, mapped (index, sub))
+        # (cob_id, struct, mapped (index, sub), what each mapped object sets: _RPDO_FIELDS, or None)
+        self._rpdos: list[tuple[int, struct.Struct, list, tuple[str | None, ...]]] = []
         self._rx: dict[int, bytes | None] = {}  # cob_id -> RPDO data received since the last SYNC
         self._v_integral = 0.0
         self._hold: float | None = None  # torque at quick stop (plant without brake)
@@ -472,7 +478,8 @@ class CanDriveEmulator(SimulatedNode):
                 self.network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)
                 self._rx[pdo_map.cob_id] = None
                 self.network.subscribe(pdo_map.cob_id, self._on_rpdo)
-                self._rpdos.append((pdo_map.cob_id, packed[0], packed[1]))
+                fields = tuple(_RPDO_FIELDS.get(index) for index, _ in packed[1])
+                self._rpdos.append((pdo_map.cob_id, packed[0], packed[1], fields))
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         self._rx[can_id] = bytes(data)  # the last one before the SYNC wins (CiA 301 synchronous RPDO)
@@ -492,7 +499,7 @@ class CanDriveEmulator(SimulatedNode):
     @property
     def rpdo_layout(self) -> list[tuple[int, list[int]]]:
         """(COB-ID, mapped object indices) of each RPDO the drive applies at SYNC."""
-        return [(cob_id, [i for i, _ in keys]) for cob_id, _, keys in self._rpdos]
+        return [(cob_id, [i for i, _ in keys]) for cob_id, _, keys, _ in self._rpdos]
 
     # -- state machine -------------------------------------------------------------------------------
     @property
@@ -609,22 +616,18 @@ class CanDriveEmulator(SimulatedNode):
                 self._check_scheduled()
             if self.node.nmt.state == "OPERATIONAL":
                 rx = self._rx
-                for cob_id, st, keys in self._rpdos:
+                for cob_id, st, _, fields in self._rpdos:
                     data = rx.get(cob_id)
                     if data is None:
                         continue
                     rx[cob_id] = None
                     if len(data) < st.size:
                         continue
-                    for (index, _), value in zip(keys, st.unpack_from(data), strict=True):
-                        if index == 0x6040:
+                    for field, value in zip(fields, st.unpack_from(data)):  # in the order mapped
+                        if field == "controlword":
                             self.command(value)
-                        elif index == 0x6071:
-                            self.target_torque = value
-                        elif index == 0x60FF:
-                            self.target_velocity = value
-                        elif index == 0x6060:
-                            self.mode = value
+                        elif field is not None:
+                            setattr(self, field, value)
             self.torque_command = self._torque_law()
             self.plant.set_motor_torque(self.index, self.torque_command)
 
