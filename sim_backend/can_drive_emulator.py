@@ -623,7 +623,7 @@ class CanDriveEmulator(SimulatedNode):
                     rx[cob_id] = None
                     if len(data) < st.size:
                         continue
-                    for field, value in zip(fields, st.unpack_from(data)):  # in the order mapped
+                    for field, value in zip(fields, st.unpack_from(data), strict=True):  # in the order mapped
                         if field == "controlword":
                             self.command(value)
                         elif field is not None:

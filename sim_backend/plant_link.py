@@ -92,10 +92,11 @@ class PlantView:
     def reader(self, quantity: str, i: int) -> Callable[[], float]:
         """Element ``i`` of ``quantity`` (a per-cable part of the state, or ``motor_torque``), read from the
         state in force at each call (``sim_backend.plant.scalar_reader``): no array per reading."""
+        per_cable = quantity == "motor_torque" or quantity in self._parts and quantity not in ("time", "xg", "q")
+        if not per_cable or not 0 <= i < self.n:
+            raise ValueError(f"PlantView.reader: no per-cable quantity {quantity!r} with cable {i}.")
         if quantity == "motor_torque":
             return lambda: self.torques[i]
-        if quantity not in self._parts or quantity in ("time", "xg", "q") or not 0 <= i < self.n:
-            raise ValueError(f"PlantView.reader: no per-cable quantity {quantity!r} with cable {i}.")
         k = self._parts[quantity].start + i
         return lambda: self.state[k]
 

@@ -390,3 +390,5 @@ def test_scalar_readers_follow_the_published_state_and_name_a_bad_quantity():
             view.reader("q", 0)
         with pytest.raises(ValueError, match="'swivel_angle' with cable 4"):
             view.reader("swivel_angle", 4)
+        with pytest.raises(ValueError, match="'motor_torque' with cable -1"):
+            view.reader("motor_torque", -1)
