@@ -185,9 +185,10 @@ class StartupRoutine:
             if count > 0:
                 raise SafeStop("corrupted_stream",
                                f"the {name} stream is corrupted: {count} bad frame(s) since the start.")
-        for i, v in enumerate(snap.tau.tolist()):
-            if not math.isfinite(v):
-                raise SafeStop("sensor_fault", f"load cell {i + 1} gives no value (disconnected).", (i,))
+        tau = snap.tau.tolist()
+        if not all(map(math.isfinite, tau)):
+            i = next(i for i, v in enumerate(tau) if not math.isfinite(v))
+            raise SafeStop("sensor_fault", f"load cell {i + 1} gives no value (disconnected).", (i,))
 
     def _row(self, snap: Snapshot) -> tuple:
         z = self._zero

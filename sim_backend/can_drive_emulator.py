@@ -411,7 +411,22 @@ class CanDriveEmulator(SimulatedNode):
         if index in (0x6064, 0x606C):
             read = scalar_reader(self.plant, "motor_position" if index == 0x6064 else "motor_velocity", self.index)
             return lambda: _wrap32(read() * scale)
-        return None  # the torque actual 0x6077 and the rest: process_value, rounded and saturated
+        if index == 0x6077:
+            return self._torque_actual_getter()
+        return None  # the rest: process_value, rounded and saturated
+
+    def _torque_actual_getter(self):
+        """0x6077 as :meth:`process_value` gives it (per mille of the rated torque, with the configured noise),
+        reading the commanded torque straight from the plant."""
+        read = scalar_reader(self.plant, "motor_torque", self.index)
+
+        def torque_actual() -> int:
+            tq = read()
+            if self.config.torque_noise:
+                tq += self.config.torque_noise * self.rng.standard_normal()
+            return clamp_int("h", tq / self.rated_torque * 1000.0)
+
+        return torque_actual
 
     def process_value(self, index: int, subindex: int):
         if index == 0x6041:
@@ -421,10 +436,7 @@ class CanDriveEmulator(SimulatedNode):
         if index == 0x606C:
             return clamp_int("i", float(self.plant.motor_velocity()[self.index]) * self.counts_per_rev / (2 * math.pi))
         if index == 0x6077:
-            tq = float(self.plant.motor_torque()[self.index])
-            if self.config.torque_noise:
-                tq += self.config.torque_noise * self.rng.standard_normal()
-            return clamp_int("h", tq / self.rated_torque * 1000.0)
+            return self._torque_actual_getter()()
         if index == 0x6040:
             return self.controlword
         if index == 0x6071:
