@@ -389,6 +389,7 @@ class CanDriveEmulator(SimulatedNode):
         self._hold: float | None = None  # torque at quick stop (plant without brake)
         self._scheduled: list[tuple[float, int]] = []
         self.faults: list[tuple[float, int]] = []
+        self._torque_now = scalar_reader(plant, "motor_torque", index)  # N m; before booting, which maps TPDOs
         super().__init__(network, node_id, plant, index, rng, eds)
         self.rated_torque = self.node.object_dictionary[0x6076].default / 1000.0  # N m
         self.max_torque = self.node.object_dictionary[0x6072].default  # per mille
@@ -412,21 +413,15 @@ class CanDriveEmulator(SimulatedNode):
             read = scalar_reader(self.plant, "motor_position" if index == 0x6064 else "motor_velocity", self.index)
             return lambda: _wrap32(read() * scale)
         if index == 0x6077:
-            return self._torque_actual_getter()
+            return self.torque_actual
         return None  # the rest: process_value, rounded and saturated
 
-    def _torque_actual_getter(self):
-        """0x6077 as :meth:`process_value` gives it (per mille of the rated torque, with the configured noise),
-        reading the commanded torque straight from the plant."""
-        read = scalar_reader(self.plant, "motor_torque", self.index)
-
-        def torque_actual() -> int:
-            tq = read()
-            if self.config.torque_noise:
-                tq += self.config.torque_noise * self.rng.standard_normal()
-            return clamp_int("h", tq / self.rated_torque * 1000.0)
-
-        return torque_actual
+    def torque_actual(self) -> int:
+        """0x6077: the torque commanded to the plant, per mille of the rated torque, with the configured noise."""
+        tq = self._torque_now()
+        if self.config.torque_noise:
+            tq += self.config.torque_noise * self.rng.standard_normal()
+        return clamp_int("h", tq / self.rated_torque * 1000.0)
 
     def process_value(self, index: int, subindex: int):
         if index == 0x6041:
@@ -436,7 +431,7 @@ class CanDriveEmulator(SimulatedNode):
         if index == 0x606C:
             return clamp_int("i", float(self.plant.motor_velocity()[self.index]) * self.counts_per_rev / (2 * math.pi))
         if index == 0x6077:
-            return self._torque_actual_getter()()
+            return self.torque_actual()
         if index == 0x6040:
             return self.controlword
         if index == 0x6071:
