@@ -323,15 +323,14 @@ class Rig:
             dl, dsigma = np.full(n, np.nan), np.full(n, np.nan)
         else:
             dl, dsigma = prev.dl, prev.dsigma
-        dl_own = dsigma_own = prev is None
         lockstep, seqs, fresh = self.lockstep, self._seq, self._last_fresh
         for i, (name, d, due) in enumerate(self._drive_slots):
             if due is not None and not due(count):  # not answering this SYNC: its last values stand
                 continue
             r = self._wait_sync(name, d, count, deadline)
             if r is not None and (not lockstep or r.sync_count >= count) and (prev is None or r.seq != seqs.get(name)):
-                if not dl_own:
-                    dl, dl_own = dl.copy(), True
+                if prev is not None and dl is prev.dl:
+                    dl = dl.copy()
                 dl[i] = r.delta_length
                 seqs[name] = r.seq
                 fresh[name] = t
@@ -342,8 +341,8 @@ class Rig:
                 continue
             r = self._wait_sync(name, e, count, deadline)
             if r is not None and (not lockstep or r.sync_count >= count) and (prev is None or r.seq != seqs.get(name)):
-                if not dsigma_own:
-                    dsigma, dsigma_own = dsigma.copy(), True
+                if prev is not None and dsigma is prev.dsigma:
+                    dsigma = dsigma.copy()
                 dsigma[i] = r.delta_angle
                 seqs[name] = r.seq
                 fresh[name] = t
