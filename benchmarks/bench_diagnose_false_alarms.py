@@ -1,6 +1,6 @@
 """False alarms of `cdpr diagnose` on effect-free simulated runs (not collected by pytest).
 
-For each seed: the simulated prototype with no hidden effect (calib.effects.simdata: its static equilibria
+For each seed: the simulated prototype with no hidden effect (sim_backend.equilibrium_rows: its static equilibria
 at the planned poses of --grid, window-average noise, and the per-device errors the emulators draw: load
 cells within their accuracy class, AHRS roll/pitch bias), diagnosed with the default settings (which hold
 those device errors within their datasheet accuracy as priors); counts the seeds
@@ -17,10 +17,10 @@ import time
 from collections import Counter
 
 from calib.diagnose import diagnose
-from calib.effects.simdata import simulated_rows
 from calib.planning import plan_poses
 from calib.robot import load_robot
 from sim_backend.config import SimConfig
+from sim_backend.equilibrium_rows import simulated_rows
 from sim_backend.physics import PhysicsParams
 
 

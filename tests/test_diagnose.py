@@ -1,5 +1,5 @@
 """Diagnosis on data with a hidden effect: the simulated prototype's physics at its planned equilibria
-(calib.effects.simdata: the sim's true static equilibria under each setpoint plus the sensor models, with
+(sim_backend.equilibrium_rows: the sim's true static equilibria under each setpoint plus the sensor models, with
 the effects of a sim_backend SimConfig), one hidden effect at a time; then the real IRMA4U run."""
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from acquisition.cli import main as cdpr
 from calib.diagnose import diagnose, fit, pose_error
 from calib.effects import make_effects
 from calib.effects.builtin import DeviceAccuracy, pulley_gauge_basis
-from calib.effects.simdata import simulated_rows
 from calib.robot import load_robot
 from sim_backend.config import sim_config_from_dict
+from sim_backend.equilibrium_rows import simulated_rows
 
 ROBOT = load_robot("irma4u")
 SEED = 5
