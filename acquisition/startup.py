@@ -466,61 +466,16 @@ def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, 
     thread to wake at every tick). Raises ``drivers.interfaces.DeviceError`` (one sentence) when a device does
     not answer.
     """
-    from drivers.can_bus import SyncProducer, open_bus_from_config, open_network
-    from drivers.canopen_drive import CanopenWinchDrive
     from drivers.interfaces import DeviceError
-    from drivers.loadcell import LoadCellConfig, LoadCellDriver
-    from drivers.swivel_encoder import CanopenSwivelEncoder
-    from drivers.xsens import XsensConfig, XsensMti
+    from drivers.open import open_devices
 
     devices.check_robot(robot.n)
     if devices.loadcells is None or devices.ahrs is None:
         raise DeviceError(f"{devices.source}: the device configuration needs 'loadcells' and 'ahrs'.")
-    lpr = robot.sensors.length_per_motor_rev
-    stale = 1e9 if lockstep else 3.0
-    now = clock.now
-    opened: list = []
-    bus = open_bus_from_config(devices.can)
-    network = None
-    try:
-        network = open_network(bus)
-        sync = SyncProducer(network, devices.can.sync_overflow)
-        hb = devices.can.heartbeat_period
-        drives = [CanopenWinchDrive(network, nc.node_id, sync, lpr[i], name=nc.name, clock=now, heartbeat_period=hb,
-                                    every=every[0])
-                  for i, nc in enumerate(devices.drives)]
-        encoders = [CanopenSwivelEncoder(network, nc.node_id, sync, name=nc.name, clock=now, heartbeat_period=hb,
-                                         counts_per_rev=robot.sensors.swivel_counts_per_rev, every=every[1])
-                    for nc in devices.encoders]
-        loadcells = LoadCellDriver(LoadCellConfig(devices.loadcells.port, devices.loadcells.baud, channels=robot.n,
-                                                  rate_hz=1.0 / period, stale_periods=stale, polled=lockstep))
-        ahrs = XsensMti(XsensConfig(devices.ahrs.port, devices.ahrs.baud, rate_hz=int(devices.ahrs.rate),
-                                    stale_periods=stale, polled=lockstep))
-        for dev in [*drives, *encoders, loadcells, ahrs]:
-            dev.open()
-            opened.append(dev)
-    except BaseException:
-        for dev in reversed(opened):
-            _quiet(dev.close)
-        if network is not None:
-            _quiet(network.disconnect)
-        _quiet(bus.shutdown)
-        raise
-    rig = Rig(drives, encoders, loadcells, ahrs, sync.send_sync, period, lockstep,
+    opened = open_devices(devices, robot.sensors.length_per_motor_rev, robot.sensors.swivel_counts_per_rev,
+                          clock=clock.now, every=every, control_period=period, polled=lockstep,
+                          stale_periods=1e9 if lockstep else 3.0)
+    rig = Rig(opened.drives, opened.encoders, opened.loadcells, opened.ahrs, opened.send_sync, period, lockstep,
               ahrs_period=1.0 / float(devices.ahrs.rate), timeout=timeout)
-
-    def close() -> None:
-        for dev in reversed(opened):
-            _quiet(dev.close)
-        _quiet(network.disconnect)
-        _quiet(bus.shutdown)
-
-    rig.closer = close
+    rig.closer = opened.close
     return rig
-
-
-def _quiet(fn) -> None:
-    try:
-        fn()
-    except Exception:  # closing what may already be gone
-        pass

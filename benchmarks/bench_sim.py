@@ -87,33 +87,19 @@ def bench_backend_tick(robot, period: float, ticks: int = 2000, plant_process: b
 
 
 def bench_lockstep(robot, period: float, ticks: int = 2000, plant_process: bool = True) -> tuple[float, dict]:
-    """A simple force loop through the real drivers in lockstep, set up as the startup's connect() does (pumped
-    CAN network, polled serial ports, the drives and encoders answering every n-th SYNC as feedback_every
-    says): torque targets -> SYNC -> wait for the TPDOs due and the load-cell line of that tick. Wall µs per
-    tick and the backend's share (the SYNC handler runs inside the SYNC send)."""
-    from drivers.can_bus import SyncProducer, open_bus_from_config, open_network
-    from drivers.canopen_drive import CanopenWinchDrive
-    from drivers.loadcell import LoadCellConfig, LoadCellDriver
-    from drivers.swivel_encoder import CanopenSwivelEncoder
-    from drivers.xsens import XsensConfig, XsensMti
+    """A simple force loop through the real drivers in lockstep, set up as the startup's connect() does (one
+    drivers.open.open_devices, polled serial ports, the drives and encoders answering every n-th SYNC as
+    feedback_every says): torque targets -> SYNC -> wait for the TPDOs due and the load-cell line of that tick.
+    Wall µs per tick and the backend's share (the SYNC handler runs inside the SYNC send)."""
+    from drivers.open import open_devices
 
     lpr = np.asarray(robot.sensors.length_per_motor_rev)
     radius = np.abs(lpr) / (2 * math.pi)
     with SimBackend(robot, None, seed=1, control_period=period, plant_process=plant_process) as sim:
-        cfg = sim.devices
-        bus = open_bus_from_config(cfg.can)
-        net = open_network(bus)
-        sync = SyncProducer(net)
-        clock = lambda: sim.time  # noqa: E731
         every = feedback_every(1.0 / period, int(round(0.1 / period)))  # the routine's feedback rates
-        drives = [CanopenWinchDrive(net, n.node_id, sync, lpr[i], clock=clock, every=every[0])
-                  for i, n in enumerate(cfg.drives)]
-        encs = [CanopenSwivelEncoder(net, n.node_id, sync, clock=clock, every=every[1]) for n in cfg.encoders]
-        cells = LoadCellDriver(LoadCellConfig(cfg.loadcells.port, rate_hz=1 / period, stale_periods=1e9, polled=True))
-        ahrs = XsensMti(XsensConfig(cfg.ahrs.port, stale_periods=1e9, polled=True))
-        devs = [*drives, *encs, cells, ahrs]
-        for d in devs:
-            d.open()
+        devices = open_devices(sim.devices, lpr, clock=lambda: sim.time, every=every, control_period=period,
+                               polled=True, stale_periods=1e9)
+        drives, encs, cells, sync = devices.drives, devices.encoders, devices.loadcells, devices.sync
         try:
             ref = sim.truth().tensions
             for d, r, tau in zip(drives, radius, ref, strict=True):
@@ -145,9 +131,7 @@ def bench_lockstep(robot, period: float, ticks: int = 2000, plant_process: bool 
             # the nodes' TPDOs and heartbeats, and the master's SYNC and one RPDO per drive
             acc["frames"] = (sum(n.frames_sent for n in nodes) - sent0 + ticks * (1 + len(drives))) * 1e-6
         finally:
-            for d in devs:
-                d.close()
-            net.disconnect()
+            devices.close()
         if sim.errors:
             raise RuntimeError(sim.errors[0])
     return wall / ticks * 1e6, {k: v / ticks * 1e6 for k, v in acc.items()}

@@ -3,7 +3,7 @@
 Example (``drivers/examples/irma4u_devices.yaml``)::
 
     can:
-      interface: socketcan     # python-can interface name; 'virtual' for the simulated prototype
+      interface: socketcan     # python-can interface name (the simulated prototype's: cdpr_sim)
       channel: can0
       bitrate: 1000000         # bit/s
       heartbeat_period: 0.1    # s, producer heartbeat time written to every node (0x1017)
@@ -25,9 +25,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import can.interfaces
 import yaml
 
-CAN_INTERFACES = ("socketcan", "pcan", "virtual", "kvaser", "ixxat", "vector", "slcan", "gs_usb", "udp_multicast")
 CAN_BITRATES = (10_000, 20_000, 50_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
@@ -149,8 +149,9 @@ def device_config_from_dict(data: Any, source: str = "<config>") -> DeviceConfig
     c = f.mapping(data.get("can", {}), "can")
     f.unknown(c, "can", ("interface", "channel", "bitrate", "heartbeat_period", "sync_overflow"))
     interface = f.text(c.get("interface", "socketcan"), "can.interface")
-    if interface not in CAN_INTERFACES:
-        raise f.fail("can.interface", interface, f"is not a supported interface ({', '.join(CAN_INTERFACES)})")
+    if interface not in can.interfaces.VALID_INTERFACES:  # python-can's own and the installed plugins
+        raise f.fail("can.interface", interface, f"is not a python-can interface "
+                                                  f"({', '.join(sorted(can.interfaces.VALID_INTERFACES))})")
     channel = c.get("channel", "can0")
     if isinstance(channel, int) and not isinstance(channel, bool):
         channel = str(channel)

@@ -17,7 +17,7 @@ from pathlib import Path
 import canopen
 
 from drivers.can_bus import SyncProducer
-from drivers.canopen_drive import CanopenNodeDriver, wrap_delta
+from drivers.canopen_node import CanopenNodeDriver, wrap_delta
 from drivers.interfaces import DeviceError, SwivelEncoder, SwivelReading
 
 

@@ -1,11 +1,11 @@
 """The simulated prototype as a set of devices: physics + emulated CAN nodes + serial devices, in lockstep.
 
-:class:`SimBackend` creates the physics at a power-on equilibrium, a python-can ``virtual`` channel with a
+:class:`SimBackend` creates the physics at a power-on equilibrium, a simulated CAN channel with a
 unique name carrying the emulated CiA 402 drives and CiA 406 encoders (canopen LocalNodes), pty pairs for
-the load-cell amplifier and the AHRS, and one SYNC subscriber that runs the lockstep. The nodes' network is
-pumped (``drivers.can_bus.Network``): no receive thread, a frame the master sends is handled in the master's
-own thread before its send returns, answers included, and a master network that joins the channel is pumped
-too (``drivers.can_bus.open_network``). The physics and the serial devices run one control period ahead of
+the load-cell amplifier and the AHRS, and one SYNC subscriber that runs the lockstep. The channel is a
+``cdpr_sim`` one (``sim_backend.sim_bus``, a python-can interface plugin): a frame the master sends is handled in
+the master's own thread before its send returns, answers included, and the master's network has decoded the
+answers by then. The physics and the serial devices run one control period ahead of
 the CAN nodes, in a child process on a machine with two cores (``sim_backend.plant_link``). For each SYNC
 ``count`` the master sends:
 
@@ -37,13 +37,13 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-import can
+import canopen
 import numpy as np
 
 from calib.equilibrium import direct_statics
 from calib.robot import Robot
 from calib.statics import tension_model
-from drivers.can_bus import SYNC_COB_ID, open_network
+from drivers.can_bus import SYNC_COB_ID
 from drivers.config import AhrsConfig, CanConfig, DeviceConfig, NodeConfig, SerialConfig
 from sim_backend.can_drive_emulator import CanDriveEmulator
 from sim_backend.can_encoder_emulator import CanEncoderEmulator
@@ -59,6 +59,7 @@ from sim_backend.plant_link import (
     child_process_possible,
 )
 from sim_backend.pty import open_pty_pair
+from sim_backend.sim_bus import SimBus
 from sim_backend.xsens_emulator import XsensEmulator
 
 DRIVE_IDS = (1, 2, 3, 4, 5, 6, 7, 8)
@@ -144,7 +145,7 @@ class SimBackend:
         self._history: list[tuple[int, tuple[float, ...]]] = []  # (SYNC count, PlantView state) per tick
         self._link: PlantLink | None = None
         self._fds: list[int] = []
-        self._bus: can.BusABC | None = None
+        self._bus: SimBus | None = None
         self._network = None
         self._started = False
 
@@ -188,8 +189,8 @@ class SimBackend:
             self._link = self._open_link(core)
             self._link.advance(0, torques, brakes)  # the state of the first SYNC
             channel = f"cdpr-sim-{os.getpid()}-{next(_channel_ids)}-{id(self):x}"
-            self._bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-            self._network = open_network(self._bus, pumped=True)  # answers in the sender's thread (lockstep)
+            self._network = canopen.Network()  # no notifier: the bus hands it the frames (in the sender's thread)
+            self._network.bus = self._bus = SimBus(channel, listeners=self._network.listeners)
             for i in range(n):
                 self.drives.append(
                     CanDriveEmulator(self._network, DRIVE_IDS[i], self.physics, i, rng=rngs[i],
@@ -201,7 +202,7 @@ class SimBackend:
             self._nodes = self.drives + self.encoders  # in the order they answer a SYNC
             self._schedule_faults()
             self.devices = DeviceConfig(
-                can=CanConfig(interface="virtual", channel=channel, bitrate=1_000_000,
+                can=CanConfig(interface="cdpr_sim", channel=channel, bitrate=1_000_000,
                               heartbeat_period=self.heartbeat_period),
                 drives=tuple(NodeConfig(f"winch {i + 1}", DRIVE_IDS[i]) for i in range(n)),
                 encoders=tuple(NodeConfig(f"swivel {i + 1}", ENCODER_IDS[i]) for i in range(n)),

@@ -29,33 +29,21 @@ import canopen
 import numpy as np
 from canopen.objectdictionary import datatypes
 
+from drivers.cia402 import (
+    FAULT,
+    MODE_CST,
+    MODE_CSV,
+    NOT_READY,
+    OPERATION_ENABLED,
+    QUICK_STOP_ACTIVE,
+    STATUSWORD_BITS,
+    SW_FOLLOWS_COMMAND,
+    SW_REMOTE,
+    SWITCH_ON_DISABLED,
+    next_state,
+)
 from drivers.config import eds_path
 from sim_backend.plant import Plant, scalar_reader
-
-# CiA 402 states
-NOT_READY = "not ready to switch on"
-SWITCH_ON_DISABLED = "switch on disabled"
-READY_TO_SWITCH_ON = "ready to switch on"
-SWITCHED_ON = "switched on"
-OPERATION_ENABLED = "operation enabled"
-QUICK_STOP_ACTIVE = "quick stop active"
-FAULT_REACTION_ACTIVE = "fault reaction active"
-FAULT = "fault"
-
-STATUSWORD_BITS = {
-    NOT_READY: 0x0000,
-    SWITCH_ON_DISABLED: 0x0040,
-    READY_TO_SWITCH_ON: 0x0031,
-    SWITCHED_ON: 0x0033,
-    OPERATION_ENABLED: 0x0037,
-    QUICK_STOP_ACTIVE: 0x0017,
-    FAULT_REACTION_ACTIVE: 0x000F,
-    FAULT: 0x0008,
-}
-SW_REMOTE = 0x0200
-SW_FOLLOWS_COMMAND = 0x1000
-MODE_CSV = 9
-MODE_CST = 10
 
 _STRUCT_CODES = {
     datatypes.BOOLEAN: "B", datatypes.UNSIGNED8: "B", datatypes.INTEGER8: "b",
@@ -522,63 +510,24 @@ class CanDriveEmulator(SimulatedNode):
             set_brake(self.index, new != OPERATION_ENABLED)
 
     def command(self, cw: int) -> None:
-        """Apply a controlword (from SDO or the RPDO) to the CiA 402 state machine."""
+        """Apply a controlword (from SDO or the RPDO) to the CiA 402 state machine (``drivers.cia402``)."""
         if self._state == OPERATION_ENABLED and cw & 0x8F == 0x0F and cw == self.controlword:
             return  # a running drive's RPDO at every SYNC: enable operation again changes nothing
         rising_reset = bool(cw & 0x80) and not (self.controlword & 0x80)
         self.controlword = cw
-        s = self.state
-        if s == FAULT:
-            if rising_reset:
-                self.state = SWITCH_ON_DISABLED
-                self.error_code = 0
-                self.error_register = 0
-                self.send(0x80 + self.node.id, struct.pack("<HB5s", 0, 0, b""), "emcy")
+        old = self._state
+        new = next_state(old, cw, rising_reset, self.quick_stop_option)
+        if new == old:
             return
-        if s in (FAULT_REACTION_ACTIVE, NOT_READY) or cw & 0x80:
-            return
-        disable_voltage = (cw & 0x02) == 0
-        quick_stop = (cw & 0x06) == 0x02
-        shutdown = (cw & 0x07) == 0x06
-        switch_on = (cw & 0x0F) == 0x07
-        enable = (cw & 0x0F) == 0x0F
-        if s == SWITCH_ON_DISABLED:
-            if shutdown:
-                self.state = READY_TO_SWITCH_ON
-        elif s == READY_TO_SWITCH_ON:
-            if disable_voltage or quick_stop:
-                self.state = SWITCH_ON_DISABLED
-            elif switch_on:
-                self.state = SWITCHED_ON
-            elif enable:
-                self.state = OPERATION_ENABLED
-                self._v_integral = 0.0
-        elif s == SWITCHED_ON:
-            if disable_voltage or quick_stop:
-                self.state = SWITCH_ON_DISABLED
-            elif shutdown:
-                self.state = READY_TO_SWITCH_ON
-            elif enable:
-                self.state = OPERATION_ENABLED
-                self._v_integral = 0.0
-        elif s == OPERATION_ENABLED:
-            if disable_voltage:
-                self.state = SWITCH_ON_DISABLED
-            elif quick_stop:
-                self.state = QUICK_STOP_ACTIVE
-                self._hold = None
-                if self.quick_stop_option == 0:
-                    self.state = SWITCH_ON_DISABLED
-            elif shutdown:
-                self.state = READY_TO_SWITCH_ON
-            elif switch_on:
-                self.state = SWITCHED_ON
-        elif s == QUICK_STOP_ACTIVE:
-            if disable_voltage:
-                self.state = SWITCH_ON_DISABLED
-            elif enable and self.quick_stop_option in (5, 6, 7, 8):
-                self.state = OPERATION_ENABLED
-                self._v_integral = 0.0
+        self.state = new
+        if new == OPERATION_ENABLED:
+            self._v_integral = 0.0
+        elif new == QUICK_STOP_ACTIVE:
+            self._hold = None
+        elif old == FAULT:  # fault reset
+            self.error_code = 0
+            self.error_register = 0
+            self.send(0x80 + self.node.id, struct.pack("<HB5s", 0, 0, b""), "emcy")
 
     def reset(self) -> None:
         """NMT reset node: the application restarts in switch on disabled, errors and targets cleared."""

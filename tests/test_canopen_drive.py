@@ -18,13 +18,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from drivers import cia402
 from drivers.can_bus import SyncProducer, open_network
-from drivers.canopen_drive import (
-    MODE_CSV,
-    CanopenWinchDrive,
-    cia402_state,
-    wrap_delta,
-)
+from drivers.canopen_drive import CanopenWinchDrive
+from drivers.canopen_node import wrap_delta
+from drivers.cia402 import MODE_CSV, state_of
 from drivers.interfaces import DeviceError
 from sim_backend.can_drive_emulator import CanDriveEmulator
 from sim_backend.can_encoder_emulator import CanEncoderEmulator
@@ -155,13 +153,37 @@ def rig():
     r.close()
 
 
+def test_the_state_machine_is_one_table_for_the_driver_and_the_emulated_drive():
+    """Every state's statusword (with the remote and follows-command bits the drive sets) reads back as that state;
+    the driver's enable and stop sequences walk the transitions the emulated drive applies."""
+    for state, bits in cia402.STATUSWORD_BITS.items():
+        assert state_of(bits | cia402.SW_REMOTE | cia402.SW_FOLLOWS_COMMAND) == state
+    assert state_of(0x0001).startswith("unknown")
+    s = cia402.SWITCH_ON_DISABLED
+    path = []
+    for cw in (cia402.CW_SHUTDOWN, cia402.CW_SWITCH_ON, cia402.CW_ENABLE):
+        s = cia402.next_state(s, cw)
+        path.append(s)
+    assert path == [cia402.READY_TO_SWITCH_ON, cia402.SWITCHED_ON, cia402.OPERATION_ENABLED]
+    enabled = cia402.OPERATION_ENABLED
+    assert cia402.next_state(enabled, cia402.CW_QUICK_STOP) == cia402.QUICK_STOP_ACTIVE
+    assert cia402.next_state(enabled, cia402.CW_QUICK_STOP, quick_stop_option=0) == cia402.SWITCH_ON_DISABLED
+    qs = cia402.QUICK_STOP_ACTIVE
+    assert cia402.next_state(qs, cia402.CW_ENABLE, quick_stop_option=2) == qs  # option 2 ends in a stop
+    assert cia402.next_state(qs, cia402.CW_ENABLE, quick_stop_option=6) == enabled  # transition 16
+    assert cia402.next_state(enabled, cia402.CW_DISABLE_VOLTAGE) == cia402.SWITCH_ON_DISABLED
+    assert cia402.next_state(cia402.FAULT, cia402.CW_FAULT_RESET) == cia402.FAULT  # no rising edge
+    assert cia402.next_state(cia402.FAULT, cia402.CW_FAULT_RESET, reset_edge=True) == cia402.SWITCH_ON_DISABLED
+    assert cia402.next_state(cia402.SWITCH_ON_DISABLED, cia402.CW_ENABLE) == cia402.SWITCH_ON_DISABLED
+
+
 def test_statusword_decoding_and_counter_wrap():
-    assert cia402_state(0x0250) == "switch on disabled"
-    assert cia402_state(0x0231) == "ready to switch on"
-    assert cia402_state(0x0233) == "switched on"
-    assert cia402_state(0x1237) == "operation enabled"
-    assert cia402_state(0x0217) == "quick stop active"
-    assert cia402_state(0x0208) == "fault"
+    assert state_of(0x0250) == "switch on disabled"
+    assert state_of(0x0231) == "ready to switch on"
+    assert state_of(0x0233) == "switched on"
+    assert state_of(0x1237) == "operation enabled"
+    assert state_of(0x0217) == "quick stop active"
+    assert state_of(0x0208) == "fault"
     assert wrap_delta(5, 0xFFFFFFFB, 32) == 10
     assert wrap_delta(0x7FFFFFFF, -0x80000000 & 0xFFFFFFFF, 32) == -1
     assert wrap_delta(10, 65530, 16) == 16
@@ -223,7 +245,7 @@ def test_streaming_torque_control_and_counts(rig):
     # torque per mille of 0.64 N m: 781 -> 0.49984 N m
     assert last.torque == pytest.approx(round(torque / 0.64 * 1000) / 1000 * 0.64)
     assert rig.plant.tau[0] == pytest.approx(last.torque)
-    assert cia402_state(last.statusword) == "operation enabled"
+    assert state_of(last.statusword) == "operation enabled"
     assert drv.enabled and drv.fault() is None
     # timestamps come from the simulated clock: one control period apart
     assert np.allclose(np.diff([r.t for r in readings]), DT)
@@ -376,7 +398,7 @@ def test_quick_stop_holds_and_reenable(rig):
     r = drv.latest()
     assert r.velocity == 0.0 and r.torque == 0.0  # the brake holds the shaft
     assert r.position_counts == held  # locked where the quick stop found it
-    assert cia402_state(r.statusword) == "quick stop active"
+    assert state_of(r.statusword) == "quick stop active"
     drv.enable()
     rig.ticks(400)
     assert drv.latest().position_counts / CPR * 2 * math.pi == pytest.approx(0.3, abs=5e-3)
@@ -454,33 +476,3 @@ def test_a_node_without_sync_start_value_is_one_sentence_naming_the_fallback(rig
     drv = rig.winch(velocity_every=1)  # every SYNC needs no start value
     rig.ticks(3)
     assert drv.latest().sync_count == 3
-
-
-def test_a_pumped_send_delivers_what_virtualbus_send_delivers():
-    """The pumped network builds the receivers' frames itself (drivers.can_bus._virtual_send): a plain python-can
-    virtual bus on the channel must get from it exactly what VirtualBus.send gives, and in the order sent."""
-    channel = f"pump-vs-send-{next(_channels)}"
-    pumped_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-    sender = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-    plain = can.Bus(interface="virtual", channel=channel)
-    net = open_network(pumped_bus, pumped=True)
-    try:
-        frames = [(0x080, b"\x05"), (0x201, bytes(range(8))), (0x601, b"\x40\x41\x60\x00\x00\x00\x00\x00"),
-                  (0x1ABCDE, b""), (0x701, b"\x7f")]
-        for can_id, data in frames:
-            net.send_message(can_id, data)
-        got = [plain.recv(1.0) for _ in frames]
-        for can_id, data in frames:
-            sender.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF))
-        want = [plain.recv(1.0) for _ in frames]
-        assert plain.recv(0.0) is None
-        for g, w in zip(got, want, strict=True):
-            assert g.equals(w, timestamp_delta=None, check_channel=True, check_direction=True), (g, w)
-            assert g.is_rx and g.dlc == len(g.data) and isinstance(g.data, bytearray)
-        net.send_message(0x202, b"\x01", remote=True)
-        r = plain.recv(1.0)
-        assert r.is_remote_frame and r.arbitration_id == 0x202 and r.dlc == 0
-    finally:
-        net.disconnect()
-        for b in (pumped_bus, sender, plain):
-            b.shutdown()

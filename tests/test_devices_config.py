@@ -11,7 +11,6 @@ from test_canopen_drive import CanRig
 import acquisition.cli
 from acquisition.cli import main
 from calib.robot import load_robot
-from drivers.can_bus import open_can_devices
 from drivers.config import (
     DeviceConfigError,
     device_config_from_dict,
@@ -20,6 +19,7 @@ from drivers.config import (
     example_config_path,
     load_device_config,
 )
+from drivers.open import open_devices
 
 
 def test_example_file_describes_the_irma4u_prototype():
@@ -146,7 +146,7 @@ def test_devices_check_bad_config_is_a_usage_error(tmp_path, capsys):
     assert f"{path}: field 'drives[0].node_id' = 0 must be in [1, 127]." in err
 
 
-def test_open_can_devices_streams_in_lockstep():
+def test_open_devices_streams_in_lockstep():
     rig = CanRig(n_drives=4, n_encoders=4)
     robot = load_robot("irma4u")
     cfg = device_config_from_dict({
@@ -155,7 +155,7 @@ def test_open_can_devices_streams_in_lockstep():
         "encoders": [{"name": f"s{i}", "node_id": 10 + i} for i in range(1, 5)],
     })
     try:
-        devices = open_can_devices(cfg, robot.sensors.length_per_motor_rev, clock=rig.clock)
+        devices = open_devices(cfg, robot.sensors.length_per_motor_rev, clock=rig.clock)
         with devices:
             for _ in range(30):
                 count = devices.send_sync()

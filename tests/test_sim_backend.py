@@ -11,12 +11,8 @@ import numpy as np
 import pytest
 
 from calib.robot import load_robot
-from drivers.can_bus import SyncProducer, open_bus_from_config, open_network
-from drivers.canopen_drive import CanopenWinchDrive
 from drivers.interfaces import DeviceError
-from drivers.loadcell import LoadCellConfig, LoadCellDriver
-from drivers.swivel_encoder import CanopenSwivelEncoder
-from drivers.xsens import XsensConfig, XsensMti
+from drivers.open import open_devices
 from sim_backend.backend import SimBackend, power_on_state
 from sim_backend.can_drive_emulator import SimulatedNode
 from sim_backend.config import SimConfigError, sim_config_from_dict
@@ -34,24 +30,11 @@ class Rig:
     def __init__(self, sim: SimBackend, listen: bool = False, every: tuple[int, int] = (1, 1)):
         cfg = sim.devices
         self.sim = sim
-        self.listener = can.Bus(interface="virtual", channel=cfg.can.channel) if listen else None
-        self.bus = open_bus_from_config(cfg.can)
-        self.net = open_network(self.bus)
-        self.sync = SyncProducer(self.net)
-        clock = lambda: sim.time  # noqa: E731
-        self.drives = [
-            CanopenWinchDrive(self.net, n.node_id, self.sync, LPR[i], clock=clock, heartbeat_period=0.1,
-                              every=every[0])
-            for i, n in enumerate(cfg.drives)
-        ]
-        self.encoders = [
-            CanopenSwivelEncoder(self.net, n.node_id, self.sync, clock=clock, heartbeat_period=0.1, every=every[1])
-            for n in cfg.encoders
-        ]
-        self.loadcells = LoadCellDriver(LoadCellConfig(cfg.loadcells.port, rate_hz=1 / PERIOD))
-        self.ahrs = XsensMti(XsensConfig(cfg.ahrs.port, rate_hz=100))
-        for dev in [*self.drives, *self.encoders, self.loadcells, self.ahrs]:
-            dev.open()
+        self.listener = can.Bus(interface=cfg.can.interface, channel=cfg.can.channel) if listen else None
+        self.devices = open_devices(cfg, LPR, clock=lambda: sim.time, every=every, control_period=PERIOD)
+        self.sync = self.devices.sync
+        self.drives, self.encoders = self.devices.drives, self.devices.encoders
+        self.loadcells, self.ahrs = self.devices.loadcells, self.devices.ahrs
 
     def hold(self, tensions: np.ndarray) -> None:
         for d, tau, lpr in zip(self.drives, tensions, LPR, strict=True):
@@ -67,9 +50,7 @@ class Rig:
         return c, win, sw, lc
 
     def close(self) -> None:
-        for dev in [*self.drives, *self.encoders, self.loadcells, self.ahrs]:
-            dev.close()
-        self.net.disconnect()
+        self.devices.close()
         if self.listener is not None:
             self.listener.shutdown()
 

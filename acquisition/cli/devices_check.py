@@ -54,23 +54,25 @@ def register(devsub) -> None:
 
 
 def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 0.005, clock=None,
-                  lockstep: bool = False, bus=None) -> CheckResult:
+                  lockstep: bool = False) -> CheckResult:
     """Open every device of ``config``, run ``syncs`` SYNC cycles, and report each device's state.
 
     ``lockstep``: each SYNC advances a simulator, so wait for the PDOs of each SYNC instead of pacing on
     wall time (the CAN drivers' clock is then SYNC count x period, the simulated time)."""
-    from drivers.can_bus import open_can_devices
+    from drivers.open import open_devices
 
     try:
-        devices = open_can_devices(config, robot.sensors.length_per_motor_rev or (1.0,) * len(config.drives),
-                                   robot.sensors.swivel_counts_per_rev, clock=time.monotonic,
-                                   open_nodes=False, bus=bus)
+        devices = open_devices(config, robot.sensors.length_per_motor_rev or (1.0,) * len(config.drives),
+                               robot.sensors.swivel_counts_per_rev, control_period=period, open_now=False)
+    except DeviceConfigError as exc:
+        raise UsageError(str(exc).rstrip(".") + ".") from exc
     except DeviceError as exc:
         raise OperationError(str(exc).rstrip(".") + ".") from exc
-    nodes = devices.drives + devices.encoders
-    serial = _serial_devices(config)
-    errors: dict[str, str] = {}
-    try:
+    with devices:
+        nodes = devices.drives + devices.encoders
+        serial = [(dev, kind, port) for dev, kind, port in
+                  ((devices.loadcells, "load cells", config.loadcells and config.loadcells.port),
+                   (devices.ahrs, "ahrs", config.ahrs and config.ahrs.port)) if dev is not None]
         if clock is None and lockstep:
             sync = devices.sync
 
@@ -79,21 +81,8 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
         for drv in nodes:
             if clock is not None:
                 drv.clock = clock
-        opened = []
-        for drv in nodes:
-            try:
-                drv.open()
-                opened.append(drv)
-            except DeviceError as exc:
-                errors[drv.name] = str(exc)
-        for name, _, _, dev in serial:
-            if isinstance(dev, str):
-                errors[name] = dev
-                continue
-            try:
-                dev.open()
-            except DeviceError as exc:
-                errors[name] = str(exc)
+        errors = devices.open_each()  # device -> why it did not open
+        opened = [drv for drv in nodes if drv not in errors]
         round_trip = []
         for _ in range(syncs):
             t0 = time.perf_counter()
@@ -109,13 +98,14 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
                 round_trip.append(elapsed)
             if not lockstep and elapsed < period:
                 time.sleep(period - elapsed)
+
         def can_results() -> list[DeviceCheck]:
             out = []
             for kind, group in (("winch drive", devices.drives), ("swivel encoder", devices.encoders)):
                 for drv in group:
                     where = f"CAN node {drv.node_id}"
-                    if drv.name in errors:
-                        out.append(DeviceCheck(drv.name, kind, where, False, errors[drv.name]))
+                    if drv in errors:
+                        out.append(DeviceCheck(drv.name, kind, where, False, errors[drv]))
                         continue
                     fault = drv.fault()
                     if fault is None and drv.latest() is None:
@@ -129,9 +119,9 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
 
         def serial_results() -> list[DeviceCheck]:
             out = []
-            for name, kind, port, dev in serial:
-                if name in errors:
-                    out.append(DeviceCheck(name, kind, port, False, errors[name]))
+            for dev, kind, port in serial:
+                if dev in errors:
+                    out.append(DeviceCheck(dev.name, kind, port, False, errors[dev]))
                     continue
                 if lockstep:  # one more tick, and judge the device right after its fresh sample
                     before = dev.latest()
@@ -147,7 +137,7 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
                 fault = dev.fault()
                 if fault is None and dev.latest() is None:
                     fault = f"{kind} on {port}: no sample during the check"
-                out.append(DeviceCheck(name, kind, port, fault is None, dev.status() if fault is None else fault))
+                out.append(DeviceCheck(dev.name, kind, port, fault is None, dev.status() if fault is None else fault))
             return out
 
         if lockstep:
@@ -157,30 +147,6 @@ def check_devices(config: DeviceConfig, robot, syncs: int = 40, period: float = 
         later = serial_results()
         time.sleep(2 * period)  # let the last PDOs and heartbeats in
         return CheckResult(can_results() + later, round_trip)
-    finally:
-        devices.close()
-        for _, _, _, dev in serial:
-            if not isinstance(dev, str):
-                dev.close()
-
-
-def _serial_devices(config: DeviceConfig) -> list[tuple[str, str, str, object]]:
-    """(name, kind, port, driver or an error sentence) for the serial devices of the set."""
-    out: list[tuple[str, str, str, object]] = []
-    if config.loadcells is not None:
-        from drivers.loadcell import LoadCellConfig, LoadCellDriver
-
-        dev = LoadCellDriver(LoadCellConfig(port=config.loadcells.port, baud=config.loadcells.baud))
-        out.append(("loadcells", "load cells", config.loadcells.port, dev))
-    if config.ahrs is not None:
-        from drivers.xsens import XsensConfig, XsensMti
-
-        try:
-            dev = XsensMti(XsensConfig(port=config.ahrs.port, baud=config.ahrs.baud, rate_hz=int(config.ahrs.rate)))
-        except ValueError as exc:
-            dev = f"{config.source}: field 'ahrs.rate' = {config.ahrs.rate}: {exc}"
-        out.append(("ahrs", "ahrs", config.ahrs.port, dev))
-    return out
 
 
 def _sim_check(args, robot) -> CheckResult:

@@ -193,12 +193,15 @@ def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
 
 
 def _connect(devices, robot, clock, lockstep: bool, period: float, cfg):
+    from drivers.config import DeviceConfigError
     from drivers.interfaces import DeviceError
 
     log_every = int(round(cfg.log_period * cfg.rate))
     every = feedback_every(cfg.rate, log_every, devices.can.sync_overflow)
     try:
         return connect(devices, robot, clock, lockstep=lockstep, period=period, every=every)
+    except DeviceConfigError as exc:
+        raise UsageError(str(exc)) from exc
     except DeviceError as exc:
         raise OperationError(f"device check failed: {str(exc).rstrip('.')}.") from exc
 
