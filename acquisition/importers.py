@@ -362,13 +362,8 @@ def detect_irma_format(file: str | Path) -> str:
     )
 
 
-def import_irma(
-    file: str | Path,
-    out_dir: str | Path,
-    targets: str | Path | None = None,
-    overwrite: bool = False,
-) -> Run:
-    """Convert an IRMA recording (``*_parsed.mat`` or raw ``.log``) into a run folder and return it.
+def irma_run(file: str | Path, targets: str | Path | None = None) -> Run:
+    """An IRMA recording (``*_parsed.mat`` or raw ``.log``) as a run in memory (path None).
 
     ``targets`` (optional): the ``sc_control_target_*.mat`` of the same experiment, giving the planned
     setpoints and ideal poses; without it the setpoints are those found steady in the target tensions.
@@ -387,7 +382,7 @@ def import_irma(
     }
     if planned is not None:
         meta_extra["targets_from"] = Path(targets).name
-    run = new_run(
+    return new_run(
         "irma4u",
         "equilibrium",
         IRMA_SAMPLE_PERIOD,
@@ -407,7 +402,16 @@ def import_irma(
         extra=sig.extra,
         meta_extra=meta_extra,
     )
-    write_run(out_dir, run, overwrite=overwrite)
+
+
+def import_irma(
+    file: str | Path,
+    out_dir: str | Path,
+    targets: str | Path | None = None,
+    overwrite: bool = False,
+) -> Run:
+    """Convert an IRMA recording into a run folder (see :func:`irma_run`) and return it as read back."""
+    write_run(out_dir, irma_run(file, targets), overwrite=overwrite)
     return read_run(out_dir)
 
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.cli.args import parse_pose
+from acquisition.cli.args import add_force, check_output_option, claim_output_option, parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import RunFormatError, read_run
 from calib.effects import Effect, EffectLoadError, EffectModel, available_effects, make_effects
@@ -31,8 +31,11 @@ def register(sub) -> None:
         help="noise units: estimate (scatter inside the equilibrium windows, default), accuracy (that scatter "
         "floored at the sensors' accuracy class) or paper (eq. 18)",
     )
-    p.add_argument("--plots", type=Path, default=None, metavar="DIR", help="write PNG plots of the residuals here")
-    p.add_argument("--html", type=Path, default=None, metavar="FILE", help="write an HTML report (plots embedded)")
+    p.add_argument("--plots", type=Path, default=None, metavar="DIR",
+                   help="write PNG plots of the residuals into this new (or empty) folder; refused if it holds "
+                   "files, unless --force")
+    p.add_argument("--html", type=Path, default=None, metavar="FILE",
+                   help="write an HTML report (plots embedded); an existing file is refused unless --force")
     p.add_argument(
         "--effects-from", action="append", default=[], metavar="MODULE",
         help="also consider the effects of this Python file or importable module (repeatable)",
@@ -43,6 +46,7 @@ def register(sub) -> None:
         "--reference", default=None, metavar="x,y,z,r,p,y",
         help="a known initial pose (m, rad): eps_p after each added effect",
     )
+    add_force(p)
     p.set_defaults(func=_diagnose)
 
 
@@ -95,6 +99,9 @@ def _diagnose(args) -> int:
     if args.max_effects < 0:
         raise UsageError(f"--max-effects {args.max_effects} must be 0 or more.")
     reference = parse_pose(args.reference)
+    for option, path in (("--plots", args.plots), ("--html", args.html)):
+        if path is not None:
+            check_output_option(path, args.force, option)
     classes = effect_classes(args.effects_from)
     included = parse_effects(args.effects, classes)
     run = _read(args.run)
@@ -111,11 +118,14 @@ def _diagnose(args) -> int:
         import tempfile
 
         folder = args.plots if args.plots is not None else Path(tempfile.mkdtemp(prefix="cdpr-diagnose-"))
+        if args.plots is not None:
+            claim_output_option(folder, args.force, "--plots")
         try:
             pngs = plot_residuals(diag, folder)
         except OSError as exc:
             raise OperationError(f"{folder}: cannot write the plots ({exc.strerror}).") from exc
     if args.html is not None:
+        claim_output_option(args.html, args.force, "--html")
         try:
             args.html.write_text(html_report(diag, pngs, f"cdpr diagnose {args.run}"))
         except OSError as exc:

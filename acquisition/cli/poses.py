@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 
+from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
 from calib.planning import PlanningError, kinematic_path, plan_poses
 from calib.robot import RobotDescriptionError, load_robot
@@ -15,16 +16,20 @@ from calib.robot import RobotDescriptionError, load_robot
 def register(sub) -> None:
     p = sub.add_parser("poses", help="plan the calibration poses and tension setpoints (Sec. 3.2.1)")
     p.add_argument("--robot", default="irma4u", help="built-in robot name or robot YAML file (default irma4u)")
-    p.add_argument("--grid", type=int, default=2, help="grid points per axis in the workspace bounds (default 2)")
-    p.add_argument("--method", choices=("equilibrium", "kinematic"), default="equilibrium")
+    p.add_argument("--grid", type=int, default=2,
+                   help="grid points per axis in the workspace bounds, 2 to 6 as for cdpr startup (default 2)")
+    p.add_argument("--method", choices=("equilibrium", "kinematic"), default="equilibrium",
+                   help="equilibrium: static poses (default); kinematic: a constant-speed path")
     p.add_argument("--speed", type=float, default=0.05, help="kinematic method: path speed, m/s")
     p.add_argument("--json", action="store_true", help="print JSON on stdout")
     p.set_defaults(func=_poses)
     w = sub.add_parser("workspace", help="static workspace of the robot on a grid (Appendix A)")
-    w.add_argument("--robot", default="irma4u")
+    w.add_argument("--robot", default="irma4u", help="built-in robot name or robot YAML file (default irma4u)")
     w.add_argument("--step", type=float, default=0.1, help="grid spacing, m (default 0.1)")
-    w.add_argument("--plot", metavar="PNG", help="write a plot of the boundary to this PNG file")
-    w.add_argument("--json", action="store_true")
+    w.add_argument("--plot", metavar="PNG",
+                   help="write a plot of the boundary to this PNG file; an existing file is refused unless --force")
+    w.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    add_force(w)
     w.set_defaults(func=_workspace)
 
 
@@ -37,8 +42,7 @@ def _robot(name: str):
 
 def _poses(args) -> int:
     robot = _robot(args.robot)
-    if args.grid < 1:
-        raise UsageError(f"--grid must be a positive integer, got {args.grid}.")
+    check_grid(args.grid)
     try:
         if args.method == "kinematic":
             path = kinematic_path(robot, args.grid, speed=args.speed)
@@ -76,9 +80,12 @@ def _workspace(args) -> int:
     robot = _robot(args.robot)
     if not args.step > 0:
         raise UsageError(f"--step must be positive, got {args.step}.")
+    if args.plot:
+        check_output_option(args.plot, args.force, "--plot")
     ws = static_workspace(robot, step=args.step)
     summary = ws.summary()
     if args.plot:
+        claim_output_option(args.plot, args.force, "--plot")
         summary["plot"] = str(plot_workspace(ws, robot, args.plot))
     if args.json:
         json.dump(summary, sys.stdout)

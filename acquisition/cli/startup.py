@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition.cli import Interrupted
+from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.clock import RealClock, SimClock
 from acquisition.equilibrium import DetectorConfig
@@ -41,14 +43,18 @@ def register(sub) -> None:
     p.add_argument("--config", help="device configuration YAML (drivers/config.py), required with --backend hw")
     p.add_argument("--robot", default="irma4u", help="robot description: built-in name or YAML file")
     p.add_argument("--grid", type=int, default=2, help="calibration grid points per axis (default 2)")
-    p.add_argument("--method", choices=("equilibrium", "kinematic"), default="equilibrium")
-    p.add_argument("--out", help="run folder to write (default: run-<UTC time>)")
+    p.add_argument("--method", choices=("equilibrium", "kinematic"), default="equilibrium",
+                   help="equilibrium: static poses, tlse (default); kinematic: constant-speed path, lse")
+    p.add_argument("--out", help="run folder to write (default: run-<UTC time>); an existing run or a folder "
+                   "holding files is refused unless --force")
     p.add_argument("--sim-config", help="simulation configuration YAML (hidden effects, faults)")
-    p.add_argument("--truth", help="write the simulator's true initial pose here (JSON)")
+    p.add_argument("--truth", help="write the simulator's true initial pose here (JSON); an existing file is "
+                   "refused unless --force")
     p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
     p.add_argument("--rate", type=float, default=200.0, help="control rate, Hz, 200..500 (default 200)")
     p.add_argument("--realtime", action="store_true", help="pace the simulated prototype in real time")
-    p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file")
+    p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file (updated in place: "
+                   "its previous content is kept in RUN/run.yaml as previous_offsets)")
     p.add_argument("--max-rate", type=float, default=40.0, help="tension rate limit of the trajectories, N/s")
     p.add_argument("--hold", type=float, default=2.0, help="logged seconds of each equilibrium window")
     p.add_argument("--speed", type=float, default=0.05, help="platform speed along the kinematic path, m/s")
@@ -56,12 +62,12 @@ def register(sub) -> None:
                    help="s to wait for the platform to come to rest at each setpoint before holding anyway")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    add_force(p)
     p.set_defaults(func=run)
 
 
 def _config(args, robot) -> StartupConfig:
-    if args.grid < 2 or args.grid > 6:
-        raise UsageError(f"--grid {args.grid} is out of range: give 2 to 6 grid points per axis.")
+    check_grid(args.grid)
     if min(args.max_rate, args.hold, args.speed, args.settle_timeout) <= 0:
         raise UsageError(f"--max-rate {args.max_rate}, --hold {args.hold}, --speed {args.speed} and "
                          f"--settle-timeout {args.settle_timeout} must be positive.")
@@ -105,8 +111,9 @@ def _run(args, report: ReportRenderer) -> int:
             raise UsageError(str(exc)) from exc
     args.run_meta = meta
     out = Path(args.out or f"run-{_dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out} exists and is not a folder.")
+    check_output_option(out, args.force, "--out")
+    if args.truth:
+        check_output_option(args.truth, args.force, "--truth")
     if args.backend == "hw":
         if not args.config:
             raise UsageError("--backend hw needs --config FILE (the device configuration YAML).")
@@ -114,9 +121,20 @@ def _run(args, report: ReportRenderer) -> int:
             raise UsageError("--sim-config and --truth apply to --backend sim only.")
     elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
-    if args.backend == "hw":
-        return _run_hw(args, robot, plan, cfg, out, report)
-    return _run_sim(args, robot, plan, cfg, out, report)
+    claim_output_option(out, args.force, "--out")
+    try:
+        if args.backend == "hw":
+            return _run_hw(args, robot, plan, cfg, out, report)
+        return _run_sim(args, robot, plan, cfg, out, report)
+    except Interrupted as stop:  # a signal outside the acquisition, whose supervisor owns the stop
+        raise OperationError(f"stopped by {stop.args[0]} {_where(out)}.") from stop
+
+
+def _where(out: Path) -> str:
+    """Where a stop outside the acquisition leaves the operator: before the run log, or after it."""
+    if (out / "samples.csv").is_file():
+        return f"after the acquisition; the run log {out} is complete (cdpr solve {out})"
+    return "before the acquisition started; no run was written"
 
 
 def _progress(args) -> ProgressBar:
@@ -151,6 +169,7 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
                 sample = int(summary.solution["reference_sample"])
                 tick = int(result.ticks[sample])
                 truth = sim.truth(sync_count=tick)
+                claim_output_option(args.truth, args.force, "--truth")
                 Path(args.truth).write_text(json.dumps({
                     "initial_pose": [float(v) for v in truth.pose], "reference_sample": sample,
                     "sync_count": tick, "sim_time": float(truth.time)}) + "\n")

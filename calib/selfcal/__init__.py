@@ -42,6 +42,7 @@ from calib.selfcal.result import (
     SelfCalFailure,
     SelfCalInputError,
     Solution,
+    TooFewWindows,
     compare_pose,
 )
 from calib.selfcal.windows import Window, WindowOptions, find_windows
@@ -58,6 +59,7 @@ __all__ = [
     "WindowOptions",
     "SelfCalInputError",
     "SelfCalFailure",
+    "TooFewWindows",
     "METHODS",
     "NOISE",
     "CHANNELS",

@@ -13,7 +13,7 @@ from calib.robot import NoiseLevels, Robot
 from calib.selfcal.lm import levenberg_marquardt, solve_poses
 from calib.selfcal.model import CHANNELS, MeasurementModel
 from calib.selfcal.problem import Measurements, Problem
-from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, compare_pose
+from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, compare_pose
 from calib.selfcal.windows import Window, WindowOptions, find_windows
 
 METHODS = ("tlse", "lse", "hybrid")
@@ -79,6 +79,8 @@ def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
             raise SelfCalInputError(f"run: signal '{name}' has shape {a.shape}, expected {shape}.")
         sig[name] = a
     N = sig["t"].shape[0]
+    if N < 3:
+        raise SelfCalInputError(f"the run holds {N} samples; a solve needs at least 3.")
     for name, a in sig.items():
         if a.shape[0] != N:
             raise SelfCalInputError(f"run: signal '{name}' has {a.shape[0]} samples, 't' has {N}.")
@@ -86,8 +88,6 @@ def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise SelfCalInputError(f"run: signal '{name}' is not a finite number at sample {i} (value {a[i]}).")
-    if N < 3:
-        raise SelfCalInputError(f"run: {N} samples, at least 3 are needed.")
     ref = getattr(run, "tau_ref", None)
     sig["tau_ref"] = None if ref is None else np.asarray(ref, dtype=float)
     tr = sig["tau_ref"]
@@ -348,9 +348,9 @@ def solve_run(
         else:
             wins = list(windows)
         if method in ("tlse", "hybrid") and len(wins) < 2:
-            raise SelfCalFailure(
-                f"{len(wins)} equilibrium window(s) found in the run; method '{method}' needs at least 2 "
-                "(try --method lse)."
+            raise TooFewWindows(
+                f"{len(wins)} equilibrium window(s) found in the run; method '{method}' needs at least 2.",
+                len(wins),
             )
         meas, ref_sample, ref_win, ref, win_of = _rows(sig, wins, method, int(stride), reference_sample)
     t_rows = time.perf_counter()

@@ -20,6 +20,14 @@ class SelfCalFailure(RuntimeError):
     """A valid problem whose solve failed (no equilibrium found, no convergence)."""
 
 
+class TooFewWindows(SelfCalFailure):
+    """Fewer equilibrium windows than the method needs; ``found`` is how many the run holds."""
+
+    def __init__(self, message: str, found: int):
+        super().__init__(message)
+        self.found = found
+
+
 @dataclass(frozen=True)
 class ReferenceComparison:
     """Errors against a reference initial pose: eps_p (m), eps_r (rad, eq. 20: difference of the axis-angle
