@@ -26,14 +26,31 @@ parser's lengths and 52 with the controller's, so the raw import carries a 1.4-2
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from acquisition.runlog import Run, new_run, read_run, write_run
+from acquisition.runlog import (
+    CONFLICT,
+    CUT,
+    FIELDS,
+    FOREIGN,
+    ORDER,
+    REPEATED,
+    VALUE,
+    DamageLog,
+    Run,
+    new_run,
+    read_run,
+    time_order,
+    write_run,
+)
+
+PARTIAL = "logging cycles lacking a cable or AHRS line"
+MISSING = "samples missing from a field"
+MIN_HOLDS = 2  # steady setpoint holds a run needs to be solved (tlse: two equilibrium windows)
 
 # Homing pose of the IRMA4U prototype: absolute values the homing procedure establishes (README).
 IRMA_HOMING_LENGTHS = (2.27254824660233, 2.27300821626030, 2.27300821626030, 2.27254824660233)  # m
@@ -79,6 +96,7 @@ class IrmaSignals:
     dyaw: np.ndarray
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     homing: dict[str, Any] = field(default_factory=dict)
+    damage: DamageLog | None = None  # what the reader skipped; irma_run warns or refuses
 
 
 # ------------------------------------------------------------------------------------------ parsed .mat
@@ -89,8 +107,8 @@ def read_irma_parsed(file: str | Path) -> IrmaSignals:
     file = Path(file)
     try:
         data = _loadmat(file)
-    except (ValueError, TypeError, OSError, NotImplementedError) as exc:
-        raise IrmaImportError(f"{file}: not a readable MATLAB v5 file ({exc}).") from exc
+    except Exception as exc:  # noqa: BLE001 - scipy raises many kinds on a damaged file; each is one sentence
+        raise IrmaImportError(f"{file}: not a readable MATLAB v5 file ({type(exc).__name__}: {exc}).") from exc
     if "st" not in data:
         names = ", ".join(k for k in data if not k.startswith("__")) or "none"
         raise IrmaImportError(f"{file}: variable 'st' is missing (variables found: {names}).")
@@ -102,27 +120,40 @@ def read_irma_parsed(file: str | Path) -> IrmaSignals:
     def fld(name: str, rows: int | None) -> np.ndarray:
         if name not in st.dtype.names:
             raise IrmaImportError(f"{file}: field 'st.{name}' is missing.")
-        a = np.asarray(st[name], dtype=float)
+        try:
+            a = np.asarray(st[name], dtype=float)
+        except (TypeError, ValueError):
+            raise IrmaImportError(f"{file}: field 'st.{name}' does not hold numbers.") from None
         if rows is None:
             a = a.reshape(-1)
         elif a.ndim != 2 or a.shape[0] != rows:
             raise IrmaImportError(f"{file}: field 'st.{name}' has shape {a.shape}, expected ({rows}, N).")
         return a
 
-    t = fld("t", None)
-    N = t.shape[0]
-    arrays = {"epsilon": fld("epsilon", 3)}
+    arrays = {"t": fld("t", None)[None, :], "epsilon": fld("epsilon", 3)}
     for name in ("cable_length", "swivel", "tensions", "target_tensions"):
         arrays[name] = fld(name, IRMA_CABLES)
-    for name, a in arrays.items():
-        if a.shape[1] != N:
-            raise IrmaImportError(f"{file}: field 'st.{name}' has {a.shape[1]} samples but 'st.t' has {N}.")
-    for name, a in [("t", t), *arrays.items()]:
-        bad = np.argwhere(~np.isfinite(a))
-        if bad.size:
-            raise IrmaImportError(f"{file}: field 'st.{name}' has a NaN or infinite value at index {bad[0].tolist()}.")
+    damage = DamageLog(file)
+    lengths = {name: a.shape[1] for name, a in arrays.items()}
+    N = min(lengths.values())
     if N < 1:
-        raise IrmaImportError(f"{file}: field 'st.t' is empty.")
+        raise IrmaImportError(f"{file}: field 'st.{min(lengths, key=lengths.get)}' is empty.")
+    longest = max(lengths, key=lengths.get)
+    if lengths[longest] > N:
+        short = min(lengths, key=lengths.get)
+        damage.add(MISSING, f"first: field 'st.{short}' has {N} samples, 'st.{longest}' {lengths[longest]}",
+                   lengths[longest] - N)
+    values = np.concatenate([a[:, :N] for a in arrays.values()]).T  # (N, 20): t first
+    ok = np.isfinite(values).all(axis=1)
+    if not ok.all():
+        j = int(np.flatnonzero(~ok)[0])
+        damage.add(VALUE, f"first: sample {j} (index {j + 1} in MATLAB)", int(np.count_nonzero(~ok)))
+    good = np.flatnonzero(ok)
+    keep = good[time_order(values[good, 0], values[good], [f"sample {j}" for j in good], damage)]
+    if keep.size == 0:
+        raise IrmaImportError(f"{file}: no usable sample; damaged input: {damage.summary()}.")
+    arrays = {name: a[:, keep] for name, a in arrays.items()}
+    t = arrays["t"][0]
     eps = arrays["epsilon"]
     return IrmaSignals(
         t=t,
@@ -134,6 +165,7 @@ def read_irma_parsed(file: str | Path) -> IrmaSignals:
         pitch=eps[1].copy(),
         dyaw=eps[2].copy(),  # already yaw minus its homing mean
         homing={"lengths": list(IRMA_HOMING_LENGTHS), "swivels": list(IRMA_HOMING_SWIVELS), "yaw": 0.0},
+        damage=damage,
     )
 
 
@@ -147,57 +179,71 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     go from degrees to radians. The homing means of length, pulley angle and yaw define the zeros.
     """
     file = Path(file)
-    try:
-        text = file.read_bytes().decode("ascii")
-    except UnicodeDecodeError as exc:
-        raise IrmaImportError(f"{file}: not a text log (non-ASCII byte at offset {exc.start}).") from exc
-    lines = text.split("\n")
-    if lines and lines[-1] == "":
+    damage = DamageLog(file)
+    lines = file.read_bytes().decode("ascii", errors="replace").split("\n")
+    if lines[-1] == "":
         lines.pop()
-    elif lines:
-        warnings.warn(
-            f"{file}: line {len(lines)} is incomplete (cut while logging) and was dropped.", UserWarning, stacklevel=2
-        )
+    else:
+        damage.add(CUT, f"line {len(lines)}")
         lines.pop()
     act: dict[float, dict[int, list[float]]] = {}
     ahrs: dict[float, list[float]] = {}
-    order: list[float] = []
+    first_line: dict[float, int] = {}
+    conflict: set[float] = set()
     for k, line in enumerate(lines, start=1):
         line = line.strip()
         if not line:
-            continue
+            continue  # a blank line holds no reading: nothing is lost
         cells = line.split(",")
         kind = cells[0].strip()
+        if kind == "6":
+            continue  # type 6: extras, not used
         if kind not in ("3", "5"):
-            continue  # type 6 and others: not used
+            damage.add(FOREIGN, f"first: line {k} of type {kind[:20]!r}")
+            continue
         expected = 14 if kind == "3" else 5
         if len(cells) != expected:
-            raise IrmaImportError(f"{file}: line {k} (type {kind}) has {len(cells)} fields, expected {expected}.")
-        try:
-            vals = [float(c) for c in cells[1:]]
-        except ValueError:
-            bad = next(c for c in cells[1:] if not _is_float(c))
-            raise IrmaImportError(f"{file}: line {k} has the non-numeric value {bad!r}.") from None
+            damage.add(FIELDS, f"first: line {k} (type {kind}) has {len(cells)} fields, expected {expected}")
+            continue
+        vals = [_float_or_nan(c) for c in cells[1:]]
+        if not all(math.isfinite(v) for v in vals):
+            bad = next(c for c, v in zip(cells[1:], vals, strict=True) if not math.isfinite(v))
+            damage.add(VALUE, f"first: line {k} has the value {bad.strip()!r}")
+            continue
         t = vals[0]
-        if t not in act and t not in ahrs:
-            order.append(t)
         if kind == "3":
             cid = int(vals[1])
             if vals[1] != cid or not 0 <= cid < IRMA_CABLES:
-                raise IrmaImportError(f"{file}: line {k} has actuator id {cells[2]!r}, expected 0..{IRMA_CABLES - 1}.")
-            act.setdefault(t, {})[cid] = vals[2:]
+                damage.add(FOREIGN, f"first: line {k} has actuator id {cells[2].strip()!r}, expected 0..3")
+                continue
+            slot, key, reading = act.setdefault(t, {}), cid, vals[2:]
         else:
-            ahrs[t] = vals[1:]
-    complete = [t for t in order if t in ahrs and len(act.get(t, {})) == IRMA_CABLES]
-    dropped = len(order) - len(complete)
-    if dropped:
-        warnings.warn(f"{file}: {dropped} logging cycles lacked a cable or AHRS line and were dropped.", stacklevel=2)
+            slot, key, reading = ahrs, t, vals[1:]
+        first_line.setdefault(t, k)
+        if key in slot:
+            if slot[key] == reading:
+                damage.add(REPEATED, f"first: line {k}")
+            else:
+                conflict.add(t)
+            continue
+        slot[key] = reading
+    times = sorted(first_line)
+    if conflict:
+        damage.add(CONFLICT, f"first: the cycle at line {min(first_line[t] for t in conflict)}", len(conflict))
+    complete = [t for t in times if t in ahrs and len(act.get(t, {})) == IRMA_CABLES and t not in conflict]
+    partial = [t for t in times if t not in complete and t not in conflict]
+    if partial:
+        damage.add(PARTIAL, f"first: the cycle at line {first_line[partial[0]]}", len(partial))
+    appearance = np.array([first_line[t] for t in complete])
+    late = np.flatnonzero(appearance[1:] < np.maximum.accumulate(appearance)[:-1]) + 1 if complete else []
+    if len(late):
+        damage.add(ORDER, f"first: the cycle at line {appearance[late[0]]}", len(late))
     if not complete:
-        raise IrmaImportError(f"{file}: no complete logging cycle (4 type-3 lines and a type-5 line at one time).")
+        raise IrmaImportError(
+            f"{file}: no complete logging cycle (4 type-3 lines and a type-5 line at one time)"
+            + (f"; damaged input: {damage.summary()}." if damage else ".")
+        )
     t_all = np.array(complete)
-    if np.any(np.diff(t_all) <= 0):
-        j = int(np.flatnonzero(np.diff(t_all) <= 0)[0])
-        raise IrmaImportError(f"{file}: time goes back from {t_all[j]} s to {t_all[j + 1]} s.")
     A = np.array([[act[t][i] for i in range(IRMA_CABLES)] for t in complete])  # (cycles, 4, 11)
     E = np.radians(np.array([ahrs[t] for t in complete]))  # (cycles, 3) rad
     gaps = np.flatnonzero(np.diff(t_all) > min_pause)
@@ -230,6 +276,7 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
         },
     }
     return IrmaSignals(
+        damage=damage,
         t=t_all[exp],
         tension=f["cable_tension"][exp],
         target=f["target"][exp],
@@ -243,12 +290,11 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     )
 
 
-def _is_float(s: str) -> bool:
+def _float_or_nan(c: str) -> float:
     try:
-        float(s)
+        return float(c)
     except ValueError:
-        return False
-    return True
+        return math.nan
 
 
 # ------------------------------------------------------------------------------------------- setpoints
@@ -349,14 +395,14 @@ def detect_irma_format(file: str | Path) -> str:
     if not file.is_file():
         raise IrmaImportError(f"{file}: no such file.")
     with open(file, "rb") as fh:
-        head = fh.read(128)
+        head = fh.read(1024)
     if head.startswith(b"MATLAB 5.0"):
         return "parsed"
     if head.startswith(b"MATLAB 7.3") or head[:8] == b"\x89HDF\r\n\x1a\n":
         raise IrmaImportError(f"{file}: MATLAB v7.3 (HDF5) files are not supported; save the struct with -v7.")
     first = head.split(b"\n", 1)[0].strip()
-    if first[:2] in (b"3,", b"5,", b"6,"):
-        return "log"
+    if any(line.strip()[:2] in (b"3,", b"5,", b"6,") for line in head.split(b"\n")[:-1]):
+        return "log"  # a record among the first lines (a damaged first line is the reader's to skip)
     raise IrmaImportError(
         f"{file}: neither a MATLAB v5 *_parsed.mat nor a controller log (it starts with {first[:20]!r})."
     )
@@ -373,6 +419,14 @@ def irma_run(file: str | Path, targets: str | Path | None = None) -> Run:
     sig = read_irma_parsed(file) if kind == "parsed" else read_irma_log(file)
     planned = read_irma_targets(targets) if targets is not None else None
     seg = segment_targets(sig.target, IRMA_SAMPLE_PERIOD, setpoints=None if planned is None else planned[0])
+    if len(seg.plateaus) < MIN_HOLDS:
+        damaged = f"; damaged input: {sig.damage.summary()}" if sig.damage else ""
+        raise IrmaImportError(
+            f"{file}: {len(seg.plateaus)} steady setpoint hold(s) in the experiment ({len(sig.t)} samples), a solve "
+            f"needs at least {MIN_HOLDS}{damaged}."
+        )
+    if sig.damage:
+        sig.damage.warn(len(sig.t), stacklevel=2)
     t0 = float(sig.t[0])
     meta_extra: dict[str, Any] = {
         "homing": sig.homing,

@@ -13,12 +13,14 @@ from scipy.optimize import least_squares
 from acquisition.importers import (
     IRMA_HOMING_LENGTHS,
     IRMA_HOMING_SWIVELS,
+    PARTIAL,
     IrmaImportError,
     import_irma,
+    irma_run,
     read_irma_log,
     segment_targets,
 )
-from acquisition.runlog import read_run
+from acquisition.runlog import CUT, DamagedInputWarning, read_run
 from calib.kinematics import inverse_kinematics
 from calib.robot import load_robot
 
@@ -176,18 +178,20 @@ def test_truncated_raw_log_drops_its_last_incomplete_cycle(irma_data, tmp_path):
     data = (irma_data / "sc_8_final.log").read_bytes()
     cut = tmp_path / "cut.log"
     cut.write_bytes(data[:-20])  # the log stops inside the last AHRS line
-    with pytest.warns(UserWarning) as rec:
-        sig = read_irma_log(cut)
-    assert any("incomplete" in str(w.message) for w in rec)
+    sig = read_irma_log(cut)
+    assert sig.damage.counts == {CUT: 1, PARTIAL: 1}  # the cut line, and the cycle it belonged to
     assert sig.t.shape == (1279,) and sig.t[-1] == pytest.approx(385.654)
+    with pytest.warns(DamagedInputWarning, match=r"cut\.log: damaged input: 1 cut short .*; 1279 samples kept"):
+        irma_run(cut)
 
 
 @pytest.mark.parametrize(
     "content, message",
     [
-        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,0.2\n", r"line 2 \(type 5\) has 4 fields, expected 5"),
-        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,abc,0.3\n", r"line 2 has the non-numeric value 'abc'"),
-        ("3,1.0,7,9,1,2,3,0.5,0,40,55,1,0,0.3\n", r"line 1 has actuator id '7'"),
+        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,0.2\n",
+         r"no complete logging cycle .*; damaged input: 1 wrong number of fields \(first: line 2 \(type 5\) has 4 "),
+        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,abc,0.3\n", r"\(first: line 2 has the value 'abc'\)"),
+        ("3,1.0,7,9,1,2,3,0.5,0,40,55,1,0,0.3\n", r"\(first: line 1 has actuator id '7', expected 0\.\.3\)"),
     ],
 )
 def test_bad_raw_logs(tmp_path, content, message):
@@ -222,7 +226,9 @@ def test_bad_parsed_files(tmp_path: Path):
         import_irma(g, tmp_path / "r2")
     st["target_tensions"] = np.zeros((4, 5))
     scipy.io.savemat(g, {"st": st})
-    with pytest.raises(IrmaImportError, match=r"field 'st\.tensions' has 4 samples but 'st\.t' has 5"):
+    with pytest.raises(IrmaImportError, match=r"0 steady setpoint hold\(s\) in the experiment \(4 samples\), a solve "
+                       r"needs at least 2; damaged input: 1 samples missing from a field \(first: field 'st\.tensions' "
+                       r"has 4 samples, 'st\.t' 5\)\."):
         import_irma(g, tmp_path / "r3")
     h = tmp_path / "notes.txt"
     h.write_text("hello\n")
