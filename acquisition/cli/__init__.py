@@ -94,26 +94,29 @@ def _route_signals() -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     previous = _route_signals()
+    started: list[str] = []  # the command, once it runs
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", UserWarning)
             warnings.showwarning = _warning_line
-            return _main(argv)
+            return _main(argv, started)
     except KeyboardInterrupt as exc:
         name = exc.args[0] if isinstance(exc, Interrupted) else "SIGINT"
-        sys.stderr.write(f"cdpr: interrupted by the operator ({name}).\n")
+        when = f" during cdpr {started[0]}" if started else " before the command started; nothing was written"
+        sys.stderr.write(f"cdpr: interrupted by the operator ({name}){when}.\n")
         return 1
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
 
-def _main(argv: list[str] | None) -> int:
+def _main(argv: list[str] | None, started: list[str]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    started.append(str(args.command))
     try:
         return int(args.func(args) or 0)
     except UsageError as exc:
