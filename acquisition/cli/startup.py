@@ -80,12 +80,22 @@ def _config(args, robot) -> StartupConfig:
 
 
 def run(args) -> int:
-    with ReportRenderer() as report:
-        if not args.no_html:
-            # forked first: it loads matplotlib while the robot is planned and connected. During the control
-            # loop the simulated plant needs the second core, and a renderer still loading then slows it down
-            report.start()
-        return _run(args, report)
+    try:
+        with ReportRenderer() as report:
+            if not args.no_html:
+                # forked first: it loads matplotlib while the robot is planned and connected. During the control
+                # loop the simulated plant needs the second core, and a renderer still loading then slows it down
+                report.start()
+            return _run(args, report)
+    except Interrupted as stop:  # a signal outside the acquisition, whose supervisor owns the stop
+        raise OperationError(f"stopped by {stop.args[0]} {_where(getattr(args, 'run_folder', None))}.") from stop
+
+
+def _where(out: Path | None) -> str:
+    """Where a stop outside the acquisition leaves the operator: before the run log, or after it."""
+    if out is not None and (out / "samples.csv").is_file():
+        return f"after the acquisition; the run log {out} is complete (cdpr solve {out})"
+    return "before the acquisition started; no run was written"
 
 
 def _run(args, report: ReportRenderer) -> int:
@@ -122,19 +132,10 @@ def _run(args, report: ReportRenderer) -> int:
     elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
     claim_output_option(out, args.force, "--out")
-    try:
-        if args.backend == "hw":
-            return _run_hw(args, robot, plan, cfg, out, report)
-        return _run_sim(args, robot, plan, cfg, out, report)
-    except Interrupted as stop:  # a signal outside the acquisition, whose supervisor owns the stop
-        raise OperationError(f"stopped by {stop.args[0]} {_where(out)}.") from stop
-
-
-def _where(out: Path) -> str:
-    """Where a stop outside the acquisition leaves the operator: before the run log, or after it."""
-    if (out / "samples.csv").is_file():
-        return f"after the acquisition; the run log {out} is complete (cdpr solve {out})"
-    return "before the acquisition started; no run was written"
+    args.run_folder = out
+    if args.backend == "hw":
+        return _run_hw(args, robot, plan, cfg, out, report)
+    return _run_sim(args, robot, plan, cfg, out, report)
 
 
 def _progress(args) -> ProgressBar:
