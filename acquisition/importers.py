@@ -13,6 +13,10 @@ pose: dl = absolute length - homing length, dsigma = absolute swivel - homing sw
 yaw. The homing values are stored in run.yaml under ``homing`` so a solve's sensor offsets can be checked
 against them. Time starts at 0 at the first experiment sample; ``time_origin`` keeps the controller's time.
 
+Damaged input follows the run reader's policy (docs/run-format.md): a damaged line of the log, or a damaged
+sample of the .mat, is skipped and counted (:class:`acquisition.runlog.DamageLog`), and :func:`irma_run`
+says so in one warning, or refuses, nothing written, when fewer than ``MIN_HOLDS`` setpoint holds remain.
+
 The two inputs differ in one respect (measured on sc_8_final): the authors' parser recomputes the cable
 lengths from the motor counts with one transmission ratio for all winches (0.0280645 m/rev), whereas the
 controller's ``cable_length`` uses each winch's own ratio (0.028807, 0.028652, 0.028448, 0.028641 m/rev,
@@ -42,6 +46,7 @@ from acquisition.runlog import (
     VALUE,
     DamageLog,
     Run,
+    float_or_nan,
     new_run,
     read_run,
     time_order,
@@ -205,7 +210,7 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
         if len(cells) != expected:
             damage.add(FIELDS, f"first: line {k} (type {kind}) has {len(cells)} fields, expected {expected}")
             continue
-        vals = [_float_or_nan(c) for c in cells[1:]]
+        vals = [float_or_nan(c) for c in cells[1:]]
         if not all(math.isfinite(v) for v in vals):
             bad = next(c for c, v in zip(cells[1:], vals, strict=True) if not math.isfinite(v))
             damage.add(VALUE, f"first: line {k} has the value {bad.strip()!r}")
@@ -288,13 +293,6 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
         extra=extra,
         homing=homing,
     )
-
-
-def _float_or_nan(c: str) -> float:
-    try:
-        return float(c)
-    except ValueError:
-        return math.nan
 
 
 # ------------------------------------------------------------------------------------------- setpoints

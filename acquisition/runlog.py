@@ -663,11 +663,12 @@ def _floats(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     try:
         a = np.array(cells, dtype=float)
     except ValueError:
-        a = np.array([_float_or_nan(c) for c in cells], dtype=float)
+        a = np.array([float_or_nan(c) for c in cells], dtype=float)
     return a, np.isfinite(a)
 
 
-def _float_or_nan(c: str) -> float:
+def float_or_nan(c: str) -> float:
+    """float(c), or NaN for a cell that is not a number (the damage policy then skips its line)."""
     try:
         return float(c)
     except ValueError:

@@ -1,12 +1,13 @@
 """`cdpr startup`: the operator's startup routine on the simulated prototype or on the robot.
 
     cdpr startup --backend sim [--grid N] [--method equilibrium|kinematic] [--out RUN] [--sim-config FILE]
-                 [--truth FILE] [--seed S] [--rate HZ] [--realtime] [--json]
+                 [--truth FILE] [--seed S] [--rate HZ] [--realtime] [--json] [--force]
     cdpr startup --backend hw --config DEVICES.yaml [...]
 
 Pose planning, force-controlled acquisition into the run folder, solve, report (text on stdout or JSON with
 ``--json``; RUN/report.html; the new sensor offsets in RUN/offsets.yaml and, with ``--offsets FILE``, there
 too). A safe stop exits with status 1 and one sentence; the run folder keeps every sample and the event.
+An existing RUN is refused, or with ``--force`` moved aside (acquisition/outputs.py) before the robot moves.
 """
 
 from __future__ import annotations
