@@ -14,7 +14,7 @@ from calib.selfcal.lm import levenberg_marquardt, solve_poses
 from calib.selfcal.model import CHANNELS, MeasurementModel
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, compare_pose
-from calib.selfcal.windows import Window, WindowOptions, find_windows
+from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_windows
 
 METHODS = ("tlse", "lse", "hybrid")
 NOISE = ("paper", "estimate", "sensors")
@@ -335,22 +335,25 @@ def solve_run(
         raise SelfCalInputError(f"stride {stride} must be a positive integer.")
     model = model or MeasurementModel(robot)
     t_start = time.perf_counter()
+    search: WindowSearch | None = None
     if isinstance(run, Measurements):
         meas, sig, wins, ref_sample, ref_win, win_of = run, None, list(windows or []), -1, None, [-1] * run.k
         ref = None
     else:
         sig = _signals(robot, run)
         if windows is None:
-            wins = find_windows(
+            search = search_windows(
                 robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
                 sig["tau_ref"], getattr(run, "setpoints", None), window_options,
             )
+            wins = list(search.used)
         else:
             wins = list(windows)
         if method in ("tlse", "hybrid") and len(wins) < 2:
+            failed = "" if search is None else "".join(" " + m.reason for m in search.missing)
             raise SelfCalFailure(
                 f"{len(wins)} equilibrium window(s) found in the run; method '{method}' needs at least 2 "
-                "(try --method lse)."
+                f"(try --method lse).{failed}"
             )
         meas, ref_sample, ref_win, ref, win_of = _rows(sig, wins, method, int(stride), reference_sample)
     t_rows = time.perf_counter()
@@ -419,4 +422,5 @@ def solve_run(
         },
         effects=effects,
         reference=comparison,
+        window_search=search,
     )
