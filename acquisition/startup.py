@@ -15,7 +15,6 @@ is logged as phase ``return``; the final rest under tau0 is not logged.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -150,6 +149,7 @@ class StartupRoutine:
         self._target = -1  # the setpoint being approached or held, for the progress line
         self._compute: list[float] = []
         self._total_estimate = 1.0
+        self._detector: EquilibriumDetector | None = None
 
     # ---- the loop -------------------------------------------------------------------------------------
     def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
@@ -218,10 +218,11 @@ class StartupRoutine:
                 timeout: float | None = None) -> bool:
         """Hold ``tau`` until the detector says the platform rests; False on its timeout (s)."""
         self._phase, self._setpoint = phase, setpoint
-        base = self.cfg.detector or DetectorConfig.for_robot(self.robot)
-        dcfg = base if timeout is None else dataclasses.replace(base, timeout=timeout)
-        det = EquilibriumDetector(self.cfg.log_period, dcfg)
-        det.start(self.clock.now())
+        if self._detector is None:  # one detector for the whole routine: it learns the sensors' noise
+            self._detector = EquilibriumDetector(self.cfg.log_period,
+                                                 self.cfg.detector or DetectorConfig.for_robot(self.robot))
+        det = self._detector
+        det.start(self.clock.now(), timeout)
         while True:
             _, state = self._tick(tau, log=log, detector=det)
             if state is not None and (state.settled or state.timed_out):
