@@ -77,15 +77,27 @@ class StartupConfig:
                              f"(1/{self.rate:g} s).")
 
 
+@dataclass(frozen=True)
+class Pause:
+    """A pause of the sequence after setpoint ``after``'s window: ``seconds`` at rest, at that setpoint or
+    (``home``) back under tau0; logged as phase ``pause`` with setpoint -1 (not a planned equilibrium)."""
+
+    after: int
+    seconds: float
+    home: bool = False
+
+
 @dataclass
 class Plan:
-    """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path."""
+    """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path,
+    pauses."""
 
     setpoints: np.ndarray
     ideal_poses: np.ndarray
     tau0: np.ndarray
     path_tensions: np.ndarray | None = None  # (m, n) N, kinematic method
     path_times: np.ndarray | None = None  # (m,) s
+    pauses: tuple[Pause, ...] = ()
 
     @classmethod
     def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05) -> Plan:
@@ -239,6 +251,16 @@ class StartupRoutine:
         self.writer.sync()
         return first, last
 
+    def _pause(self, at: np.ndarray, pause: Pause) -> np.ndarray:
+        """Rest for the pause (back under tau0 first if it says so); returns the tensions it ends at."""
+        target = self.plan.tau0 if pause.home else at
+        if pause.home:
+            self._move_to(at, target, self.cfg.max_tension_rate, "pause")
+        self._phase, self._setpoint = "pause", -1
+        for _ in range(int(round(pause.seconds / self.period))):
+            self._tick(target)
+        return target
+
     def _move_to(self, a: np.ndarray, b: np.ndarray, rate: float, phase: str, setpoint: int = -1) -> None:
         traj = TensionTrajectory(np.stack([a, b]), np.array([max(
             TensionTrajectory.through(np.stack([a, b]), rate).duration, self.cfg.min_transition)]))
@@ -250,7 +272,7 @@ class StartupRoutine:
         moves = np.abs(np.diff(sp, axis=0)).max(axis=1)
         tr = np.maximum(1.875 * moves / self.cfg.max_tension_rate, self.cfg.min_transition).sum()
         per = self.cfg.expected_settle + self.cfg.hold_time
-        total = tr + per * (len(sp) - 1) + 10.0
+        total = tr + per * (len(sp) - 1) + 10.0 + sum(p.seconds for p in self.plan.pauses)
         if self.plan.path_times is not None:
             total += float(self.plan.path_times[-1])
         return float(total)
@@ -329,6 +351,8 @@ class StartupRoutine:
                     self._settle(sp, "settle", -1)  # a timeout still gives a (quasi-static) window
                     self._windows.append(self._hold(sp, j))
                     prev = sp
+                    for pause in (p for p in self.plan.pauses if p.after == j):
+                        prev = self._pause(prev, pause)
                 self._move_to(prev, tau0, self.cfg.max_tension_rate, "return", -1)
             self.writer.sync()
         except SafeStop as stop:

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from calib.robot import NoiseLevels, Robot
-from calib.selfcal._solve import METHODS, NOISE, noise_levels, paper_noise, sensor_noise, solve_run
+from calib.selfcal._solve import METHODS, NOISE, Prepared, noise_levels, paper_noise, prepare, sensor_noise, solve_run
 from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import (
@@ -72,6 +72,8 @@ __all__ = [
     "CHANNELS",
     "find_windows",
     "search_windows",
+    "prepare",
+    "Prepared",
     "WindowSearch",
     "MissingSetpoint",
     "Stillness",

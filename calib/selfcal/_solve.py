@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -314,7 +315,23 @@ def noise_levels(
     raise SelfCalInputError(f"noise '{noise}' is not one of {', '.join(NOISE)}.")
 
 
-def solve_run(
+@dataclass
+class Prepared:
+    """A run made ready for the solve: the problem, its start (theta0 (p,), poses0 (k, 6)), the windows and
+    what the solution reports of them, and the time marks (perf_counter s) of each step."""
+
+    problem: Problem
+    theta0: np.ndarray
+    poses0: np.ndarray
+    windows: list[Window]
+    search: WindowSearch | None
+    ref: dict[str, np.ndarray] | None
+    ref_sample: int
+    noise_source: str
+    marks: tuple[float, float, float]  # start, rows done, guess done
+
+
+def prepare(
     robot: Robot,
     run: Any,
     method: str = "tlse",
@@ -325,10 +342,9 @@ def solve_run(
     window_options: WindowOptions | None = None,
     model: MeasurementModel | None = None,
     guess: tuple[np.ndarray, np.ndarray] | None = None,
-    reference_pose: np.ndarray | None = None,
-    max_iter: int = 200,
-) -> Solution:
-    """See :func:`calib.selfcal.solve`."""
+) -> Prepared:
+    """Windows, measurement rows, noise and the initial guess of :func:`solve_run`, without the LM solve (the
+    problem a benchmark can hand to another solver)."""
     if method not in METHODS:
         raise SelfCalInputError(f"method '{method}' is not one of {', '.join(METHODS)}.")
     if int(stride) < 1:
@@ -371,7 +387,29 @@ def solve_run(
             Z0 = estimate_poses(problem, theta0, np.tile(theta0[:6], (meas.k, 1)), np.ones(meas.k, bool))
         else:
             Z0 = np.asarray(guess[1], float).reshape(-1, 6)
-    t_guess = time.perf_counter()
+    return Prepared(problem, theta0, Z0, wins, search, ref, ref_sample, source,
+                    (t_start, t_rows, time.perf_counter()))
+
+
+def solve_run(
+    robot: Robot,
+    run: Any,
+    method: str = "tlse",
+    noise: str | NoiseLevels | dict = "paper",
+    stride: int = 1,
+    reference_sample: int | None = None,
+    windows: list[Window] | None = None,
+    window_options: WindowOptions | None = None,
+    model: MeasurementModel | None = None,
+    guess: tuple[np.ndarray, np.ndarray] | None = None,
+    reference_pose: np.ndarray | None = None,
+    max_iter: int = 200,
+) -> Solution:
+    """See :func:`calib.selfcal.solve`."""
+    pre = prepare(robot, run, method, noise, stride, reference_sample, windows, window_options, model, guess)
+    problem, theta0, Z0, wins, search, ref = pre.problem, pre.theta0, pre.poses0, pre.windows, pre.search, pre.ref
+    model, meas, ref_sample, source = problem.model, problem.meas, pre.ref_sample, pre.noise_source
+    t_start, t_rows, t_guess = pre.marks
     res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
     t_end = time.perf_counter()
     if not np.isfinite(res.cost) or not res.converged:

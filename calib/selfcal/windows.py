@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from calib.robot import Robot
 
@@ -137,9 +136,40 @@ def slow_drift(x: np.ndarray, w: int, rest: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class Activity:
+    """What the signals do over each centred span of ``span`` samples: the range (max - min) per channel and
+    column, and the largest standard deviation of the tensions (N); (N, ...) per sample."""
+
+    span: int
+    ranges: dict[str, np.ndarray]
+    ripple: np.ndarray
+
+    @classmethod
+    def of(cls, tau: np.ndarray, channels: dict[str, np.ndarray], w: int) -> Activity:
+        size = tau.shape[0]
+        if size < w:
+            return cls(w, {c: np.full(x.shape, np.inf) for c, x in channels.items()}, np.full(size, np.inf))
+        m = size - w + 1
+        ranges = {}
+        for c, x in channels.items():  # running max and min by w - 1 shifted comparisons
+            hi, lo = x[:m].copy(), x[:m].copy()
+            for j in range(1, w):
+                np.maximum(hi, x[j : j + m], out=hi)
+                np.minimum(lo, x[j : j + m], out=lo)
+            ranges[c] = _centred(hi - lo, w, size)
+        y = tau - tau.mean(axis=0)
+        c1 = np.cumsum(np.r_[np.zeros((1, y.shape[1])), y], axis=0)
+        c2 = np.cumsum(np.r_[np.zeros((1, y.shape[1])), y * y], axis=0)
+        mean = (c1[w:] - c1[:-w]) / w
+        var = np.clip((c2[w:] - c2[:-w]) / w - mean * mean, 0.0, None)
+        return cls(w, ranges, _centred(np.sqrt(var.max(axis=1)), w, size))
+
+
+@dataclass(frozen=True)
 class Stillness:
     """The stillness test of one run: span (samples), range per channel (SI, per column) and ripple tolerance
-    (N). ``score`` gives per sample the largest ratio of a channel's activity over the span to its limit."""
+    (N). ``parts`` gives per sample the largest ratio of a channel's range over the span to its limit and the
+    ripple over its tolerance; still where both are <= 1."""
 
     span: int
     thresholds: dict[str, np.ndarray]
@@ -147,43 +177,26 @@ class Stillness:
 
     @classmethod
     def of_run(
-        cls, robot: Robot, dt: float, tau: np.ndarray, channels: dict[str, np.ndarray], options: WindowOptions,
+        cls, robot: Robot, tau: np.ndarray, channels: dict[str, np.ndarray], act: Activity, options: WindowOptions,
     ) -> Stillness:
         """Thresholds from the run's own noise, then its drift over the samples that noise alone calls still,
         floored at the options' tolerances."""
-        w = max(3, int(round(options.span_s / dt)))
+        w = act.span
         floors = {"length": options.length_tol, "swivel": options.swivel_tol, "tilt": options.tilt_tol}
         ripple_tol = max(robot.sensors.load_cell_uncertainty, options.ripple_factor * float(noise_floor(tau).max()))
         noise = {c: np.maximum(floors[c], options.noise_factor * sample_noise(x)) for c, x in channels.items()}
-        rest = cls(w, noise, ripple_tol).score(tau, channels) <= 1.0
+        kin, ripple = cls(w, noise, ripple_tol).parts(act)
+        rest = (kin <= 1.0) & (ripple <= 1.0)
         thr = {c: np.maximum(noise[c], options.noise_factor * sample_noise(x) + options.drift_factor
                              * slow_drift(x, w, rest)) for c, x in channels.items()}
         return cls(w, thr, ripple_tol)
 
-    def parts(self, tau: np.ndarray, channels: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def parts(self, act: Activity) -> tuple[np.ndarray, np.ndarray]:
         """Per sample (N,): the kinematic score (ranges over their limits) and the ripple over its tolerance."""
-        size, w = tau.shape[0], self.span
-        if size < w:
-            return np.full(size, np.inf), np.full(size, np.inf)
-        kin = np.zeros(size - w + 1)
-        for c, x in channels.items():
-            win = sliding_window_view(x, w, axis=0)
-            kin = np.maximum(kin, (np.ptp(win, axis=-1) / self.thresholds[c]).max(axis=1))
-        ripple = sliding_window_view(tau, w, axis=0).std(axis=-1).max(axis=1) / self.ripple_tol
-        return _centred(kin, w, size), _centred(ripple, w, size)
-
-    def score(self, tau: np.ndarray, channels: dict[str, np.ndarray]) -> np.ndarray:
-        kin, ripple = self.parts(tau, channels)
-        return np.maximum(kin, ripple)
-
-
-def motion_score(
-    robot: Robot, dt: float, tau: np.ndarray, dl: np.ndarray, dsigma: np.ndarray, tilt: np.ndarray,
-    options: WindowOptions,
-) -> np.ndarray:
-    """Per sample (N,), the largest ratio of a channel's activity over the span to its threshold (<= 1: still)."""
-    ch = {"length": dl, "swivel": dsigma, "tilt": tilt}
-    return Stillness.of_run(robot, dt, tau, ch, options).score(tau, ch)
+        kin = np.zeros(act.ripple.shape[0])
+        for c, r in act.ranges.items():
+            np.maximum(kin, (r / self.thresholds[c]).max(axis=1), out=kin)
+        return kin, act.ripple / self.ripple_tol
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -330,10 +343,11 @@ def search_windows(
     N = dl.shape[0]
     dt = float(np.median(np.diff(t))) if N > 1 else 1.0
     ch = {"length": dl, "swivel": dsigma, "tilt": np.stack([roll, pitch], axis=1)}
-    still = Stillness.of_run(robot, dt, tau, ch, opt)
-    kin, ripple = still.parts(tau, ch)
+    w = max(3, int(round(opt.span_s / dt)))
+    act = Activity.of(tau, ch, w)
+    still = Stillness.of_run(robot, tau, ch, act, opt)
+    kin, ripple = still.parts(act)
     score = np.maximum(kin, ripple)
-    w = still.span
     min_len = max(2, int(math.ceil(opt.min_duration_s / dt)))
     wins = [Window(a, b) for a, b in _runs(score <= 1.0) if b - a + 1 >= min_len]
     wins = _merge_same(wins, tau, dl, still)
