@@ -185,15 +185,12 @@ def _guess(
             return None
         return np.asarray(ideal[w.setpoint], float)
 
+    home = default_guess(robot, 1)[0]
     z0 = ideal_of(ref_win)
     if z0 is None and not np.all(np.isfinite(ref_tau)):
-        z0 = default_guess(robot, 1)[0]
-    if z0 is None:
-        ds = direct_statics(robot, ref_tau[None], default_guess(robot, 1))
-        z0 = ds.poses[0] if ds.converged[0] else default_guess(robot, 1)[0]
-    theta0 = problem.model.initial_params(z0)
+        z0 = home
     k = meas.k
-    Z = np.tile(z0, (k, 1))
+    Z = np.zeros((k, 6))
     fixed = np.zeros(k, bool)
     need_ds = []
     for i, j in enumerate(win_of):
@@ -204,11 +201,19 @@ def _guess(
             Z[i], fixed[i] = zi, True
         else:
             need_ds.append(i)
-    if need_ds:
-        ds = direct_statics(robot, meas.tau[need_ds], np.tile(z0, (len(need_ds), 1)))
-        ok = ds.converged
-        Z[np.array(need_ds)[ok]] = ds.poses[ok]
-        fixed[np.array(need_ds)[ok]] = True
+    # one direct-statics solve for zeta_0 (when no ideal pose gives it) and the windows, all from home
+    tau_ds = ([] if z0 is not None else [ref_tau]) + [meas.tau[i] for i in need_ds]
+    if tau_ds:
+        ds = direct_statics(robot, np.array(tau_ds), np.tile(home if z0 is None else z0, (len(tau_ds), 1)))
+        poses, ok = ds.poses, ds.converged
+        if z0 is None:
+            z0 = poses[0] if ok[0] else home
+            poses, ok = poses[1:], ok[1:]
+        rows = np.array(need_ds, dtype=int)
+        Z[rows[ok]] = poses[ok]
+        fixed[rows[ok]] = True
+    Z[~fixed] = z0
+    theta0 = problem.model.initial_params(z0)
     # kinematic rows (and windows where direct statics failed): pose estimation from the readings
     free = ~fixed
     if free.any():
