@@ -312,6 +312,7 @@ def _fill_missing(
         if seg[i0] <= opt.quasi_max:
             x, y = _grow(seg, i0, w)
             extra.append(Window(lo + x, lo + y, j, quasi=True))
+            by_sp[j] = extra[-1]  # the next setpoints' search starts after it
             continue
         at_end = idx[-1] >= N - 1 - w and (N - idx[0]) < min_len
         if at_end:
