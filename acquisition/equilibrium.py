@@ -89,7 +89,7 @@ class EquilibriumDetector:
                 buf = self._buffers[name] = np.empty((self.size, v.size))
             buf[slot] = v
             past = self._past[name]
-            past.append(v)
+            past.append(v.copy())
             if len(past) > self._keep:
                 del past[: len(past) - self._keep]
         self._count += 1

@@ -184,11 +184,12 @@ class Stillness:
         w = act.span
         floors = {"length": options.length_tol, "swivel": options.swivel_tol, "tilt": options.tilt_tol}
         ripple_tol = max(robot.sensors.load_cell_uncertainty, options.ripple_factor * float(noise_floor(tau).max()))
-        noise = {c: np.maximum(floors[c], options.noise_factor * sample_noise(x)) for c, x in channels.items()}
+        spread = {c: options.noise_factor * sample_noise(x) for c, x in channels.items()}
+        noise = {c: np.maximum(floors[c], s) for c, s in spread.items()}
         kin, ripple = cls(w, noise, ripple_tol).parts(act)
         rest = (kin <= 1.0) & (ripple <= 1.0)
-        thr = {c: np.maximum(noise[c], options.noise_factor * sample_noise(x) + options.drift_factor
-                             * slow_drift(x, w, rest)) for c, x in channels.items()}
+        thr = {c: np.maximum(noise[c], spread[c] + options.drift_factor * slow_drift(x, w, rest))
+               for c, x in channels.items()}
         return cls(w, thr, ripple_tol)
 
     def parts(self, act: Activity) -> tuple[np.ndarray, np.ndarray]:
