@@ -3,7 +3,8 @@
 connect and check every device -> zero the relative sensors (the power-on readings are stored; the run logs
 deltas since then) -> record the initial tensions -> smooth transition to tau0 -> wait for equilibrium ->
 start the run log -> for each planned setpoint: quintic tension trajectory, wait until the ripple falls below
-the sensors' uncertainty (online detector with a timeout), hold and log the window (phase ``hold``) -> for the
+the sensors' uncertainty or the noise they show (online detector with a timeout), hold and log the window
+(phase ``hold``), then any pause the plan has after it (phase ``pause``, :class:`Pause`) -> for the
 kinematic method, a constant-speed path through the workspace logged throughout -> back to tau0 -> solve ->
 report. The safety supervisor watches every tick; any stop ends in a safe stop (hold, then ramp down to a safe
 pretension), an event in run.yaml and a :class:`StartupStopped` with one sentence.
