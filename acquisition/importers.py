@@ -306,6 +306,44 @@ class SetpointSegmentation:
     phase: np.ndarray  # (N,) str: pretension | transition | hold
     index: np.ndarray  # (N,) int, -1 outside holds
     plateaus: list[tuple[int, int]]  # [first, last] sample of each steady target segment after pretension
+    cut: list[tuple[int, int]] = field(default_factory=list)  # [first, last] sample of each move left unfinished
+
+
+def reference_jumps(target: np.ndarray, floor: float = 0.05) -> np.ndarray:
+    """Samples (sorted) where the target tensions (N, n) jump: the controller restarted its reference from the
+    measured tensions to begin a new move. A jump is a step larger than ``floor`` N and three times either
+    neighbouring step (a smooth trajectory's steps change gradually)."""
+    d = np.abs(np.diff(np.asarray(target, dtype=float), axis=0))
+    if d.shape[0] < 2:
+        return np.zeros(0, dtype=int)
+    prev = np.r_[np.zeros((1, d.shape[1])), d[:-1]]
+    nxt = np.r_[d[1:], np.zeros((1, d.shape[1]))]
+    return np.flatnonzero(np.any((d > floor) & (d > 3.0 * np.maximum(prev, nxt)), axis=1)) + 1
+
+
+def quintic_destination(x: np.ndarray, fit_tol: float = 0.05) -> float | None:
+    """Where a quintic (minimum-jerk) move x (m,) that starts at rest on x[0] was heading when it was cut:
+    the fit of x0 + D s((k - k0) / K), s(u) = 10u^3 - 15u^4 + 6u^5, over its samples k; None when the move is
+    not such a quintic (worst residual above ``fit_tol``, N)."""
+    from scipy.optimize import least_squares  # here: scipy.optimize costs every cdpr command ~0.2 s
+
+    x = np.asarray(x, dtype=float)
+    k = np.arange(x.size, dtype=float)
+    a, peak = x[0], float(np.abs(np.diff(x)).max())
+    moving = np.flatnonzero(np.abs(x - a) > 1e-6)
+    if moving.size < 4 or peak <= 0.0:
+        return None
+
+    def shape(p):
+        u = np.clip((k - p[0]) / p[1], 0.0, 1.0)
+        return u**3 * (10.0 - 15.0 * u + 6.0 * u * u)
+
+    d0 = 1.5 * (x[-1] - a)
+    fit = least_squares(lambda p: a + p[2] * shape(p) - x, [moving[0] - 1.0, 1.875 * abs(d0) / peak, d0],
+                        bounds=([-x.size, 2.0, -np.inf], [x.size, 100.0 * x.size, np.inf]))
+    if not fit.success or np.abs(fit.fun).max() > fit_tol:
+        return None
+    return float(a + fit.x[2])
 
 
 def segment_targets(
@@ -316,12 +354,15 @@ def segment_targets(
     setpoints: np.ndarray | None = None,
     match_tol: float = 0.05,
 ) -> SetpointSegmentation:
-    """Find where the target tensions (N, n) are steady: the setpoints held, in order.
+    """Find the setpoints of the target tensions (N, n), in order.
 
     The pretension phase lasts until a target first departs by more than ``pretension_band`` N from its
     first value. After it, every segment where all targets stay constant for at least ``min_hold`` s is a
-    hold. Without ``setpoints``, the holds' values (consecutive equal ones merged) are the setpoints; with
-    them, each hold takes the index of the setpoint it equals within ``match_tol`` N (-1 if none).
+    hold. A move the controller left unfinished (the reference jumped to begin the next move while a target
+    was still on its way, :func:`reference_jumps`) had a setpoint too: each target still moving is extended
+    to where its quintic was heading (:func:`quintic_destination`); no sample of it is a hold. Without
+    ``setpoints``, these values (consecutive equal ones merged) are the setpoints; with them, each hold takes
+    the index of the setpoint it equals within ``match_tol`` N (-1 if none).
     """
     T = np.asarray(target, dtype=float)
     N = T.shape[0]
@@ -344,20 +385,35 @@ def segment_targets(
         if k - j + 1 >= min_len:
             plateaus.append((j, k))
         j = k + 1
+    # moves cut by a jump of the reference, their last sample not steady: (first, last, destination)
+    cut: list[tuple[int, int, np.ndarray]] = []
+    starts = np.r_[0, reference_jumps(T)]
+    for a, b in zip(starts[:-1], starts[1:] - 1, strict=True):
+        if b < pre_end or b - a < 4 or same[b]:
+            continue
+        dest = T[b].copy()
+        for i in np.flatnonzero(np.abs(T[b] - T[b - 1]) > tol[b - 1]):
+            end = quintic_destination(T[a : b + 1, i])
+            dest[i] = np.nan if end is None else end
+        if np.all(np.isfinite(dest)):
+            cut.append((int(a), int(b), dest))
+    steps = sorted([(a, b, T[a], False) for a, b in plateaus] + [(a, b, v, True) for a, b, v in cut],
+                   key=lambda s: s[0])
     found: list[np.ndarray] = []
-    for a, b in plateaus:
-        phase[a : b + 1] = "hold"
-        value = T[a]
+    for a, b, value, unfinished in steps:
+        if not unfinished:
+            phase[a : b + 1] = "hold"
         if setpoints is None:
             if not found or np.max(np.abs(found[-1] - value)) > match_tol:
                 found.append(value)
-            index[a : b + 1] = len(found) - 1
+            j = len(found) - 1
         else:
             d = np.max(np.abs(np.asarray(setpoints) - value), axis=1)
-            if d.min() <= match_tol:
-                index[a : b + 1] = int(np.argmin(d))
+            j = int(np.argmin(d)) if d.min() <= match_tol else -1
+        if not unfinished:
+            index[a : b + 1] = j
     sp = np.asarray(setpoints, dtype=float) if setpoints is not None else np.array(found).reshape(-1, T.shape[1])
-    return SetpointSegmentation(sp, phase.astype(str), index, plateaus)
+    return SetpointSegmentation(sp, phase.astype(str), index, plateaus, [(a, b) for a, b, _ in cut])
 
 
 def read_irma_targets(file: str | Path) -> tuple[np.ndarray, np.ndarray]:

@@ -3,7 +3,8 @@
 connect and check every device -> zero the relative sensors (the power-on readings are stored; the run logs
 deltas since then) -> record the initial tensions -> smooth transition to tau0 -> wait for equilibrium ->
 start the run log -> for each planned setpoint: quintic tension trajectory, wait until the ripple falls below
-the sensors' uncertainty (online detector with a timeout), hold and log the window (phase ``hold``) -> for the
+the sensors' uncertainty or the noise they show (online detector with a timeout), hold and log the window
+(phase ``hold``), then any pause the plan has after it (phase ``pause``, :class:`Pause`) -> for the
 kinematic method, a constant-speed path through the workspace logged throughout -> back to tau0 -> solve ->
 report. The safety supervisor watches every tick; any stop ends in a safe stop (hold, then ramp down to a safe
 pretension), an event in run.yaml and a :class:`StartupStopped` with one sentence.
@@ -15,7 +16,6 @@ is logged as phase ``return``; the final rest under tau0 is not logged.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -78,15 +78,27 @@ class StartupConfig:
                              f"(1/{self.rate:g} s).")
 
 
+@dataclass(frozen=True)
+class Pause:
+    """A pause of the sequence after setpoint ``after``'s window: ``seconds`` at rest, at that setpoint or
+    (``home``) back under tau0; logged as phase ``pause`` with setpoint -1 (not a planned equilibrium)."""
+
+    after: int
+    seconds: float
+    home: bool = False
+
+
 @dataclass
 class Plan:
-    """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path."""
+    """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path,
+    pauses."""
 
     setpoints: np.ndarray
     ideal_poses: np.ndarray
     tau0: np.ndarray
     path_tensions: np.ndarray | None = None  # (m, n) N, kinematic method
     path_times: np.ndarray | None = None  # (m,) s
+    pauses: tuple[Pause, ...] = ()
 
     @classmethod
     def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05) -> Plan:
@@ -150,6 +162,7 @@ class StartupRoutine:
         self._target = -1  # the setpoint being approached or held, for the progress line
         self._compute: list[float] = []
         self._total_estimate = 1.0
+        self._detector: EquilibriumDetector | None = None
 
     # ---- the loop -------------------------------------------------------------------------------------
     def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
@@ -218,10 +231,11 @@ class StartupRoutine:
                 timeout: float | None = None) -> bool:
         """Hold ``tau`` until the detector says the platform rests; False on its timeout (s)."""
         self._phase, self._setpoint = phase, setpoint
-        base = self.cfg.detector or DetectorConfig.for_robot(self.robot)
-        dcfg = base if timeout is None else dataclasses.replace(base, timeout=timeout)
-        det = EquilibriumDetector(self.cfg.log_period, dcfg)
-        det.start(self.clock.now())
+        if self._detector is None:  # one detector for the whole routine: it learns the sensors' noise
+            self._detector = EquilibriumDetector(self.cfg.log_period,
+                                                 self.cfg.detector or DetectorConfig.for_robot(self.robot))
+        det = self._detector
+        det.start(self.clock.now(), timeout)
         while True:
             _, state = self._tick(tau, log=log, detector=det)
             if state is not None and (state.settled or state.timed_out):
@@ -238,6 +252,16 @@ class StartupRoutine:
         self.writer.sync()
         return first, last
 
+    def _pause(self, at: np.ndarray, pause: Pause) -> np.ndarray:
+        """Rest for the pause (back under tau0 first if it says so); returns the tensions it ends at."""
+        target = self.plan.tau0 if pause.home else at
+        if pause.home:
+            self._move_to(at, target, self.cfg.max_tension_rate, "pause")
+        self._phase, self._setpoint = "pause", -1
+        for _ in range(int(round(pause.seconds / self.period))):
+            self._tick(target)
+        return target
+
     def _move_to(self, a: np.ndarray, b: np.ndarray, rate: float, phase: str, setpoint: int = -1) -> None:
         traj = TensionTrajectory(np.stack([a, b]), np.array([max(
             TensionTrajectory.through(np.stack([a, b]), rate).duration, self.cfg.min_transition)]))
@@ -249,7 +273,7 @@ class StartupRoutine:
         moves = np.abs(np.diff(sp, axis=0)).max(axis=1)
         tr = np.maximum(1.875 * moves / self.cfg.max_tension_rate, self.cfg.min_transition).sum()
         per = self.cfg.expected_settle + self.cfg.hold_time
-        total = tr + per * (len(sp) - 1) + 10.0
+        total = tr + per * (len(sp) - 1) + 10.0 + sum(p.seconds for p in self.plan.pauses)
         if self.plan.path_times is not None:
             total += float(self.plan.path_times[-1])
         return float(total)
@@ -328,6 +352,8 @@ class StartupRoutine:
                     self._settle(sp, "settle", -1)  # a timeout still gives a (quasi-static) window
                     self._windows.append(self._hold(sp, j))
                     prev = sp
+                    for pause in (p for p in self.plan.pauses if p.after == j):
+                        prev = self._pause(prev, pause)
                 self._move_to(prev, tau0, self.cfg.max_tension_rate, "return", -1)
             self.writer.sync()
         except SafeStop as stop:

@@ -139,15 +139,30 @@ def test_raw_log_extra_columns_agree_with_the_lengths(log_run):
 def test_setpoints_found_in_the_target_tensions(parsed_run, plan):
     planned, _ = plan
     found = parsed_run.setpoints
-    # two of the eight poses were left before every target had settled: six steady setpoints remain
-    assert found.shape == (6, 4)
-    matches = [int(np.argmin(np.max(np.abs(planned - s), axis=1))) for s in found]
-    assert matches == [1, 2, 3, 5, 6, 7]
-    for s, m in zip(found, matches, strict=True):
-        np.testing.assert_allclose(s, planned[m], atol=1e-3)
+    # all eight: the two poses the controller left before every target had settled (the next move began)
+    # are recovered from the quintic their still-moving targets followed (the authors' static_tensions)
+    assert found.shape == (8, 4)
+    np.testing.assert_allclose(found, planned, atol=2e-3)
     hold = parsed_run.setpoint >= 0
     np.testing.assert_array_equal(parsed_run.tau_ref[hold], found[parsed_run.setpoint[hold]])
+    assert sorted(set(parsed_run.setpoint[hold])) == [1, 2, 3, 5, 6, 7]  # 0 and 4 were never held
     assert set(parsed_run.phase[:79]) == {"pretension"} and set(parsed_run.phase[hold]) == {"hold"}
+
+
+def test_raw_log_import_lists_the_eight_setpoints(log_run, plan):
+    np.testing.assert_allclose(log_run.setpoints, plan[0], atol=2e-3)
+
+
+def test_a_move_cut_by_the_next_one_is_extended_to_its_destination():
+    k = np.arange(60.0)
+    u = np.clip(k / 80.0, 0, 1)  # an 80-sample quintic from 50 to 130 N, cut at 60 samples
+    T = np.full((200, 2), 50.0)
+    T[10:70, 0] = 50.0 + 80.0 * u**3 * (10 - 15 * u + 6 * u**2)
+    T[10:70, 1] = 50.0 + np.minimum(k, 30) * 1.0  # the other target reached 80 N and stays there
+    T[70:] = [110.0, 79.0]  # the reference restarts from the measured tensions and holds them
+    seg = segment_targets(T, 0.1)
+    np.testing.assert_allclose(seg.setpoints, [[130.0, 80.0], [110.0, 79.0]], atol=1e-3)
+    assert seg.cut == [(0, 69)] and seg.plateaus == [(70, 199)] and set(seg.index[10:70]) == {-1}
 
 
 def test_import_with_the_planned_targets(irma_data, plan, tmp_path):

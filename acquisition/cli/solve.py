@@ -130,7 +130,7 @@ def format_solution(sol: Solution) -> str:
     lines.append("  length [m]     " + "  ".join(f"{v:.4f}" for v in off["length"]))
     lines.append("  swivel [deg]   " + "  ".join(f"{math.degrees(v):.3f}" for v in off["swivel"]))
     lines.append(f"  yaw [deg]      {math.degrees(off['yaw']):.3f}")
-    lines.append(f"windows {' '.join(f'[{w.first},{w.last}]' for w in sol.windows)}")
+    lines.extend(format_windows(sol))
     lines.append(f"chi2 {sol.chi2:.1f} on {sol.dof} dof")
     lines.append("residuals          rms (SI)   rms/sigma")
     for c, d in sol.residuals.items():
@@ -142,3 +142,19 @@ def format_solution(sol: Solution) -> str:
             f"geodesic {math.degrees(r.geodesic):.2f} deg"
         )
     return "\n".join(lines) + "\n"
+
+
+def format_windows(sol: Solution) -> list[str]:
+    """The equilibrium windows: planned, found and used, each found one with its setpoint, and the planned
+    setpoints without a window with their reason."""
+    ws = sol.window_search
+    if ws is None:
+        return [f"windows (given) {' '.join(f'[{w.first},{w.last}]' for w in sol.windows)}"]
+    planned = f"{ws.planned} planned, " if ws.planned else "no plan, "
+    lines = [f"windows: {planned}{len(ws.found)} found, {len(ws.used)} used"]
+    for w in ws.found:
+        what = f"setpoint {w.setpoint}" if w.setpoint >= 0 else "no setpoint"
+        lines.append(f"  [{w.first},{w.last}] {what}{' (quasi)' if w.quasi else ''}"
+                     f"{'' if w in ws.used else ' - not used'}")
+    lines.extend(f"  {m.reason}" for m in ws.missing)
+    return lines

@@ -28,6 +28,7 @@ from acquisition.equilibrium import DetectorConfig
 from acquisition.report import ProgressBar, ReportRenderer, StartupSummary, read_offsets, render_text, write_offsets
 from acquisition.safety import SafetyLimits, SafetySupervisor
 from acquisition.startup import (
+    Pause,
     Plan,
     StartupConfig,
     StartupRoutine,
@@ -61,6 +62,8 @@ def register(sub) -> None:
     p.add_argument("--speed", type=float, default=0.05, help="platform speed along the kinematic path, m/s")
     p.add_argument("--settle-timeout", type=float, default=40.0,
                    help="s to wait for the platform to come to rest at each setpoint before holding anyway")
+    p.add_argument("--pause", action="append", default=[], metavar="J:S[:home]",
+                   help="pause S seconds after setpoint J's window, at it or (home) under tau0 (repeatable)")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     add_force(p)
@@ -78,6 +81,20 @@ def _config(args, robot) -> StartupConfig:
                              detector=DetectorConfig.for_robot(robot, timeout=args.settle_timeout))
     except ValueError as exc:
         raise UsageError(f"invalid option: {exc}") from exc
+
+
+def _pause(text: str, k: int) -> Pause:
+    """``J:S`` or ``J:S:home`` -> a Pause after setpoint J (0..k-1) of S > 0 seconds."""
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] != "home"):
+            raise ValueError
+        pause = Pause(int(parts[0]), float(parts[1]), len(parts) == 3)
+    except ValueError:
+        raise UsageError(f"--pause {text!r} is not J:S or J:S:home (setpoint index, seconds).") from None
+    if not 0 <= pause.after < k or not 0 < pause.seconds <= 600:
+        raise UsageError(f"--pause {text!r}: the setpoint must be 0..{k - 1} and the seconds within (0, 600].")
+    return pause
 
 
 def run(args) -> int:
@@ -114,6 +131,7 @@ def _run(args, report: ReportRenderer) -> int:
         plan = Plan.for_robot(robot, args.grid, args.method, cfg.kinematic_speed, cfg.kinematic_spacing)
     except PlanningError as exc:
         raise UsageError(str(exc)) from exc
+    plan.pauses = tuple(_pause(text, len(plan.setpoints)) for text in args.pause)
     meta = {}
     if args.offsets and Path(args.offsets).exists():  # the last calibration, for the record of this run
         try:
