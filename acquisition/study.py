@@ -331,32 +331,46 @@ class StudyProgress(ProgressBar):
         self.update(done, "runs", -1, int(self.total), force=force)
 
 
-def run_study(client, folder: StudyFolder, tasks: Sequence[RunTask], progress: StudyProgress | None = None
-              ) -> dict[str, int]:
-    """Submit the tasks (runs not yet in ``folder``) and save each result as it arrives.
+@dataclass
+class StudyCounts:
+    """What :func:`run_study` did: runs saved now, of which without a solution, and runs the cluster lost (a
+    worker died: not a result, so not saved; the next call runs them again), with the first reason."""
 
-    Returns counts: ``ran`` (saved now), ``failed`` (saved, without a solution). A usage error of a run stops
-    the study with its sentence (:class:`StudyError`)."""
+    ran: int = 0
+    failed: int = 0
+    lost: int = 0
+    lost_reason: str = ""
+
+
+def run_study(client, folder: StudyFolder, tasks: Sequence[RunTask], progress: StudyProgress | None = None
+              ) -> StudyCounts:
+    """Submit the tasks (runs not yet in ``folder``) and save each result as it arrives. A usage error of a
+    run stops the study with its sentence (:class:`StudyError`)."""
     from distributed import as_completed
 
     futures = [client.submit(run_startup, t, key=f"cdpr-study-{t.name}-{os.getpid()}-{time.time_ns()}", pure=False)
                for t in tasks]
-    counts = {"ran": 0, "failed": 0}
+    counts = StudyCounts()
     done0 = progress.first if progress is not None else 0
     try:
         for fut in as_completed(futures):
-            res = fut.result()
+            try:
+                res = fut.result()
+            except Exception as exc:  # the task did not come back (a worker died): run it again next time
+                counts.lost += 1
+                counts.lost_reason = counts.lost_reason or f"{type(exc).__name__}: {str(exc).rstrip('.')}"
+                continue
             if res["status"] == "usage":
                 raise StudyError(f"cdpr startup refused the {res['plan']} plan: {res['message'].rstrip('.')}.")
             folder.write(res)
-            counts["ran"] += 1
-            counts["failed"] += res["status"] != "ok"
+            counts.ran += 1
+            counts.failed += res["status"] != "ok"
             if progress is not None:
-                progress.advance(done0 + counts["ran"], counts["failed"])
+                progress.advance(done0 + counts.ran, counts.failed)
     finally:
         client.cancel(futures)
         if progress is not None:
-            progress.advance(done0 + counts["ran"], counts["failed"], force=True)
+            progress.advance(done0 + counts.ran, counts.failed, force=True)
             progress.close()
     return counts
 
@@ -439,10 +453,12 @@ def plot_errors(results: Sequence[dict[str, Any]], plans: Sequence[str]):
     fig = Figure(figsize=(7, 3.5))
     fig.subplots_adjust(left=0.1, right=0.97, bottom=0.15, top=0.9)
     ax = fig.add_subplot()
-    for plan in plans:
-        e = np.array([r["error_m"] for r in _ok(results, plan)]) * 1000.0
+    errors = {plan: np.array([r["error_m"] for r in _ok(results, plan)]) * 1000.0 for plan in plans}
+    every = np.concatenate([np.zeros(0), *errors.values()])
+    bins = np.histogram_bin_edges(every, bins=max(5, min(40, len(every) // (4 * len(plans)))))
+    for plan, e in errors.items():
         if len(e):
-            line = ax.hist(e, bins=max(5, min(40, len(e) // 4)), histtype="step", lw=1.2, label=plan)[2][0]
+            line = ax.hist(e, bins=bins, histtype="step", lw=1.2, label=plan)[2][0]
             ax.axvline(float(np.median(e)), ls="--", lw=0.8, color=line.get_edgecolor())
     ax.set_xlabel("initial-position error |p - p_true| (mm)")
     ax.set_ylabel("runs")
@@ -469,22 +485,28 @@ def plot_robot_time(results: Sequence[dict[str, Any]], plans: Sequence[str]):
 
 
 def plot_error_vs_sigma(results: Sequence[dict[str, Any]], plans: Sequence[str]):
-    """Figure: each run's position error against its printed 1-sigma (both the norm over x, y, z, mm); a
-    calibrated sigma puts the RMS of the errors on the diagonal."""
+    """Figure: each run's position error against its printed 1-sigma (both the norm over x, y, z, mm; log
+    axes, a printed sigma may be off by orders of magnitude); a calibrated sigma puts the RMS of the errors on
+    the diagonal."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(5, 4.5))
     fig.subplots_adjust(left=0.13, right=0.97, bottom=0.12, top=0.92)
     ax = fig.add_subplot()
-    top = 0.0
+    span = [math.inf, 0.0]
     for plan in plans:
         ok = _ok(results, plan)
         s = np.array([r["sigma_m"] for r in ok]) * 1000.0
         e = np.array([r["error_m"] for r in ok]) * 1000.0
         if len(e):
             ax.scatter(s, e, s=10, alpha=0.7, label=plan)
-            top = max(top, float(s.max()), float(e.max()))
-    ax.plot([0.0, top], [0.0, top], color="k", lw=0.8, ls=":", label="error = 1σ")
+            both = np.concatenate([s, e])
+            both = both[both > 0]
+            span = [min(span[0], float(both.min(initial=math.inf))), max(span[1], float(both.max(initial=0.0)))]
+    if span[1] > 0:
+        ax.plot(span, span, color="k", lw=0.8, ls=":", label="error = 1σ")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
     ax.set_xlabel("printed 1σ of the position (mm)")
     ax.set_ylabel("position error (mm)")
     ax.set_title("error against the printed 1σ", loc="left", fontsize=10)

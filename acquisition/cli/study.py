@@ -24,6 +24,7 @@ from acquisition.study import (
     PLANS,
     RunTask,
     StudyConfig,
+    StudyCounts,
     StudyError,
     StudyFolder,
     StudyProgress,
@@ -101,7 +102,7 @@ def run(args) -> int:
     progress = StudyProgress(len(plans) * len(seeds), stream=sys.stderr)
     progress.first = len(plans) * len(seeds) - len(tasks)
     t0 = time.perf_counter()
-    counts = {"ran": 0, "failed": 0}
+    counts = StudyCounts()
     workers = 0
     if tasks:
         try:
@@ -118,16 +119,20 @@ def run(args) -> int:
         page.write_text(render_study_html(stats, results, config, seeds), encoding="utf-8")
         files["report"] = str(page)
     info = {"runs": {"per_plan": args.runs, "seeds": [seeds.start, seeds.stop - 1], "resumed": progress.first,
-                     "ran": counts["ran"], "without_solution": sum(r["status"] != "ok" for r in results)},
+                     "ran": counts.ran, "lost": counts.lost,
+                     "without_solution": sum(r["status"] != "ok" for r in results)},
             "cluster": {"scheduler": args.scheduler or "local", "workers": workers},
             "wall_s": round(time.perf_counter() - t0, 2), "files": files}
     if args.json:
         sys.stdout.write(json.dumps({"status": "ok", "plans": stats, **info}) + "\n")
     else:
         sys.stdout.write(f"study in {folder.path}: {len(plans)} plan(s) x {args.runs} runs (seeds "
-                         f"{seeds.start}..{seeds.stop - 1}); {counts['ran']} run now on {workers or 'no'} "
+                         f"{seeds.start}..{seeds.stop - 1}); {counts.ran} run now on {workers or 'no'} "
                          f"worker(s) in {info['wall_s']:.0f} s, {progress.first} resumed\n")
         sys.stdout.write(render_table(stats))
         for k, v in files.items():
             sys.stdout.write(f"{k}: {v}\n")
+    if counts.lost:
+        raise OperationError(f"{counts.lost} run(s) did not come back from the cluster ({counts.lost_reason}); "
+                             f"the same command runs them again.")
     return 0
