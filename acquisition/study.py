@@ -3,13 +3,13 @@ simulator's truth, the distribution per plan.
 
 Each run is ``cdpr startup --backend sim`` with its own seed (sensor noise, power-on pose, and whatever else
 the simulation configuration draws from the seed), run as an independent Dask task. The task starts the
-startup in a fresh Python process (``python -m acquisition.study startup ...``): the routine installs its
+startup in a fresh Python process (``python -m acquisition.study``, :func:`run_startup`): the routine installs its
 SIGINT/SIGTERM handlers, which Python allows only in a main thread, and a Dask task runs in a worker's
 thread. The process runs the simulated plant in itself rather than in a child of its own: a study keeps
 every core busy with runs, where a plant process per run only waits for a core, and its lockstep spends CPU
 waiting (measured: 6 runs of grid2 on 2 workers, two loaded cores: 29-36 s of CPU per run with the plant's
 process, 7-10 s without, 349 s against 130 s for the study; the same errors to the last digit, as
-``sim_backend.backend`` promises). The run folder lives in the worker's temporary directory and is
+``sim_backend.backend`` promises). The run folder lives in that process's temporary directory and is
 deleted after; the task returns the run's result (:func:`run_result`), which the client writes to the study
 folder as soon as it arrives (:class:`StudyFolder`), so an interrupted study resumes where it stopped.
 
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import html
+import io
 import json
 import math
 import os
@@ -68,6 +69,10 @@ class StudyConfig:
     def to_dict(self) -> dict[str, Any]:
         return {"format": FORMAT, "robot": self.robot, "sim_config": self.sim_config, "tolerance": self.tolerance}
 
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> StudyConfig:
+        return cls(data["robot"], data["sim_config"], data["tolerance"])
+
 
 @dataclass(frozen=True)
 class RunTask:
@@ -80,6 +85,13 @@ class RunTask:
     @property
     def name(self) -> str:
         return f"{self.plan}-s{self.seed:05d}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"plan": self.plan, "seed": self.seed, "config": self.config.to_dict()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> RunTask:
+        return cls(data["plan"], int(data["seed"]), StudyConfig.from_dict(data["config"]))
 
 
 def plan_args(plan: str, tolerance: str | None = None) -> list[str]:
@@ -137,35 +149,27 @@ def study_sim_config(path: str | None, effects: Sequence[str], n: int) -> dict[s
 
 
 def run_startup(task: RunTask) -> dict[str, Any]:
-    """Run one simulated startup in a fresh process and return its result (:func:`run_result`).
+    """The Dask task of a study: one simulated startup in a fresh process (``python -m acquisition.study``:
+    the task as JSON on its stdin, the result of :func:`run_in_this_process` on its stdout), with the run's
+    wall time and the CPU time of its process (s, ``wall_s``, ``cpu_s``).
 
-    The Dask task of a study. A usage error of ``cdpr startup`` (exit status 2) comes back with status
-    ``usage`` and its sentence: it would fail every run, so the study stops on it instead of recording it."""
-    t0 = time.perf_counter()
-    cpu0 = _children_cpu()
-    with tempfile.TemporaryDirectory(prefix=f"cdpr-study-{task.name}-") as tmp:
-        sim_file = None
-        if task.config.sim_config:
-            sim_file = os.path.join(tmp, "sim-config.yaml")
-            Path(sim_file).write_text(yaml.safe_dump(task.config.sim_config))
-        truth = os.path.join(tmp, "truth.json")
-        cmd = [sys.executable, "-m", "acquisition.study",
-               *startup_args(task, os.path.join(tmp, "run"), truth, sim_file)]
-        try:
-            # a session of its own: the operator's Ctrl-C stops the study (the client), not the runs, whose
-            # safe stops would otherwise be recorded as results
-            proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=RUN_TIMEOUT,
-                                  start_new_session=True)
-        except subprocess.TimeoutExpired:
-            return failed_result(task, "failed", f"the startup did not finish within {RUN_TIMEOUT:g} s.",
-                                 time.perf_counter() - t0, math.nan)
-        wall, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
-        if proc.returncode != 0:
-            lines = proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"]
-            sentence = lines[-1].removeprefix("cdpr: ")
-            status = "usage" if proc.returncode == 2 else "safe_stop" if sentence.startswith("safe stop") else "failed"
-            return failed_result(task, status, sentence, wall, cpu)
-        return run_result(task, json.loads(proc.stdout), json.loads(Path(truth).read_text()), wall, cpu)
+    The process has a session of its own: the operator's Ctrl-C stops the study (the client), not the runs,
+    whose safe stops would otherwise be recorded as results; a run cut off from its worker finishes and
+    deletes its temporary folder itself."""
+    t0, cpu0 = time.perf_counter(), _children_cpu()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "acquisition.study"], input=json.dumps(task.to_dict()),
+                              capture_output=True, text=True, timeout=RUN_TIMEOUT, start_new_session=True)
+    except subprocess.TimeoutExpired:
+        res = failed_result(task, "failed", f"the startup did not finish within {RUN_TIMEOUT:g} s.")
+    else:
+        if proc.returncode == 0:
+            res = json.loads(proc.stdout)
+        else:
+            last = (proc.stderr.strip().splitlines() or ["no message"])[-1]
+            res = failed_result(task, "failed", f"the run's process ended with status {proc.returncode}: {last}")
+    res.update(wall_s=round(time.perf_counter() - t0, 3), cpu_s=round(_children_cpu() - cpu0, 3))
+    return res
 
 
 def _children_cpu() -> float:
@@ -174,13 +178,40 @@ def _children_cpu() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def run_result(task: RunTask, summary: dict[str, Any], truth: dict[str, Any], wall: float, cpu: float
-               ) -> dict[str, Any]:
+def run_in_this_process(task: RunTask) -> dict[str, Any]:
+    """One run: ``cdpr startup --backend sim`` in a temporary folder (deleted after) with the simulated plant
+    in this process (see the module docstring; it changes how this process simulates: for the process that
+    :func:`run_startup` starts). Returns :func:`run_result` or :func:`failed_result`; a usage error of the
+    startup (exit status 2) comes back with status ``usage`` and its sentence: it would fail every run, so
+    the study stops on it instead of recording it."""
+    import sim_backend.backend
+    from acquisition.cli import main
+
+    sim_backend.backend.child_process_possible = lambda: False
+    with tempfile.TemporaryDirectory(prefix=f"cdpr-study-{task.name}-") as tmp:
+        sim_file = None
+        if task.config.sim_config:
+            sim_file = os.path.join(tmp, "sim-config.yaml")
+            Path(sim_file).write_text(yaml.safe_dump(task.config.sim_config))
+        truth = os.path.join(tmp, "truth.json")
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(startup_args(task, os.path.join(tmp, "run"), truth, sim_file))
+            except SystemExit as exc:  # argparse's own errors
+                code = exc.code if isinstance(exc.code, int) else 2
+        if code == 0:
+            return run_result(task, json.loads(out.getvalue()), json.loads(Path(truth).read_text()))
+    sentence = (err.getvalue().strip().splitlines() or [f"exit status {code}"])[-1].removeprefix("cdpr: ")
+    status = "usage" if code == 2 else "safe_stop" if sentence.startswith("safe stop") else "failed"
+    return failed_result(task, status, sentence)
+
+
+def run_result(task: RunTask, summary: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
     """The result of a finished run: the initial-position error (m) of the solve against the simulator's true
     initial pose at the same sample, the printed 1-sigma (m), the robot time (s) and the windows held.
 
-    summary: what ``cdpr startup --json`` printed; truth: the ``--truth`` file; wall, cpu: the run's wall time
-    and CPU time (s, the startup's processes)."""
+    summary: what ``cdpr startup --json`` printed; truth: the ``--truth`` file."""
     sol = summary["solution"]
     err = np.asarray(sol["initial_pose"][:3], float) - np.asarray(truth["initial_pose"][:3], float)
     sigma = np.asarray(sol["initial_pose_sigma"][:3], float)
@@ -189,27 +220,15 @@ def run_result(task: RunTask, summary: dict[str, Any], truth: dict[str, Any], wa
         "position_error_m": err.tolist(), "position_sigma_m": sigma.tolist(),
         "error_m": float(np.linalg.norm(err)), "sigma_m": float(np.linalg.norm(sigma)),
         "robot_time_s": float(summary["timing"]["acquisition_s"]),
-        "windows": summary["windows"], "setpoints": int(summary["setpoints"]),
-        "wall_s": round(wall, 3), "cpu_s": round(cpu, 3), "host": socket.gethostname(),
+        "windows": summary["windows"], "setpoints": int(summary["setpoints"]), "host": socket.gethostname(),
     }
 
 
-def failed_result(task: RunTask, status: str, message: str, wall: float, cpu: float) -> dict[str, Any]:
+def failed_result(task: RunTask, status: str, message: str) -> dict[str, Any]:
     """The result of a run that ended without a solution: ``safe_stop``, ``failed`` or ``usage``."""
     return {"format": RUN_FORMAT, "plan": task.plan, "seed": task.seed, "status": status, "message": message,
             "position_error_m": None, "position_sigma_m": None, "error_m": None, "sigma_m": None,
-            "robot_time_s": None, "windows": [], "setpoints": None, "wall_s": round(wall, 3),
-            "cpu_s": None if math.isnan(cpu) else round(cpu, 3), "host": socket.gethostname()}
-
-
-def startup_in_this_process(argv: list[str]) -> int:
-    """``cdpr startup`` (argv) with the simulated plant in this process (see the module docstring)."""
-    import sim_backend.backend
-
-    sim_backend.backend.child_process_possible = lambda: False
-    from acquisition.cli import main
-
-    return main(argv)
+            "robot_time_s": None, "windows": [], "setpoints": None, "host": socket.gethostname()}
 
 
 # ---- the study folder ------------------------------------------------------------------------------------
@@ -303,7 +322,8 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, timeou
             yield client
         return
     n = workers or len(os.sched_getaffinity(0))
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+    # dashboard_address ":0": its HTTP server (which runs even without a dashboard) on a free port, not 8787
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                       silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
         yield client
 
@@ -559,4 +579,4 @@ def render_study_html(stats: dict[str, dict[str, Any]], results: Sequence[dict[s
 
 
 if __name__ == "__main__":  # one run of a study: the process run_startup starts
-    sys.exit(startup_in_this_process(sys.argv[1:]))
+    sys.stdout.write(json.dumps(run_in_this_process(RunTask.from_dict(json.load(sys.stdin)))) + "\n")

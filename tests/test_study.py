@@ -47,7 +47,7 @@ def test_small_study_on_a_dask_cluster_resumes_only_the_missing_run(tmp_path, ca
     for seed, r in enumerate(runs):
         assert r["seed"] == seed and r["status"] == "ok" and len(r["windows"]) == r["setpoints"] == 8
         assert r["error_m"] == pytest.approx(np.linalg.norm(r["position_error_m"]))
-        assert r["sigma_m"] > 0
+        assert r["sigma_m"] > 0 and r["cpu_s"] > 0.5
     assert runs[0]["error_m"] != runs[1]["error_m"]  # the seeds draw different noise
     page = (out / "study.html").read_text()
     assert page.count("data:image/svg+xml;base64,") == 3
@@ -88,6 +88,7 @@ def test_a_run_that_ends_in_a_safe_stop_is_recorded_with_its_sentence():
     res = run_startup(RunTask("grid2", 3, cfg))
     assert res["status"] == "safe_stop" and res["seed"] == 3 and res["error_m"] is None
     assert res["message"].startswith("safe stop: ") and "cable 2 slack" in res["message"]
+    assert res["cpu_s"] > 0.3 and res["wall_s"] > 0  # measured around the run's process
 
 
 def test_statistics_of_known_errors():
