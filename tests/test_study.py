@@ -138,3 +138,21 @@ def test_a_plan_the_startup_does_not_take_is_refused_before_any_run(tmp_path, ca
         assert not (tmp_path / "s").exists()
     else:
         check_startup_accepts(["optimal"], None)  # the startup takes it: no error
+
+
+def test_progress_line_counts_runs_and_failures():
+    import io
+
+    from acquisition.study import StudyProgress
+
+    out = io.StringIO()
+    bar = StudyProgress(40, stream=out, enabled=True)
+    bar.first = 10  # resumed: the time left comes from the runs of this session only
+    bar.advance(10, 0, force=True)
+    assert "10/40 runs  0 failed  ~    ? s left" in out.getvalue()
+    bar.t0 -= 20.0  # 2 runs in 20 s: 28 left take ~280 s
+    bar.advance(12, 1, force=True)
+    line = out.getvalue().split("\r")[-1]
+    assert line.startswith("[" + "#" * 8 + "." * 20 + "] 12/40 runs  1 failed  ~  28") and " s left" in line
+    bar.close()
+    assert out.getvalue().endswith("\n")
