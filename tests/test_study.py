@@ -156,3 +156,18 @@ def test_progress_line_counts_runs_and_failures():
     assert line.startswith("[" + "#" * 8 + "." * 20 + "] 12/40 runs  1 failed  ~  28") and " s left" in line
     bar.close()
     assert out.getvalue().endswith("\n")
+
+
+def test_effects_merge_into_the_simulation_configuration(tmp_path):
+    from acquisition.study import StudyError, study_sim_config
+
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text("effects:\n  tension_offset: {offset: [2, 0, -1, 0]}\nphysics: {linear_damping: 20.0}\n")
+    data = study_sim_config(str(cfg), ["mass_scale", "pulley_radius"], 4)
+    assert data["effects"] == {"tension_offset": {"offset": [2, 0, -1, 0]}, "mass_scale": {"scale": 0.05},
+                               "pulley_radius": {"delta": 0.005}}
+    assert data["physics"] == {"linear_damping": 20.0}
+    assert study_sim_config(None, [], 4) == {}
+    cfg.write_text("effects:\n  mass_scale: {scale: 3.0}\n")
+    with pytest.raises(StudyError, match=r"sim.yaml: field 'effects.mass_scale.scale' = 3.0 must be <= 0.5\.$"):
+        study_sim_config(str(cfg), [], 4)
