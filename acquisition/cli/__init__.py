@@ -31,6 +31,7 @@ COMMAND_MODULES = (
     "acquisition.cli.startup",
     "acquisition.cli.diagnose",
     "acquisition.cli.certify",
+    "acquisition.cli.study",
 )
 
 
