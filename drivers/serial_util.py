@@ -22,15 +22,24 @@ def open_port(port: str, baud: int, what: str) -> serial.Serial:
         raise DeviceError(f"{what}: cannot open serial port {port} at {baud} baud ({exc}).") from exc
 
 
+def _tapped(tap: Callable[[bytes], None], on_bytes: Callable[[bytes, float], None]) -> Callable[[bytes, float], None]:
+    def both(data: bytes, t: float) -> None:
+        tap(data)
+        on_bytes(data, t)
+
+    return both
+
+
 class PortReader:
     """Reads a port and hands every chunk of bytes to ``on_bytes``: in a daemon thread, or, not ``threaded``,
     in the thread that calls :meth:`poll` (the drivers' waits do, in lockstep with a simulated prototype whose
-    bytes are already written when the loop asks for them: no thread hand-off per reading)."""
+    bytes are already written when the loop asks for them: no thread hand-off per reading). ``tap`` gets every
+    chunk first, as read (the raw serial record, acquisition/busrecord.py)."""
 
     def __init__(self, port: serial.Serial, on_bytes: Callable[[bytes, float], None], name: str,
-                 threaded: bool = True) -> None:
+                 threaded: bool = True, tap: Callable[[bytes], None] | None = None) -> None:
         self.port = port
-        self.on_bytes = on_bytes
+        self.on_bytes = on_bytes if tap is None else _tapped(tap, on_bytes)
         self.threaded = threaded
         self.error: str | None = None
         self._stop = threading.Event()

@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "acquisition.cli.runs",
     "acquisition.cli.devices",
     "acquisition.cli.startup",
+    "acquisition.cli.replay",
     "acquisition.cli.diagnose",
     "acquisition.cli.certify",
 )
