@@ -10,8 +10,9 @@
   SIGINT or SIGTERM ends in a safe stop that closes the record complete; python-can's ``LogReader`` reads it.
 - Serial: ``serial.rec`` (format ``cdpr-serial-record/1``, docs/run-format.md): a first line naming the
   format, a second line of JSON with what a replay needs to open the devices again, then one line per chunk
-  read from a port, flushed as it is written: ``<wall time s> <CAN frames recorded before it> <device> <hex
-  bytes>``. The CAN frame count places each chunk exactly among the frames of bus.blf.
+  read from a port (``rx``) or written to it (``tx``: the drivers' requests), flushed as it is written:
+  ``<wall time s> <CAN frames recorded before it> <device> <rx|tx> <hex bytes>``. The CAN frame count places
+  each chunk exactly among the frames of bus.blf.
 """
 
 from __future__ import annotations
@@ -87,16 +88,18 @@ class BusRecorder(can.Listener):
                 self._writer.on_message_received(msg)
                 self.frames += 1
 
-    def serial_tap(self, device: str) -> Callable[[bytes], None]:
-        """The tap of one serial device's reader (``drivers.serial_util.PortReader``): records each chunk."""
+    def serial_tap(self, device: str) -> Callable[[bytes, bool], None]:
+        """The tap of one serial device's port (``drivers.serial_util.PortReader``): records each chunk read
+        (``sent`` False) or written (``sent`` True)."""
         if device not in SERIAL_DEVICES:
             raise ValueError(f"serial device {device!r} is not one of {', '.join(SERIAL_DEVICES)}.")
 
-        def tap(data: bytes) -> None:
+        def tap(data: bytes, sent: bool) -> None:
             with self._lock:
                 if self.closed:
                     return
-                self._serial.write(f"{time.time():.6f} {self.frames} {device} {data.hex()}\n")
+                way = "tx" if sent else "rx"
+                self._serial.write(f"{time.time():.6f} {self.frames} {device} {way} {data.hex()}\n")
                 self._serial.flush()
                 self._writer.file.flush()  # what the CAN writer has handed to its file so far
 
@@ -114,11 +117,13 @@ class BusRecorder(can.Listener):
 
 @dataclass(frozen=True)
 class SerialChunk:
-    """Bytes read from one serial port at once: wall time s, CAN frames recorded before them, device."""
+    """Bytes read from (``sent`` False) or written to one serial port at once: wall time s, CAN frames recorded
+    before them, device."""
 
     t: float
     can_frames: int
     device: str
+    sent: bool
     data: bytes
 
 
@@ -147,11 +152,11 @@ def _chunks(path: Path, lines: list[str]) -> Iterator[SerialChunk]:
     for no, line in enumerate(lines, start=3):
         parts = line.split(" ")
         try:
-            if len(parts) != 4 or parts[2] not in SERIAL_DEVICES:
+            if len(parts) != 5 or parts[2] not in SERIAL_DEVICES or parts[3] not in ("rx", "tx"):
                 raise ValueError(line[:60])
-            yield SerialChunk(float(parts[0]), int(parts[1]), parts[2], bytes.fromhex(parts[3]))
+            yield SerialChunk(float(parts[0]), int(parts[1]), parts[2], parts[3] == "tx", bytes.fromhex(parts[4]))
         except ValueError as exc:
-            raise RecordError(f"{path}: line {no} is not '<t> <frames> <device> <hex>': {exc}.") from exc
+            raise RecordError(f"{path}: line {no} is not '<t> <frames> <device> <rx|tx> <hex>': {exc}.") from exc
 
 
 def read_can_record(path: str | Path) -> list[can.Message]:

@@ -104,9 +104,10 @@ class PlaybackBus(can.BusABC):
 
 
 class SerialFeeder:
-    """Writes the recorded serial chunks to pty masters (``ports``: device -> (master fd, slave path)), each
+    """Plays the recorded serial chunks on pty masters (``ports``: device -> (master fd, slave path)) in the
+    recorded order: a chunk the driver wrote (``sent``) is awaited on the master, a chunk it read is written
     once the bus has released the CAN frames recorded before it and the driver has read the device's last
-    chunk, so that every read sees what the run's read saw."""
+    chunk, so that every read of the driver sees what the run's read saw."""
 
     def __init__(self, bus: PlaybackBus, chunks: list[SerialChunk], ports: dict[str, tuple[int, str]]) -> None:
         self.bus = bus
@@ -124,22 +125,27 @@ class SerialFeeder:
 
     def _run(self) -> None:
         watch = {dev: os.open(path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK) for dev, (_, path) in self.ports.items()}
-        opened: set[str] = set()
+        heard = dict.fromkeys(self.ports, 0)  # bytes the driver wrote so far, per device
+        awaited = dict.fromkeys(self.ports, 0)  # bytes the run's driver had written, per device
+        stop = self._stop
         try:
             for chunk in self.chunks:
-                if not self.bus.wait_position(chunk.can_frames) or self._stop.is_set():
-                    return
                 fd = self.ports[chunk.device][0]
-                if chunk.device not in opened:  # a driver's port opens empty: its first bytes follow its first request
-                    while not select.select([fd], [], [], 0.05)[0]:
-                        if self._stop.is_set():
+                if chunk.sent:
+                    awaited[chunk.device] += len(chunk.data)
+                    while heard[chunk.device] < awaited[chunk.device]:
+                        if stop.is_set():
                             return
-                    opened.add(chunk.device)
-                while _pending(watch[chunk.device]) and not self._stop.is_set():
+                        if select.select([fd], [], [], 0.05)[0]:
+                            heard[chunk.device] += _drain(fd)
+                    continue
+                if not self.bus.wait_position(chunk.can_frames) or stop.is_set():
+                    return
+                while _pending(watch[chunk.device]) and not stop.is_set():
                     time.sleep(2e-5)
                 data = chunk.data
-                while data and not self._stop.is_set():
-                    _drain(fd)  # what the driver wrote (its requests): the record holds the answers
+                while data and not stop.is_set():
+                    heard[chunk.device] += _drain(fd)
                     try:
                         data = data[os.write(fd, data):]
                     except BlockingIOError:
@@ -151,12 +157,15 @@ class SerialFeeder:
                 os.close(fd)
 
 
-def _drain(fd: int) -> None:
+def _drain(fd: int) -> int:
+    """Read what the driver wrote to a pty (non-blocking master); the count of bytes."""
+    count = 0
     try:
-        while os.read(fd, 4096):
-            pass
+        while data := os.read(fd, 4096):
+            count += len(data)
     except BlockingIOError:
         pass
+    return count
 
 
 def _pending(fd: int) -> int:

@@ -199,7 +199,7 @@ class LoadCellConfig:
     stuck_samples: int = 50  # identical consecutive values that mark a stuck channel
     info_timeout: float = 1.0  # s
     polled: bool = False  # read the port in the waiting thread, not a reader thread (lockstep simulation)
-    tap: Callable[[bytes], None] | None = field(default=None, compare=False)  # gets every chunk read (raw record)
+    tap: Callable[[bytes, bool], None] | None = field(default=None, compare=False)  # raw record (PortReader)
 
 
 class LoadCellDriver(LoadCellBase):
@@ -239,7 +239,7 @@ class LoadCellDriver(LoadCellBase):
     def _handshake(self) -> None:
         self._info_event.clear()
         try:
-            self._port.write(frame("INFO"))
+            self._reader.write(frame("INFO"))
         except Exception as exc:  # serial.SerialException, OSError, write timeout
             raise DeviceError(f"load-cell amplifier: writing INFO to {self.config.port} failed ({exc}).") from exc
         if self.config.polled:
