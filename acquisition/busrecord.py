@@ -6,8 +6,10 @@
 - CAN: python-can's own loggers (``can.Logger``: :class:`can.BLFWriter` by default, :class:`can.ASCWriter`
   for ``asc``) get every frame the master's CANopen network sends and receives, in bus order
   (``drivers.can_bus.Network.add_listener``). Sent frames have ``is_rx`` False. A BLF file is written in
-  compressed containers of 16 KiB (about 0.2 s of traffic at 200 Hz); an ASC file line by line. A run cut by
-  SIGINT or SIGTERM ends in a safe stop that closes the record complete; python-can's ``LogReader`` reads it.
+  compressed containers of 16 KiB (about 0.2 s of traffic at 200 Hz); an ASC file line by line; both files are
+  fsynced once per second of wall time. A run cut by SIGINT or SIGTERM ends in a safe stop that closes the
+  record complete; a run killed keeps what reached the file, which python-can's ``LogReader`` reads up to
+  there.
 - Serial: ``serial.rec`` (format ``cdpr-serial-record/1``, docs/run-format.md): a first line naming the
   format, a second line of JSON with what a replay needs to open the devices again, then one line per chunk
   read from a port (``rx``) or written to it (``tx``: the drivers' requests), flushed as it is written:
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -77,6 +80,7 @@ class BusRecorder(can.Listener):
         self._lock = threading.Lock()
         self.frames = 0
         self.closed = False
+        self._next_sync = time.time() + 1.0
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.channel is not None and not isinstance(msg.channel, int):  # a virtual bus's channel name
@@ -87,6 +91,15 @@ class BusRecorder(can.Listener):
             if not self.closed:
                 self._writer.on_message_received(msg)
                 self.frames += 1
+                if msg.timestamp >= self._next_sync:
+                    self._sync(msg.timestamp)
+
+    def _sync(self, now: float) -> None:
+        """Both files to the disk (fsync), at most once per second of wall time."""
+        for fh in (self._serial, self._writer.file):
+            fh.flush()
+            os.fsync(fh.fileno())
+        self._next_sync = now + 1.0
 
     def serial_tap(self, device: str) -> Callable[[bytes, bool], None]:
         """The tap of one serial device's port (``drivers.serial_util.PortReader``): records each chunk read

@@ -43,8 +43,8 @@ from acquisition.busrecord import (
 )
 from acquisition.clock import SimClock
 from acquisition.runlog import RunWriter, read_run
+from drivers.can_bus import SYNC_COB_ID
 
-SYNC_COB_ID = 0x80
 _STANDARD_META = ("format", "robot", "procedure", "events", "created", "source")
 
 
@@ -213,7 +213,9 @@ def replay_run(run: str | Path, out: str | Path, overwrite: bool = False, timeou
     )
     bus = PlaybackBus(frames)
     feeder = SerialFeeder(bus, chunks, ports)
-    syncs = sum(1 for f in frames if not f.is_rx and f.arbitration_id == SYNC_COB_ID)
+    # a record cut short: the ticks whose serial bytes the record still holds (read after their SYNC)
+    end = max((c.can_frames for c in chunks if not c.sent), default=0)
+    syncs = sum(1 for f in frames[:end] if not f.is_rx and f.arbitration_id == SYNC_COB_ID)
     snaps = {}
     feeder.start()
     try:

@@ -76,6 +76,24 @@ def test_replay_rebuilds_the_samples_byte_for_byte(sim_run, tmp_path, capsys):
     assert (out / "samples.csv").read_bytes() == original
 
 
+def test_a_record_cut_short_replays_to_its_cut(sim_run, tmp_path):
+    # a run killed outright: bus.blf ends in the middle of a container, serial.rec at the same place
+    cut = tmp_path / "killed"
+    cut.mkdir()
+    for name in ("run.yaml", "samples.csv"):
+        (cut / name).write_bytes((sim_run / name).read_bytes())
+    blf = (sim_run / "bus.blf").read_bytes()
+    (cut / "bus.blf").write_bytes(blf[:len(blf) // 3])
+    kept = len(read_can_record(cut / "bus.blf"))
+    lines = (sim_run / "serial.rec").read_text().split("\n")
+    head = lines[:2] + [ln for ln in lines[2:] if ln and int(ln.split(" ")[1]) <= kept]
+    (cut / "serial.rec").write_text("\n".join(head) + "\n" + lines[len(head)][:20])  # and a line cut off
+    assert main(["replay", str(cut), "--out", str(tmp_path / "replayed")]) == 0
+    original = (sim_run / "samples.csv").read_text().split("\n")
+    rebuilt = (tmp_path / "replayed" / "samples.csv").read_text().split("\n")
+    assert 100 < len(rebuilt) < len(original) * 0.6 and rebuilt[:-1] == original[:len(rebuilt) - 1]
+
+
 def test_a_run_cut_by_sigint_replays_to_its_cut_and_shows_a_decoder_change(tmp_path, monkeypatch):
     out = tmp_path / "cut"
     cmd = [sys.executable, "-c", "import sys; from acquisition.cli import main; sys.exit(main())",
