@@ -24,6 +24,7 @@ import json
 import os
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,10 @@ BLF_CONTAINER = 16 * 1024  # bytes of frames per compressed BLF container
 
 class RecordError(ValueError):
     """A record that cannot be read; the message names the file, line and value."""
+
+
+class RecordTruncatedWarning(UserWarning):
+    """A record ends in a piece that cannot be read (a run killed while writing); what comes before is used."""
 
 
 def can_record_path(run: str | Path, fmt: str | None = None) -> Path:
@@ -173,10 +178,18 @@ def _chunks(path: Path, lines: list[str]) -> Iterator[SerialChunk]:
 
 
 def read_can_record(path: str | Path) -> list[can.Message]:
-    """Every frame of a bus.blf / bus.asc (python-can's ``LogReader``), in the order recorded."""
+    """Every frame of a bus.blf / bus.asc (python-can's ``LogReader``), in the order recorded. A file that
+    ends in a piece python-can cannot read (a run killed while the logger wrote) gives the frames before it,
+    with a :class:`RecordTruncatedWarning`."""
     path = Path(path)
+    frames: list[can.Message] = []
     try:
         with can.LogReader(path) as reader:
-            return list(reader)
-    except Exception as exc:  # the readers raise their own parse errors, struct.error, OSError
-        raise RecordError(f"{path}: python-can cannot read the CAN record ({exc}).") from exc
+            for msg in reader:
+                frames.append(msg)
+    except Exception as exc:  # the readers raise their own parse errors, zlib.error, struct.error, OSError
+        if not frames:
+            raise RecordError(f"{path}: python-can cannot read the CAN record ({exc}).") from exc
+        warnings.warn(f"{path}: the CAN record ends in a piece python-can cannot read ({exc}); the "
+                      f"{len(frames)} frames before it are used.", RecordTruncatedWarning, stacklevel=2)
+    return frames

@@ -192,6 +192,8 @@ def replay_run(run: str | Path, out: str | Path, overwrite: bool = False, timeou
 
     run, out = Path(run), Path(out)
     original = read_run(run)
+    if "tick" not in original.extra:
+        raise ValueError(f"{run / 'samples.csv'}: no 'tick' column; only runs of `cdpr startup` can be replayed.")
     settings, chunks = read_serial_record(run / SERIAL_RECORD)
     can_path = can_record_path(run)
     frames = read_can_record(can_path)
@@ -245,9 +247,7 @@ def _write(original, snaps: dict, out: Path, overwrite: bool, run: Path, frames:
     extra_meta = {k: v for k, v in meta.items() if k not in _STANDARD_META}
     extra_meta["replay"] = {"of": str(run), "can_frames": frames}
     proc = meta["procedure"]
-    ticks = original.extra.get("tick")
-    if ticks is None:
-        raise ValueError(f"{run / 'samples.csv'}: no 'tick' column; only runs of `cdpr startup` can be replayed.")
+    ticks = original.extra["tick"]
     zero = snaps.get(3)  # the routine zeroes the relative sensors at the third tick
     writer = RunWriter(out, meta["robot"], original.method, original.sample_period, original.source,
                        setpoints=proc.get("setpoints"), ideal_poses=proc.get("ideal_poses"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 
 from acquisition.cli.errors import OperationError, UsageError
@@ -31,14 +32,18 @@ def run(args) -> int:
             raise UsageError(f"{need}: no such file; only runs recorded by `cdpr startup` can be replayed.")
     if args.out.exists() and not args.force:
         raise UsageError(f"--out {args.out} exists; pass --force to replace it.")
-    try:
-        res = replay_run(args.run, args.out, overwrite=args.force)
-    except (RecordError, RunFormatError, ValueError) as exc:
-        raise UsageError(str(exc)) from exc
-    except DeviceError as exc:
-        raise OperationError(f"the replay could not open the recorded devices: {str(exc).rstrip('.')}.") from exc
-    except OSError as exc:
-        raise OperationError(f"{args.out}: cannot write the replayed run ({exc.strerror}).") from exc
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            res = replay_run(args.run, args.out, overwrite=args.force)
+        except (RecordError, RunFormatError, ValueError) as exc:
+            raise UsageError(str(exc)) from exc
+        except DeviceError as exc:
+            raise OperationError(f"the replay could not open the recorded devices: {str(exc).rstrip('.')}.") from exc
+        except OSError as exc:
+            raise OperationError(f"{args.out}: cannot write the replayed run ({exc.strerror}).") from exc
+    for w in caught:
+        sys.stderr.write(f"cdpr: warning: {w.message}\n")
     sys.stdout.write(f"{res.out}: {res.samples} of {res.original} samples rebuilt from {res.frames} CAN frames "
                      f"({res.syncs} SYNCs) of {args.run}\n")
     return 0
