@@ -4,8 +4,9 @@ The CAN frames of RUN/bus.blf (python-can's ``LogReader``) play on a :class:`Pla
 master sends is matched with the next frame the run sent with the same COB-ID and data, and the frames the
 run received after it, up to the run's next sent frame, are then received (a frame the run sent that the
 replay does not, an RPDO, is skipped; what answered it is still received, in the recorded order). The
-serial chunks of RUN/serial.rec are written to pty pairs at the place the record gives them among the CAN
-frames, one chunk at a time once the driver has read the one before. On these, :func:`acquisition.startup.
+serial chunks of RUN/serial.rec play on pty pairs in the recorded order: what the run's driver wrote is
+awaited from the driver, what it read is written at its place among the CAN frames, once the driver has read
+the device's chunk before (:class:`SerialFeeder`). On these, :func:`acquisition.startup.
 connect` opens the same drivers as ``cdpr startup`` (CiA 402 drives, CiA 406 encoders, load-cell amplifier,
 Xsens MTi: their SDO set-up, PDO mapping, handshakes and decoders) and the same :class:`acquisition.control.Rig`
 sends one SYNC per recorded SYNC and gathers each tick's readings.
