@@ -201,7 +201,10 @@ def _connect(devices, robot, clock, lockstep: bool, period: float, cfg, out: Pat
 
     log_every = int(round(cfg.log_period * cfg.rate))
     every = feedback_every(cfg.rate, log_every, devices.can.sync_overflow)
-    recorder = BusRecorder(out, record_settings(devices, every, cfg.rate, lockstep), bus_log)
+    try:
+        recorder = BusRecorder(out, record_settings(devices, every, cfg.rate, lockstep), bus_log)
+    except OSError as exc:
+        raise OperationError(f"{out}: cannot write the raw bus record ({exc.strerror}).") from exc
     try:
         rig = connect(devices, robot, clock, lockstep=lockstep, period=period, every=every, recorder=recorder)
     except DeviceError as exc:
