@@ -482,9 +482,11 @@ def ahrs_rate_for(log_period: float, base: int = 400) -> int:
 
 
 def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, timeout: float = 0.5,
-            every: tuple[int, int] = (1, 1)) -> Rig:
+            every: tuple[int, int] = (1, 1), recorder=None, bus=None) -> Rig:
     """Open and check every device of a :class:`drivers.config.DeviceConfig`; a :class:`Rig` over them.
     ``every``: the drives and the encoders send their readings every n-th SYNC (see :func:`feedback_every`).
+    ``recorder``: an ``acquisition.busrecord.BusRecorder`` that gets every CAN frame and serial byte from the
+    first on; ``bus``: a python-can bus to use instead of the one ``devices.can`` names (a replay's).
 
     The CAN drivers take their time stamps (heartbeat supervision) from the loop's clock; in lockstep the
     serial drivers' own wall-time staleness rule is switched off (the supervisor judges staleness on the
@@ -506,10 +508,12 @@ def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, 
     stale = 1e9 if lockstep else 3.0
     now = clock.now
     opened: list = []
-    bus = open_bus_from_config(devices.can)
+    bus = open_bus_from_config(devices.can) if bus is None else bus
     network = None
     try:
         network = open_network(bus)
+        if recorder is not None:
+            network.add_listener(recorder)
         sync = SyncProducer(network, devices.can.sync_overflow)
         hb = devices.can.heartbeat_period
         drives = [CanopenWinchDrive(network, nc.node_id, sync, lpr[i], name=nc.name, clock=now, heartbeat_period=hb,
@@ -519,9 +523,11 @@ def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, 
                                          counts_per_rev=robot.sensors.swivel_counts_per_rev, every=every[1])
                     for nc in devices.encoders]
         loadcells = LoadCellDriver(LoadCellConfig(devices.loadcells.port, devices.loadcells.baud, channels=robot.n,
-                                                  rate_hz=1.0 / period, stale_periods=stale, polled=lockstep))
+                                                  rate_hz=1.0 / period, stale_periods=stale, polled=lockstep,
+                                                  tap=recorder and recorder.serial_tap("loadcells")))
         ahrs = XsensMti(XsensConfig(devices.ahrs.port, devices.ahrs.baud, rate_hz=int(devices.ahrs.rate),
-                                    stale_periods=stale, polled=lockstep))
+                                    stale_periods=stale, polled=lockstep,
+                                    tap=recorder and recorder.serial_tap("ahrs")))
         for dev in [*drives, *encoders, loadcells, ahrs]:
             dev.open()
             opened.append(dev)

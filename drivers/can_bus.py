@@ -167,6 +167,7 @@ class Network(canopen.Network):
         super().__init__(bus)
         self._lane: _Lane | None = None
         self._inbox: deque | None = None  # pumped: the deque of the bus's receive queue (see _Lane.inboxes)
+        self._send_listeners: list[can.Listener] = []  # see add_listener
 
     @property
     def pumped(self) -> bool:
@@ -208,6 +209,11 @@ class Network(canopen.Network):
         bus = self.bus
         if not bus:
             raise RuntimeError("Not connected to CAN bus")
+        if self._send_listeners:
+            sent = can.Message(timestamp=time.time(), arbitration_id=can_id, is_extended_id=can_id > 0x7FF,
+                               is_remote_frame=remote, data=data, is_rx=False)
+            for listener in self._send_listeners:
+                listener.on_message_received(sent)
         lane = self._lane
         if lane is None:
             msg = _Frame(is_extended_id=can_id > 0x7FF, arbitration_id=can_id, data=data, is_remote_frame=remote)
@@ -220,6 +226,17 @@ class Network(canopen.Network):
         lane.sent += 1
         if not 0x180 <= can_id < 0x580:  # a PDO waits for the next frame that pumps (see the class)
             lane.pump()
+
+    def add_listener(self, listener: can.Listener) -> None:
+        """Hand every frame this network sends and receives to ``listener`` (a :class:`can.Logger`: the raw bus
+        record), in bus order. Received frames come through canopen's notifier (or, pumped, the delivery); a
+        frame sent is stamped (wall time) and handed over before it leaves, so that the answers it causes
+        follow it. python-can's own bus does not receive what it sends (``receive_own_messages``)."""
+        if self.notifier is not None:
+            self.notifier.add_listener(listener)
+        else:
+            self.listeners.append(listener)
+        self._send_listeners.append(listener)
 
     def pump(self) -> None:
         """Pumped mode: deliver what is queued on the channel now (no-op otherwise)."""

@@ -29,6 +29,7 @@ COMMAND_MODULES = (
     "acquisition.cli.runs",
     "acquisition.cli.devices",
     "acquisition.cli.startup",
+    "acquisition.cli.replay",
     "acquisition.cli.diagnose",
     "acquisition.cli.certify",
     "acquisition.cli.study",

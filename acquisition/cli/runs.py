@@ -1,4 +1,4 @@
-"""`cdpr import irma FILE -o RUN` and `cdpr export RUN --format mat|npz|csv -o FILE`."""
+"""`cdpr import irma FILE -o RUN` and `cdpr export RUN --format mat|npz|csv|mcap -o FILE`."""
 
 from __future__ import annotations
 
@@ -30,7 +30,8 @@ def register(sub) -> None:
 
     exp = sub.add_parser("export", help="export a run (and its solution, where solved) for offline solving")
     exp.add_argument("run", type=Path, metavar="RUN", help="run folder")
-    exp.add_argument("--format", required=True, choices=FORMATS, help="mat (MATLAB v5), npz or csv")
+    exp.add_argument("--format", required=True, choices=FORMATS,
+                     help="mat (MATLAB v5), npz, csv or mcap (Foxglove, PlotJuggler)")
     exp.add_argument("-o", "--out", type=Path, required=True, metavar="FILE",
                      help="file to write; an existing one is refused unless --force")
     add_force(exp)

@@ -64,6 +64,8 @@ def register(sub) -> None:
                    help="s to wait for the platform to come to rest at each setpoint before holding anyway")
     p.add_argument("--pause", action="append", default=[], metavar="J:S[:home]",
                    help="pause S seconds after setpoint J's window, at it or (home) under tau0 (repeatable)")
+    p.add_argument("--bus-log", choices=("blf", "asc"), default="blf",
+                   help="format of the raw CAN record RUN/bus.<fmt> (python-can's loggers; default blf)")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     add_force(p)
@@ -175,7 +177,7 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
     try:
         # the simulated MTi sends at the log rate: its angles serve only the log (ahrs_rate_for)
         with SimBackend(robot, sim_config, args.seed, period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
-            rig = _connect(sim.devices, robot, clock, True, period, cfg)
+            rig = _connect(sim.devices, robot, clock, True, period, cfg, out, args.bus_log)
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
                                      supervisor=supervisor, meta=args.run_meta)
             try:
@@ -211,7 +213,7 @@ def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
     clock = RealClock(period, lockstep=False)
     supervisor = _supervisor(robot, cfg)
     try:
-        rig = _connect(devices, robot, clock, False, period, cfg)
+        rig = _connect(devices, robot, clock, False, period, cfg, out, args.bus_log)
         routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args),
                                  supervisor=supervisor, meta=args.run_meta)
         try:
@@ -231,15 +233,33 @@ def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
     return sup
 
 
-def _connect(devices, robot, clock, lockstep: bool, period: float, cfg):
+def _connect(devices, robot, clock, lockstep: bool, period: float, cfg, out: Path, bus_log: str):
+    """The rig, its raw bus record (RUN/bus.<bus_log>, RUN/serial.rec) started first and closed last."""
+    from acquisition.busrecord import BusRecorder, record_settings
     from drivers.interfaces import DeviceError
 
     log_every = int(round(cfg.log_period * cfg.rate))
     every = feedback_every(cfg.rate, log_every, devices.can.sync_overflow)
     try:
-        return connect(devices, robot, clock, lockstep=lockstep, period=period, every=every)
+        recorder = BusRecorder(out, record_settings(devices, every, cfg.rate, lockstep), bus_log)
+    except OSError as exc:
+        raise OperationError(f"{out}: cannot write the raw bus record ({exc.strerror}).") from exc
+    try:
+        rig = connect(devices, robot, clock, lockstep=lockstep, period=period, every=every, recorder=recorder)
     except DeviceError as exc:
+        recorder.stop()
         raise OperationError(f"device check failed: {str(exc).rstrip('.')}.") from exc
+    except BaseException:
+        recorder.stop()
+        raise
+    close_devices = rig.closer
+
+    def close() -> None:
+        close_devices()
+        recorder.stop()
+
+    rig.closer = close
+    return rig
 
 
 def _acquire(routine: StartupRoutine):
