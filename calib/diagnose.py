@@ -34,10 +34,10 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from calib.effects import BUILTIN, Effect, EffectModel
-from calib.effects.base import Projected
+from calib.effects import BUILTIN, Effect, EffectModel, Implausible, Projected
 from calib.effects.builtin import DeviceAccuracy
 from calib.kinematics import inverse_kinematics
+from calib.prediction import Prediction, leave_one_pose_out
 from calib.robot import Robot
 from calib.selfcal.lm import levenberg_marquardt
 from calib.selfcal.model import CHANNELS
@@ -169,7 +169,7 @@ def observable_basis(MC: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, np
     return scales[:, None] * Vt[keep].T, U[:, keep], s[keep]
 
 
-def _restrict(robot: Robot, meas: Measurements, sigma, effects: list[Effect], theta0: np.ndarray,
+def restrict_to_observable(robot: Robot, meas: Measurements, sigma, effects: list[Effect], theta0: np.ndarray,
               poses0: np.ndarray) -> list[Effect]:
     """The effects, each restricted to the parameter directions this data can observe (Projected) where
     some are not (after projecting out the pose and zeta_0 directions)."""
@@ -177,7 +177,7 @@ def _restrict(robot: Robot, meas: Measurements, sigma, effects: list[Effect], th
     problem = Problem(model, meas, sigma)
     res = residuals(problem, theta0, poses0)
     k = poses0.shape[0]
-    Q = _orth(res.A[:, : 6 * k + 6])
+    Q = orthonormal_columns(res.A[:, : 6 * k + 6])
     out = []
     for e, sl, specs in zip(effects, model.slices, model.specs, strict=True):
         C = res.A[:, 6 * k + sl.start : 6 * k + sl.stop]
@@ -189,7 +189,7 @@ def _restrict(robot: Robot, meas: Measurements, sigma, effects: list[Effect], th
     return out
 
 
-def _orth(A: np.ndarray) -> np.ndarray:
+def orthonormal_columns(A: np.ndarray) -> np.ndarray:
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     U, s, _ = np.linalg.svd(A / scale, full_matrices=False)
@@ -210,7 +210,7 @@ def fit(
     if theta0.shape[0] < model.n_params:
         theta0 = np.r_[theta0, model.absent_values()[theta0.shape[0] - 6 :]]
     if restrict and effects:
-        new = _restrict(robot, meas, sigma, effects, theta0, poses0)
+        new = restrict_to_observable(robot, meas, sigma, effects, theta0, poses0)
         if any(a is not b for a, b in zip(new, effects, strict=True)):
             # restart the restricted effects at their absent values, keep the others' values
             vals = []
@@ -228,26 +228,48 @@ def fit(
 @dataclass
 class Candidate:
     """One candidate effect's evidence. ``score``/``score_dof``/``score_p``: the LM test at the current
-    solution; ``delta_chi2``/``p_value``/``delta_aic``/``delta_bic``: from the refit (None when not refitted);
-    ``params`` and ``params_sigma`` as fitted; ``channels``: share of each channel's chi2 removed;
-    ``confused_with``: candidates that explain the same thing with this data."""
+    solution, ``epc``: the expected parameter change of that test (one Gauss-Newton step, as reported);
+    ``delta_chi2``/``p_value``/``delta_aic``/``delta_bic``: from the refit (None when not refitted);
+    ``params`` and ``params_sigma`` as fitted, ``implausible``: the fitted values outside their plausible
+    ranges; ``cv_gain``: how much lower the leave-one-pose-out chi2 is with the effect (positive: it
+    predicts unseen equilibrium poses better); ``channels``: share of each channel's chi2 removed;
+    ``confused_with``: candidates that explain the same thing with this data; ``decision``: why it is
+    recommended or rejected."""
 
     effect: str
     n_params: int
     score: float
     score_dof: int
     score_p: float
+    epc: dict[str, float] = field(default_factory=dict)
     delta_chi2: float | None = None
     p_value: float | None = None
     delta_aic: float | None = None
     delta_bic: float | None = None
     params: dict[str, float] = field(default_factory=dict)
     params_sigma: dict[str, float] = field(default_factory=dict)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    implausible: list[Implausible] = field(default_factory=list)
+    cv_chi2: float | None = None
+    cv_gain: float | None = None
     channels: dict[str, float] = field(default_factory=dict)
     confused_with: list[str] = field(default_factory=list)
     significant: bool = False
     refit_failed: bool = False
+    decision: str = ""
     refit: Fit | None = None
+    prediction: Prediction | None = None
+    span: np.ndarray | None = None
+    direction: np.ndarray | None = None
+
+    @property
+    def plausible(self) -> bool:
+        return not self.implausible
+
+    @property
+    def eligible(self) -> bool:
+        """Significant, refitted, physically plausible and predicting unseen poses better."""
+        return (self.significant and self.plausible and self.cv_gain is not None and self.cv_gain > 0)
 
     def to_json(self) -> dict[str, Any]:
         d = self.delta_chi2 if self.delta_chi2 is not None else self.score
@@ -258,16 +280,23 @@ class Candidate:
             "p_value": float(p),
             "params": {k: _num(v) for k, v in self.params.items()},
             "params_sigma": {k: _num(v) for k, v in self.params_sigma.items()},
+            "plausible_range": {k: [_num(a), _num(b)] for k, (a, b) in self.bounds.items()},
+            "plausible": self.plausible,
+            "implausible": [str(v) for v in self.implausible],
             "score": float(self.score),
             "score_dof": int(self.score_dof),
             "score_p": float(self.score_p),
+            "expected_change": {k: _num(v) for k, v in self.epc.items()},
             "refitted": self.delta_chi2 is not None,
             "refit_failed": bool(self.refit_failed),
             "delta_aic": None if self.delta_aic is None else float(self.delta_aic),
             "delta_bic": None if self.delta_bic is None else float(self.delta_bic),
+            "cv_chi2": None if self.cv_chi2 is None else float(self.cv_chi2),
+            "cv_gain": None if self.cv_gain is None else float(self.cv_gain),
             "significant": bool(self.significant),
             "channels": {k: float(v) for k, v in self.channels.items()},
             "confused_with": list(self.confused_with),
+            "decision": self.decision,
         }
 
 
@@ -284,31 +313,45 @@ class ScoreBasis:
 
 
 def score_basis(res: Residuals) -> ScoreBasis:
-    return ScoreBasis(_orth(res.A), res.r)
+    return ScoreBasis(orthonormal_columns(res.A), res.r)
 
 
-def score_test(fit0: Fit, effect: Effect, basis: ScoreBasis) -> tuple[float, int, np.ndarray, np.ndarray]:
-    """LM statistic, its dof (number of observable directions), the unit vector of the explained part of
-    the residual (m,) and an orthonormal basis of the effect's projected span (m, dof), for adding
-    ``effect`` to ``fit0`` (no refit)."""
+@dataclass
+class Score:
+    """A score test: LM statistic, its dof (observable directions), the unit vector of the explained part
+    of the residual (m,), an orthonormal basis of the effect's projected span (m, dof) and the expected
+    parameter change (the effect's values after one Gauss-Newton step from absent, q)."""
+
+    lm: float
+    dof: int
+    direction: np.ndarray
+    span: np.ndarray
+    values: np.ndarray
+
+
+def score_test(fit0: Fit, effect: Effect, basis: ScoreBasis) -> Score:
+    """Score test of adding ``effect`` to ``fit0`` (no refit)."""
     model = EffectModel(fit0.model.robot, fit0.effects + [effect])
     problem = Problem(model, fit0.problem.meas, fit0.problem.sigma)
-    theta = np.r_[fit0.theta, model.absent_values()[fit0.theta.shape[0] - 6 :]]
+    absent = model.absent_values()[fit0.theta.shape[0] - 6 :]
+    theta = np.r_[fit0.theta, absent]
     res = residuals(problem, theta, fit0.poses)
     C = res.A[:, 6 * fit0.poses.shape[0] + fit0.theta.shape[0] :]
     Q = basis.Q
-    _, Uk, _ = observable_basis(C - Q @ (Q.T @ C), np.array([s.scale for s in model.specs[-1]]))
+    B, Uk, s = observable_basis(C - Q @ (Q.T @ C), np.array([sp.scale for sp in model.specs[-1]]))
     proj = Uk.T @ basis.r
     lm = float(proj @ proj)
     u = Uk @ proj
     nu = np.linalg.norm(u)
-    return lm, int(Uk.shape[1]), (u / nu if nu > 0 else u), Uk
+    values = absent + (B @ (-proj / s) if s.size else 0.0)  # r is prediction - reading: the step is -pinv(C) r
+    return Score(lm, int(Uk.shape[1]), (u / nu if nu > 0 else u), Uk, values)
 
 
 @dataclass
 class Diagnosis:
-    """Outcome of :func:`diagnose` (see the module doc). ``steps``: chi2 as effects are added one by one
-    (names, chi2, dof, initial pose)."""
+    """Outcome of :func:`diagnose` (see the module doc). ``steps``: chi2 and the leave-one-pose-out chi2
+    as effects are added one by one (names, chi2, dof, initial pose); ``reference_sample``: the run's sample
+    of the reference row (None: unknown)."""
 
     fit: Fit
     chi2: float
@@ -325,6 +368,7 @@ class Diagnosis:
     alpha: float
     residual_data: Residuals
     final: Fit
+    reference_sample: int | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The `cdpr diagnose --json` object of spec/cli.md (plus extra keys)."""
@@ -346,7 +390,8 @@ class Diagnosis:
         }
 
 
-def _channel_tables(res: Residuals, n: int, meas: Measurements) -> tuple[dict, dict, list]:
+def _channel_tables(res: Residuals, n: int, meas: Measurements, ref_sample: int | None = None
+                    ) -> tuple[dict, dict, list]:
     channels, cables = {}, {}
     for c in CHANNELS:
         m = res.channel == c
@@ -370,11 +415,17 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements) -> tuple[dict, d
         m = res.row == i
         z = res.r[m]
         worst = int(np.argmax(np.abs(z)))
+        if i >= 0:
+            sample = int(meas.samples[i]) if meas.samples is not None else -1
+        else:
+            sample = -1 if ref_sample is None else int(ref_sample)
         entry = {
             "row": int(i),
-            "sample": int(meas.samples[i]) if (i >= 0 and meas.samples is not None) else -1,
+            "label": "reference pose" if i < 0 else f"pose {i + 1}",
+            "sample": sample,
             "rms_normalized": float(np.sqrt(np.mean(z**2))),
             "max_normalized": float(np.abs(z).max()),
+            "chi2": float(z @ z),
             "worst": f"{res.channel[m][worst]}[{int(res.index[m][worst]) + 1}]",
         }
         if i >= 0 and meas.windows is not None:
@@ -383,23 +434,39 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements) -> tuple[dict, d
     return channels, cables, rows
 
 
-def _refit(fit0: Fit, effect: Effect) -> Fit:
+def refit(fit0: Fit, effect: Effect) -> Fit:
+    """``fit0`` with one more effect, started from fit0's solution (the effect absent)."""
     return fit(fit0.model.robot, fit0.problem.meas, fit0.problem.sigma, fit0.effects + [effect], fit0.theta,
                fit0.poses)
 
 
-def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refits: int) -> list[Candidate]:
-    """Score tests of every candidate at fit0, refits of the most promising, ordered most likely first."""
+def predict_unseen(f: Fit) -> Prediction:
+    """Leave-one-pose-out chi2 of a fit (:mod:`calib.prediction`)."""
+    res = residuals(f.problem, f.theta, f.poses)
+    return leave_one_pose_out(res.r, res.A, res.row, f.poses.shape[0])
+
+
+def _bounds(effect: Effect, robot: Robot) -> dict[str, tuple[float, float]]:
+    inner = effect.inner if isinstance(effect, Projected) else effect
+    return {s.name: s.plausible for s in inner.params(robot) if np.isfinite(s.plausible).any()}
+
+
+def _rank_round(fit0: Fit, pred0: Prediction, candidates: Sequence[Effect], alpha_each: float,
+                refits: int) -> list[Candidate]:
+    """Score tests of every candidate at fit0; refits (with their leave-one-pose-out chi2) of the
+    significant ones and of the ``refits`` best scores; ordered: eligible first by predictive gain, then
+    the other refitted ones by AIC, then those only scored."""
     base = residuals(fit0.problem, fit0.theta, fit0.poses)
     basis = score_basis(base)
     m = base.r.shape[0]
+    robot = fit0.model.robot
     out: list[Candidate] = []
-    dirs, spans = {}, {}
     for eff in candidates:
-        lm, q, u, Uk = score_test(fit0, eff, basis)
-        p = float(stats.chi2.sf(lm, q)) if q > 0 else 1.0
-        out.append(Candidate(eff.name, len(eff.params(fit0.model.robot)), lm, q, p))
-        dirs[eff.name], spans[eff.name] = u, Uk
+        sc = score_test(fit0, eff, basis)
+        p = float(stats.chi2.sf(sc.lm, sc.dof)) if sc.dof > 0 else 1.0
+        out.append(Candidate(eff.name, len(eff.params(robot)), sc.lm, sc.dof, p, span=sc.span,
+                             direction=sc.direction, bounds=_bounds(eff, robot),
+                             epc=eff.report(robot, sc.values) if sc.dof > 0 else {}))
     by_score = sorted(range(len(out)), key=lambda i: (out[i].score_p, -out[i].score))
     chosen = [i for i in by_score if out[i].score_dof > 0][: max(refits, 0)]
     chosen += [i for i in by_score if out[i].score_p < alpha_each and i not in chosen and out[i].score_dof > 0]
@@ -407,7 +474,7 @@ def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refi
     for i in chosen:
         cand = out[i]
         eff = candidates[i]
-        f1 = _refit(fit0, eff)
+        f1 = refit(fit0, eff)
         d = fit0.chi2 - f1.chi2
         q = cand.score_dof
         cand.refit = f1
@@ -417,7 +484,12 @@ def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refi
         cand.delta_bic = d - q * math.log(max(m, 2))
         cand.params = f1.params()[eff.name]
         cand.params_sigma = f1.param_sigmas()[eff.name]
-        r1 = residuals(f1.problem, f1.theta, f1.poses, jacobian=False)
+        used = f1.effects[-1]
+        cand.implausible = used.implausible(robot, f1.theta[f1.model.slices[-1]])
+        r1 = residuals(f1.problem, f1.theta, f1.poses)
+        cand.prediction = leave_one_pose_out(r1.r, r1.A, r1.row, f1.poses.shape[0])
+        cand.cv_chi2 = cand.prediction.total
+        cand.cv_gain = cand.prediction.gain_over(pred0)
         cand.channels = {
             c: (per_channel0[c] - float(np.sum(r1.r[r1.channel == c] ** 2))) / per_channel0[c]
             for c in CHANNELS if per_channel0[c] > 0
@@ -426,24 +498,73 @@ def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refi
         cand.refit_failed = (not f1.converged) or (cand.score > 25.0 and d < 0.1 * cand.score)
         cand.significant = cand.p_value < alpha_each and not cand.refit_failed
     for a in out:
-        if a.score_dof == 0 or np.linalg.norm(dirs[a.effect]) == 0:
+        if a.score_dof == 0 or np.linalg.norm(a.direction) == 0:
             continue
         for b in out:
-            if a is b or b.score_dof == 0 or np.linalg.norm(dirs[b.effect]) == 0:
+            if a is b or b.score_dof == 0 or np.linalg.norm(b.direction) == 0:
                 continue
-            ab = np.linalg.norm(spans[b.effect].T @ dirs[a.effect])
-            ba = np.linalg.norm(spans[a.effect].T @ dirs[b.effect])
+            ab = np.linalg.norm(b.span.T @ a.direction)
+            ba = np.linalg.norm(a.span.T @ b.direction)
             if ab > OVERLAP and ba > OVERLAP:
                 a.confused_with.append(b.effect)
+    for c in out:
+        c.decision = _rejection(c, alpha_each)
 
-    def key(c: Candidate):  # refitted first, by AIC; then those only scored; a refit that failed to move last
+    def key(c: Candidate):
+        if c.eligible:
+            return (0, -c.cv_gain)
         if c.delta_chi2 is not None and not c.refit_failed:
-            return (0, -c.delta_aic)
+            return (1, -c.delta_aic)
         if c.delta_chi2 is None:
-            return (1, c.score_p)
-        return (2, -c.delta_aic)
+            return (2, c.score_p)
+        return (3, -c.delta_aic)
 
     return sorted(out, key=key)
+
+
+def _rejection(c: Candidate, alpha_each: float) -> str:
+    """Why a candidate is not (yet) recommended, in words; empty when it is eligible."""
+    if c.score_dof == 0:
+        return "rejected: this data cannot observe it"
+    if c.delta_chi2 is None:
+        return f"rejected: not significant (score test p = {c.score_p:.2g}, needs < {alpha_each:.2g})"
+    if c.refit_failed:
+        return "rejected: its refit did not move (ill-conditioned)"
+    if not c.significant:
+        return f"rejected: not significant (p = {c.p_value:.2g}, needs < {alpha_each:.2g})"
+    if not c.plausible:
+        return "rejected: implausibly large (" + "; ".join(str(v) for v in c.implausible[:3]) + ")"
+    if c.cv_gain is not None and c.cv_gain <= 0:
+        return (f"rejected: does not predict left-out poses better (cross-validated chi2 "
+                f"{c.cv_chi2:.1f}, {-c.cv_gain:+.1f})")
+    return ""
+
+
+def _nested(small: Candidate, large: Candidate) -> bool:
+    """The smaller candidate's explained direction lies in the larger one's span."""
+    u = small.direction
+    return u is not None and large.span is not None and float(np.linalg.norm(large.span.T @ u)) > OVERLAP
+
+
+def choose(ranked: list[Candidate]) -> Candidate | None:
+    """The candidate to add: among the eligible ones the best predictor of left-out poses, unless one with
+    fewer observable parameters explains the same directions (its direction lies in the best one's span)
+    and the best one does not predict clearly better (:meth:`Prediction.clearly_better_than`)."""
+    ok = [c for c in ranked if c.eligible]
+    if not ok:
+        return None
+    best = max(ok, key=lambda c: c.cv_gain)
+    simpler = [c for c in ok if c.score_dof < best.score_dof and _nested(c, best)
+               and not best.prediction.clearly_better_than(c.prediction)]
+    if simpler:
+        pick = min(simpler, key=lambda c: (c.score_dof, -c.cv_gain))
+        best.decision = (f"rejected: {pick.effect} ({pick.score_dof} parameter(s)) explains the same misfit and "
+                         f"{best.effect} ({best.score_dof}) does not predict left-out poses clearly better")
+        best = pick
+    for c in ok:
+        if c is not best and not c.decision:
+            c.decision = f"not added: {best.effect} predicts left-out poses better"
+    return best
 
 
 def diagnose(
@@ -460,6 +581,7 @@ def diagnose(
     noise_source: str = "given",
     reference_pose: np.ndarray | None = None,
     device_priors: bool = True,
+    reference_sample: int | None = None,
 ) -> Diagnosis:
     """Fit, locate the misfit and rank the candidate effects (module doc). theta0/poses0: initial guess.
     With ``device_priors`` every fit holds the devices' constant errors within their datasheet accuracy
@@ -472,31 +594,40 @@ def diagnose(
     cands = [c for c in candidates if c.name not in inc_names]
     alpha_each = alpha / max(len(cands), 1)
     fit0 = fit(robot, meas, sigma, list(included), theta0, poses0)
+    pred0 = predict_unseen(fit0)
     res0 = residuals(fit0.problem, fit0.theta, fit0.poses, jacobian=False)
-    channels, cables, rows = _channel_tables(res0, robot.n, meas)
-    ranking = _rank_round(fit0, cands, alpha_each, refits)
-    steps = [_step(fit0, reference_pose)]
+    channels, cables, rows = _channel_tables(res0, robot.n, meas, reference_sample)
+    ranking = _rank_round(fit0, pred0, cands, alpha_each, refits)
+    first = {c.effect: c for c in ranking}
+    steps = [_step(fit0, pred0, reference_pose)]
     selected: list[str] = []
     current, rank_now = fit0, ranking
-    while len(selected) < max_effects and rank_now and rank_now[0].significant:
-        best = rank_now[0]
+    while len(selected) < max_effects and rank_now:
+        best = choose(rank_now)
+        if best is None:
+            break
         selected.append(best.effect)
+        first[best.effect].decision = (f"recommended (step {len(selected)}): significant, within its plausible "
+                                       f"range, predicts left-out poses better (cross-validated chi2 "
+                                       f"{best.cv_gain:+.1f} lower)")
         current = best.refit
-        steps.append(_step(current, reference_pose))
+        steps.append(_step(current, best.prediction, reference_pose))
         rest = [c for c in cands if c.name not in selected]
         if not rest or len(selected) >= max_effects:
             break
-        rank_now = _rank_round(current, rest, alpha_each, min(refits, 2))
+        rank_now = _rank_round(current, best.prediction, rest, alpha_each, min(refits, 2))
     p_fit = float(stats.chi2.sf(fit0.chi2, max(fit0.dof, 1)))
     more = bool(selected) and len(selected) >= max_effects and any(
-        c.significant for c in rank_now if c.effect not in selected)
-    verdict = _verdict(fit0, ranking, selected, current, alpha, more)
-    return Diagnosis(fit0, fit0.chi2, fit0.dof, p_fit, noise_source, channels, cables, rows, ranking, selected,
-                     steps, verdict, alpha, res0, current)
+        c.eligible for c in rank_now if c.effect not in selected)
+    diag = Diagnosis(fit0, fit0.chi2, fit0.dof, p_fit, noise_source, channels, cables, rows, ranking, selected,
+                     steps, "", alpha, res0, current, reference_sample)
+    diag.verdict = _verdict(diag, more)
+    return diag
 
 
-def _step(f: Fit, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
-    out = {"effects": f.names, "chi2": float(f.chi2), "dof": int(f.dof),
+def _step(f: Fit, pred: Prediction, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
+    out = {"effects": [n for n in f.names if n != DeviceAccuracy.name], "chi2": float(f.chi2), "dof": int(f.dof),
+           "cv_chi2": pred.total, "converged": bool(f.converged),
            "initial_pose": [float(v) for v in f.theta[:6]],
            "params": {e: {k: _num(v) for k, v in p.items()} for e, p in f.params().items()}}
     if reference_pose is not None:
@@ -504,45 +635,76 @@ def _step(f: Fit, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
     return out
 
 
-PARTIAL = 0.9  # a single effect explaining less than this share of the excess only explains part of it
+def misfit_location(diag: Diagnosis, top: int = 2) -> dict[str, list[str]]:
+    """Where the misfit sits: the channels by share of chi2, in each the cables (components) with the
+    largest rms, and the rows (poses) with the largest chi2, named."""
+    tot = sum(d["chi2"] for d in diag.channels.values()) or 1.0
+    chans = sorted(diag.channels, key=lambda c: -diag.channels[c]["chi2"])
+    names = {"orientation": ("roll", "pitch", "yaw")}
+    out_ch, out_cab = [], []
+    for c in chans[:top]:
+        out_ch.append(f"{c} ({100 * diag.channels[c]['chi2'] / tot:.0f}% of chi2)")
+        vals = diag.cables.get(c, [])
+        worst = np.argsort(vals)[::-1][:top]
+        label = names.get(c, [f"cable {i + 1}" for i in range(len(vals))])
+        out_cab += [f"{c} {label[j]} (rms {vals[j]:.1f} sigma)" for j in worst]
+    rows = sorted(diag.rows, key=lambda r: -r["chi2"])[:top + 1]
+    out_rows = [f"{r['label']}" + (f" (sample {r['sample']})" if r["sample"] >= 0 else "")
+                + f": worst {r['worst']}, rms {r['rms_normalized']:.1f} sigma" for r in rows]
+    return {"channels": out_ch, "cables": out_cab, "rows": out_rows}
 
 
-def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fit, alpha: float,
-             more: bool = False) -> str:
+def _verdict(diag: Diagnosis, more: bool = False) -> str:
+    fit0, ranking, selected, final, alpha = diag.fit, diag.ranking, diag.selected, diag.final, diag.alpha
     dof = max(fit0.dof, 1)
     excess = fit0.chi2 - dof
     p0 = stats.chi2.sf(fit0.chi2, dof)
+    if p0 >= alpha and not selected:
+        return (f"the model fits within the noise (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}); "
+                f"no effect in the library is significant at the {alpha:g} level")
+    where = misfit_location(diag)
+    loc = f"the misfit sits in {', '.join(where['channels'])}; worst at {'; '.join(where['rows'][:2])}"
+    implausible = [c for c in ranking if c.significant and not c.plausible]
     if not selected:
-        if p0 >= alpha:
-            return (f"the model fits within the noise (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}); "
-                    f"no effect in the library is significant at the {alpha:g} level")
-        return (f"the model does not fit (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}) but nothing in the "
-                "library explains what is left: look for an effect outside it")
-    best = ranking[0]
-    share = best.delta_chi2 / excess if excess > 0 else 1.0
+        text = f"the model does not fit (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}): {loc}. "
+        if implausible:
+            c = implausible[0]
+            text += (f"{c.effect} would explain {100 * min(1.0, c.delta_chi2 / excess):.0f}% of the excess only "
+                     f"with {c.implausible[0]}, implausibly large: something outside the library acts there")
+        else:
+            text += "nothing in the library explains it and predicts left-out poses better: look for an effect "
+            text += "outside it"
+        return text
+    first = next(c for c in ranking if c.effect == selected[0])
+    share = first.delta_chi2 / excess if excess > 0 else 1.0
     if excess > 0:
-        text = f"{best.effect} explains {100.0 * min(1.0, share):.0f}% of the excess"
+        text = f"{first.effect} explains {100.0 * min(1.0, share):.0f}% of the excess"
     else:
-        text = (f"{best.effect} explains a significant part (delta chi2 {best.delta_chi2:.1f}, p = "
-                f"{best.p_value:.2g}) although chi2 is within the noise")
-    if best.confused_with:
-        text += f" (cannot be told apart from {', '.join(best.confused_with)} with this data)"
-    pf = stats.chi2.sf(final.chi2, max(final.dof, 1))
+        text = (f"{first.effect} explains a significant part (delta chi2 {first.delta_chi2:.1f}, p = "
+                f"{first.p_value:.2g}) although chi2 is within the noise")
+    if first.confused_with:
+        text += f" (cannot be told apart from {', '.join(first.confused_with)} with this data)"
     text += f"; refit with --effects {','.join(selected)}"
+    pf = stats.chi2.sf(final.chi2, max(final.dof, 1))
     if pf < alpha:
         left = final.chi2 - max(final.dof, 1)
         pct = f"{100.0 * left / excess:.0f}% of the excess" if excess > 0 else "part of the misfit"
         text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {pct} is not explained"
         text += f" by {', '.join(selected)}"
         if more:
-            text += " (other library effects still test significant: raise --max-effects"
-            text += ", but no single one explains most of the misfit: it may lie outside the library)" if (
-                share < PARTIAL) else ")"
+            text += " (other library effects still predict better: raise --max-effects)"
+        elif implausible:
+            c = implausible[0]
+            text += (f"; {c.effect} would take more only with {c.implausible[0]}, implausibly large: something "
+                     "outside the library acts there")
         else:
-            text += " nor by anything else in the library"
+            text += " nor by anything else in the library that predicts left-out poses better"
     elif share < PARTIAL and len(selected) > 1:
-        text += f" (no single effect explains most of the misfit: {best.effect} alone {100.0 * share:.0f}%)"
+        text += f" (no single effect explains most of the misfit: {first.effect} alone {100.0 * share:.0f}%)"
     return text
+
+
+PARTIAL = 0.9  # a single effect explaining less than this share of the excess only explains part of it
 
 
 def pose_error(a: np.ndarray, b: np.ndarray) -> float:

@@ -140,7 +140,7 @@ def add_solve_options(parser) -> None:
 def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: dict[str, Any]):
     """Solve with the effects of ``args.effects`` added one by one. Returns the final Solution (its
     ``effects`` filled) and the before/after table; writes the plot RUN/effects_chi2.png."""
-    from calib.diagnose import _restrict, plot_steps, pose_error
+    from calib.diagnose import plot_steps, pose_error, restrict_to_observable
     from calib.selfcal import solve
     from calib.selfcal._solve import _rows, _signals, noise_levels
 
@@ -157,7 +157,7 @@ def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: di
         model0 = EffectModel(robot, effects[:j])
         prev = sols[-1]
         theta0 = np.r_[prev.theta, model0.absent_values()[prev.theta.shape[0] - 6 :]]
-        used = _restrict(robot, meas, sigma, effects[:j], theta0, prev.poses)
+        used = restrict_to_observable(robot, meas, sigma, effects[:j], theta0, prev.poses)
         model = EffectModel(robot, used)
         vals = [np.zeros(u.basis.shape[1]) if isinstance(u, Projected) else theta0[sl]
                 for u, sl in zip(used, model0.slices, strict=True)]

@@ -38,8 +38,10 @@ from calib.statics import tension_model
 @dataclass(frozen=True)
 class ParamSpec:
     """One effect parameter: name, unit, the value meaning the effect is absent, bounds, a typical size
-    (used for finite-difference steps and for reporting) and, optionally, the standard deviation of a
-    Gaussian prior centred on ``absent`` (what a datasheet says of a device's constant error; None: free)."""
+    (used for finite-difference steps and for reporting), optionally the standard deviation of a
+    Gaussian prior centred on ``absent`` (what a datasheet says of a device's constant error; None: free),
+    and the physically plausible range (lo, hi) of the value: a fit that leaves it is no explanation (the
+    diagnosis never recommends it); each built-in effect says in a comment where its range comes from."""
 
     name: str
     unit: str
@@ -48,6 +50,21 @@ class ParamSpec:
     upper: float = np.inf
     scale: float = 1.0
     prior: float | None = None
+    plausible: tuple[float, float] = (-np.inf, np.inf)
+
+
+@dataclass
+class Implausible:
+    """A fitted value outside its plausible range: ``effect.param`` = value (unit), range (lo, hi)."""
+
+    param: str
+    value: float
+    unit: str
+    lo: float
+    hi: float
+
+    def __str__(self) -> str:
+        return f"{self.param} = {self.value:.4g} {self.unit} outside [{self.lo:.4g}, {self.hi:.4g}]"
 
 
 @dataclass
@@ -135,6 +152,12 @@ class Effect:
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
         """Reported parameters, e.g. ``{"EA": 15020.0}`` (default: the parameters by name)."""
         return {s.name: float(v) for s, v in zip(self.params(robot), values, strict=True)}
+
+    def implausible(self, robot: Robot, values: np.ndarray) -> list[Implausible]:
+        """The parameters whose value lies outside its plausible range (``ParamSpec.plausible``)."""
+        return [Implausible(f"{self.name}.{s.name}", float(v), s.unit, *s.plausible)
+                for s, v in zip(self.params(robot), values, strict=True)
+                if not s.plausible[0] <= v <= s.plausible[1]]
 
 
 def physical(robot: Robot, poses: np.ndarray, p: int) -> Physical:
@@ -343,6 +366,9 @@ class Projected(Effect):
 
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
         return self.inner.report(robot, self.full_values(robot, values))
+
+    def implausible(self, robot: Robot, values: np.ndarray) -> list[Implausible]:
+        return self.inner.implausible(robot, self.full_values(robot, values))
 
     def covariance(self, cov: np.ndarray) -> np.ndarray:
         """Covariance of the inner (full) parameters from the covariance of the projected ones."""
