@@ -28,7 +28,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,8 +35,7 @@ from scipy import stats
 
 from calib.effects import BUILTIN, Effect, EffectModel, Implausible, Projected
 from calib.effects.builtin import DeviceAccuracy
-from calib.kinematics import inverse_kinematics
-from calib.prediction import Prediction, leave_one_pose_out
+from calib.prediction import LEVEL, Prediction, leave_one_pose_out
 from calib.robot import Robot
 from calib.selfcal.lm import levenberg_marquardt
 from calib.selfcal.model import CHANNELS
@@ -59,6 +57,7 @@ class Fit:
     chi2: float
     n_residuals: int
     converged: bool
+    iterations: int = 0
 
     @property
     def n_free(self) -> int:
@@ -222,7 +221,7 @@ def fit(
     problem = Problem(model, meas, sigma)
     res = levenberg_marquardt(problem, theta0, poses0, max_iter=max_iter)
     return Fit(effects, model, problem, res.theta, res.poses, res.cov_theta, 2.0 * res.cost,
-               problem.n_residuals, bool(res.converged))
+               problem.n_residuals, bool(res.converged), int(res.iterations))
 
 
 @dataclass
@@ -252,6 +251,8 @@ class Candidate:
     implausible: list[Implausible] = field(default_factory=list)
     cv_chi2: float | None = None
     cv_gain: float | None = None
+    cv_p: float | None = None
+    adequate: bool = False
     channels: dict[str, float] = field(default_factory=dict)
     confused_with: list[str] = field(default_factory=list)
     significant: bool = False
@@ -268,8 +269,11 @@ class Candidate:
 
     @property
     def eligible(self) -> bool:
-        """Significant, refitted, physically plausible and predicting unseen poses better."""
-        return (self.significant and self.plausible and self.cv_gain is not None and self.cv_gain > 0)
+        """Significant, refitted, physically plausible and predicting unseen poses better; where the model
+        with it still does not fit (its chi2 test rejects: the likelihood-ratio test then rests on a wrong
+        model), better on most of them (one-sided signed-rank p below calib.prediction.LEVEL)."""
+        return (self.significant and self.plausible and self.cv_gain is not None and self.cv_gain > 0
+                and (self.adequate or (self.cv_p is not None and self.cv_p < LEVEL)))
 
     def to_json(self) -> dict[str, Any]:
         d = self.delta_chi2 if self.delta_chi2 is not None else self.score
@@ -293,6 +297,7 @@ class Candidate:
             "delta_bic": None if self.delta_bic is None else float(self.delta_bic),
             "cv_chi2": None if self.cv_chi2 is None else float(self.cv_chi2),
             "cv_gain": None if self.cv_gain is None else float(self.cv_gain),
+            "cv_p": None if self.cv_p is None else float(self.cv_p),
             "significant": bool(self.significant),
             "channels": {k: float(v) for k, v in self.channels.items()},
             "confused_with": list(self.confused_with),
@@ -434,10 +439,13 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements, ref_sample: int 
     return channels, cables, rows
 
 
-def refit(fit0: Fit, effect: Effect) -> Fit:
+REFIT_ITER = 50  # a candidate's refit that has not converged after this many LM iterations is not evidence
+
+
+def refit(fit0: Fit, effect: Effect, max_iter: int = 200) -> Fit:
     """``fit0`` with one more effect, started from fit0's solution (the effect absent)."""
     return fit(fit0.model.robot, fit0.problem.meas, fit0.problem.sigma, fit0.effects + [effect], fit0.theta,
-               fit0.poses)
+               fit0.poses, max_iter=max_iter)
 
 
 def predict_unseen(f: Fit) -> Prediction:
@@ -451,7 +459,7 @@ def _bounds(effect: Effect, robot: Robot) -> dict[str, tuple[float, float]]:
     return {s.name: s.plausible for s in inner.params(robot) if np.isfinite(s.plausible).any()}
 
 
-def _rank_round(fit0: Fit, pred0: Prediction, candidates: Sequence[Effect], alpha_each: float,
+def _rank_round(fit0: Fit, pred0: Prediction, candidates: Sequence[Effect], alpha: float, alpha_each: float,
                 refits: int) -> list[Candidate]:
     """Score tests of every candidate at fit0; refits (with their leave-one-pose-out chi2) of the
     significant ones and of the ``refits`` best scores; ordered: eligible first by predictive gain, then
@@ -474,7 +482,7 @@ def _rank_round(fit0: Fit, pred0: Prediction, candidates: Sequence[Effect], alph
     for i in chosen:
         cand = out[i]
         eff = candidates[i]
-        f1 = refit(fit0, eff)
+        f1 = refit(fit0, eff, REFIT_ITER)
         d = fit0.chi2 - f1.chi2
         q = cand.score_dof
         cand.refit = f1
@@ -490,6 +498,8 @@ def _rank_round(fit0: Fit, pred0: Prediction, candidates: Sequence[Effect], alph
         cand.prediction = leave_one_pose_out(r1.r, r1.A, r1.row, f1.poses.shape[0])
         cand.cv_chi2 = cand.prediction.total
         cand.cv_gain = cand.prediction.gain_over(pred0)
+        cand.cv_p = cand.prediction.better_p(pred0)
+        cand.adequate = bool(stats.chi2.sf(f1.chi2, max(f1.dof, 1)) >= alpha)
         cand.channels = {
             c: (per_channel0[c] - float(np.sum(r1.r[r1.channel == c] ** 2))) / per_channel0[c]
             for c in CHANNELS if per_channel0[c] > 0
@@ -529,7 +539,8 @@ def _rejection(c: Candidate, alpha_each: float) -> str:
     if c.delta_chi2 is None:
         return f"rejected: not significant (score test p = {c.score_p:.2g}, needs < {alpha_each:.2g})"
     if c.refit_failed:
-        return "rejected: its refit did not move (ill-conditioned)"
+        return (f"rejected: its refit did not converge in {REFIT_ITER} iterations" if not c.refit.converged
+                else "rejected: its refit did not move (ill-conditioned)")
     if not c.significant:
         return f"rejected: not significant (p = {c.p_value:.2g}, needs < {alpha_each:.2g})"
     if not c.plausible:
@@ -537,6 +548,10 @@ def _rejection(c: Candidate, alpha_each: float) -> str:
     if c.cv_gain is not None and c.cv_gain <= 0:
         return (f"rejected: does not predict left-out poses better (cross-validated chi2 "
                 f"{c.cv_chi2:.1f}, {-c.cv_gain:+.1f})")
+    if not c.adequate and c.cv_p is not None and c.cv_p >= LEVEL:
+        return (f"rejected: the model still does not fit with it, and it predicts some left-out poses better, "
+                f"others worse (cross-validated chi2 {c.cv_gain:.1f} lower in sum, signed-rank p = {c.cv_p:.2g} "
+                f">= {LEVEL:g})")
     return ""
 
 
@@ -597,7 +612,7 @@ def diagnose(
     pred0 = predict_unseen(fit0)
     res0 = residuals(fit0.problem, fit0.theta, fit0.poses, jacobian=False)
     channels, cables, rows = _channel_tables(res0, robot.n, meas, reference_sample)
-    ranking = _rank_round(fit0, pred0, cands, alpha_each, refits)
+    ranking = _rank_round(fit0, pred0, cands, alpha, alpha_each, refits)
     first = {c.effect: c for c in ranking}
     steps = [_step(fit0, pred0, reference_pose)]
     selected: list[str] = []
@@ -615,7 +630,7 @@ def diagnose(
         rest = [c for c in cands if c.name not in selected]
         if not rest or len(selected) >= max_effects:
             break
-        rank_now = _rank_round(current, best.prediction, rest, alpha_each, min(refits, 2))
+        rank_now = _rank_round(current, best.prediction, rest, alpha, alpha_each, min(refits, 2))
     p_fit = float(stats.chi2.sf(fit0.chi2, max(fit0.dof, 1)))
     more = bool(selected) and len(selected) >= max_effects and any(
         c.eligible for c in rank_now if c.effect not in selected)
@@ -693,6 +708,9 @@ def _verdict(diag: Diagnosis, more: bool = False) -> str:
         text += f" by {', '.join(selected)}"
         if more:
             text += " (other library effects still predict better: raise --max-effects)"
+        elif share < PARTIAL:
+            text += (" nor by anything else in the library that predicts left-out poses better: no single effect"
+                     " explains most of the misfit, it may lie outside the library")
         elif implausible:
             c = implausible[0]
             text += (f"; {c.effect} would take more only with {c.implausible[0]}, implausibly large: something "
@@ -710,16 +728,6 @@ PARTIAL = 0.9  # a single effect explaining less than this share of the excess o
 def pose_error(a: np.ndarray, b: np.ndarray) -> float:
     """Distance between the positions of two poses, m."""
     return float(np.linalg.norm(np.asarray(a, float)[:3] - np.asarray(b, float)[:3]))
-
-
-def reveal_quantities(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, meas: Measurements) -> dict[str, Any]:
-    """Per row (k,) the quantities against which residuals reveal effects: tension (k, n) N, cable length
-    (k, n) m, height z (k,) m, swivel angle (k, n) rad, tilt (k,) rad; the reference row appended last."""
-    Z = np.vstack([poses, np.asarray(zeta0)[None, :6]])
-    kin = inverse_kinematics(robot, Z)
-    tau = np.vstack([meas.tau, meas.ref_tau[None]])
-    tilt = np.hypot(Z[:, 3], Z[:, 4])
-    return {"tension": tau, "length": kin.lengths, "height": Z[:, 2], "swivel": kin.swivel, "tilt": tilt}
 
 
 def window_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> dict[str, np.ndarray]:
@@ -751,6 +759,56 @@ def window_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> dict[str,
     return out
 
 
+@dataclass
+class RunRows:
+    """What both the diagnosis and ``cdpr solve --effects`` fit on a run: the rows of a method's windows,
+    their noise (``source`` names it), the rigid solve whose solution is the start of every fit."""
+
+    robot: Robot
+    meas: Measurements
+    sigma: dict[str, np.ndarray]
+    source: str
+    solution: Any
+
+
+def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: int = 1,
+             reference_sample: int | None = None) -> RunRows:
+    """The rows, noise and start of a run: the windows, rows and initial guess are those of
+    ``calib.selfcal.solve(method)``; noise ``estimate`` is :func:`window_noise`, ``accuracy`` the window
+    scatter floored at the sensors' accuracy class, ``paper`` (eq. 18) and ``sensors`` as in solve."""
+    from calib.selfcal import measurement_rows, noise_levels, run_signals, solve
+
+    robot = run.robot
+    sol = solve(robot, run, method=method, noise="estimate" if noise == "accuracy" else noise, stride=stride,
+                reference_sample=reference_sample)
+    sig = run_signals(robot, run)
+    meas = measurement_rows(sig, sol.windows, method, stride, sol.reference_sample)[0]
+    if noise == "estimate":
+        sigma, source = window_noise(robot, sig, sol.windows), "estimate"
+    elif noise == "accuracy":  # the window scatter floored at the sensors' accuracy
+        sigma, source = noise_levels(robot, "estimate", sig, sol.windows)[0], "accuracy"
+    else:
+        sigma, source = noise_levels(robot, noise, sig, sol.windows)
+    return RunRows(robot, meas, sigma, source, sol)
+
+
+def base_fit(rows: RunRows, included: Sequence[Effect] = ()) -> Fit:
+    """The diagnosis's base model on a run's rows: the devices' constant errors within their datasheet
+    accuracy plus the included effects, started from the rigid solve."""
+    sol = rows.solution
+    return fit(rows.robot, rows.meas, rows.sigma, [DeviceAccuracy(), *included], sol.theta[:6], sol.poses)
+
+
+def effect_chain(rows: RunRows, effects: Sequence[Effect]) -> list[Fit]:
+    """The base fit, then the effects added one at a time, each fit started from the previous one: the
+    fits the diagnosis's forward selection makes, and those of ``cdpr solve --effects`` (same noise, same
+    priors, same start, so the same numbers)."""
+    fits = [base_fit(rows)]
+    for e in effects:
+        fits.append(refit(fits[-1], e))
+    return fits
+
+
 def diagnose_run(
     run: Any,
     noise: str = "estimate",
@@ -760,161 +818,10 @@ def diagnose_run(
     max_effects: int = 2,
     reference_pose: np.ndarray | None = None,
 ) -> Diagnosis:
-    """:func:`diagnose` on the equilibrium windows of a run (``acquisition.runlog.Run``): the windows,
-    rows and initial guess are those of ``calib.selfcal.solve(method='tlse')``; noise ``estimate`` is
-    :func:`window_noise`, ``accuracy`` the same scatter floored at the sensors' accuracy class (what
-    ``cdpr solve --noise estimate`` uses), ``paper`` the eq. 18 levels."""
-    from calib.selfcal import solve
-    from calib.selfcal._solve import _rows, _signals, noise_levels
-
-    robot = run.robot
-    sol = solve(robot, run, method="tlse", noise="estimate" if noise == "accuracy" else noise)
-    sig = _signals(robot, run)
-    meas, _, _, _, _ = _rows(sig, sol.windows, "tlse", 1, sol.reference_sample)
-    if noise == "estimate":
-        sigma, source = window_noise(robot, sig, sol.windows), "estimate"
-    elif noise == "accuracy":  # the window scatter floored at the sensors' accuracy (solve's 'estimate')
-        sigma, source = noise_levels(robot, "estimate", sig, sol.windows)[0], "accuracy"
-    else:
-        sigma, source = noise_levels(robot, noise, sig, sol.windows)
-    return diagnose(robot, meas, sigma, sol.theta[:6], sol.poses, candidates, included, alpha,
-                    max_effects=max_effects, noise_source=source, reference_pose=reference_pose)
-
-
-QUANTITIES = {
-    "tension": ("tension [N]", True),
-    "length": ("cable length [m]", True),
-    "height": ("platform height z [m]", False),
-    "swivel": ("swivel angle [rad]", True),
-    "tilt": ("tilt [rad]", False),
-}
-
-
-def plot_residuals(diag: Diagnosis, outdir: str | Path) -> list[Path]:
-    """PNG files (matplotlib, Agg) of the normalised residuals against tension, cable length, height,
-    swivel angle and tilt, one file per quantity with a panel per channel, and the chi2 of each step."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(outdir)
-    out.mkdir(parents=True, exist_ok=True)
-    f0 = diag.fit
-    robot = f0.model.true_robot(f0.theta)
-    q = reveal_quantities(robot, f0.poses, f0.theta, f0.problem.meas)
-    res = diag.residual_data
-    k = f0.poses.shape[0]
-    rowpos = np.where(res.row < 0, k, res.row)
-    files = []
-    for name, (label, per_cable) in QUANTITIES.items():
-        fig, axes = plt.subplots(1, 4, figsize=(16, 3.6), sharex=False)
-        for ax, c in zip(axes, CHANNELS, strict=True):
-            m = res.channel == c
-            if not m.any():
-                ax.set_visible(False)
-                continue
-            x = q[name]
-            comp = res.index[m]
-            if per_cable and c != "orientation":
-                xv = x[rowpos[m], comp]
-            elif per_cable:
-                xv = x[rowpos[m]].mean(axis=1)
-            else:
-                xv = x[rowpos[m]]
-            width = 3 if c == "orientation" else robot.n
-            labels = ("roll", "pitch", "yaw") if c == "orientation" else [f"cable {i + 1}" for i in range(width)]
-            for a in range(width):
-                sel = comp == a
-                if sel.any():
-                    ax.plot(xv[sel], res.r[m][sel], "o", ms=4, label=labels[a])
-            ax.axhline(0.0, color="k", lw=0.6)
-            ax.set_title(c)
-            ax.set_xlabel(label)
-            ax.set_ylabel("residual / sigma")
-            ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = out / f"residuals_vs_{name}.png"
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
-        files.append(path)
-    files.append(plot_steps(diag.steps, out / "chi2_by_effect.png"))
-    return files
-
-
-def plot_steps(steps: Sequence[dict[str, Any]], path: str | Path) -> Path:
-    """The error falling as effects are added one by one: chi2 (log) and, where known, eps_p per step."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    labels = ["rigid model"] + ["+ " + s["effects"][-1] for s in steps[1:]]
-    fig, ax = plt.subplots(figsize=(6, 3.6))
-    ax.plot(range(len(steps)), [max(s["chi2"], 1e-9) for s in steps], "o-", label="chi2")
-    ax.plot(range(len(steps)), [max(s["dof"], 1) for s in steps], "k--", lw=0.8, label="dof")
-    ax.set_yscale("log")
-    ax.set_xticks(range(len(steps)), labels, rotation=15, fontsize=8)
-    ax.set_ylabel("chi2")
-    if all("eps_p" in s for s in steps):
-        ax2 = ax.twinx()
-        ax2.plot(range(len(steps)), [1000 * s["eps_p"] for s in steps], "s-", color="tab:red", label="eps_p")
-        ax2.set_ylabel("eps_p [mm]", color="tab:red")
-    ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    return p
-
-
-def format_diagnosis(diag: Diagnosis) -> str:
-    """A readable report of a diagnosis."""
-    lines = [f"chi2 {diag.chi2:.1f} on {diag.dof} dof (p = {diag.p_value:.3g}), noise {diag.noise_source}"]
-    lines.append("channel        rms/sigma   max/sigma   chi2     per cable (rms/sigma)")
-    for c, d in diag.channels.items():
-        cab = "  ".join(f"{v:.2f}" for v in diag.cables.get(c, []))
-        lines.append(f"  {c:<12} {d['rms_normalized']:>9.2f}  {d['max_normalized']:>9.2f}  {d['chi2']:>8.1f}  {cab}")
-    dev = diag.fit.params().get("device_accuracy")
-    if dev:
-        lines.append("devices' constant errors, fitted within their datasheet accuracy: " + ", ".join(
-            f"{k}={v:.3g} N" if not k.endswith(("roll", "pitch")) else f"{k}={math.degrees(v):.3g} deg"
-            for k, v in dev.items()))
-    lines.append("row  sample  rms/sigma  max/sigma  worst")
-    for r in diag.rows:
-        lines.append(f"  {r['row']:>3} {r['sample']:>6}  {r['rms_normalized']:>9.2f}  {r['max_normalized']:>9.2f}  "
-                     f"{r['worst']}")
-    lines.append("effect             score (dof)   delta chi2   p-value    dAIC      parameters")
-    for c in diag.ranking:
-        d = "" if c.delta_chi2 is None else f"{c.delta_chi2:>10.1f}"
-        p = c.score_p if c.p_value is None else c.p_value
-        aic = "" if c.delta_aic is None else f"{c.delta_aic:>8.1f}"
-        par = ", ".join(f"{k}={v:.4g}" for k, v in list(c.params.items())[:6])
-        flag = "*" if c.significant else " "
-        conf = f"  ~ {', '.join(c.confused_with)}" if c.confused_with else ""
-        conf += "  (refit failed to move)" if c.refit_failed else ""
-        lines.append(f" {flag}{c.effect:<17} {c.score:>8.1f} ({c.score_dof:>2})  {d:>10}  {p:>9.2g}  {aic:>8}  "
-                     f"{par}{conf}")
-    if len(diag.steps) > 1:
-        lines.append("chi2 as effects are added: " + " -> ".join(
-            f"{s['chi2']:.1f}" + (f" (eps_p {1000 * s['eps_p']:.1f} mm)" if "eps_p" in s else "")
-            for s in diag.steps))
-    lines.append("verdict: " + diag.verdict)
-    return "\n".join(lines) + "\n"
-
-
-def html_report(diag: Diagnosis, pngs: Sequence[str | Path], title: str = "cdpr diagnose") -> str:
-    """A self-contained HTML page: the tables of :func:`format_diagnosis` and the plots (embedded)."""
-    import base64
-    import html
-
-    imgs = []
-    for p in pngs:
-        data = base64.b64encode(Path(p).read_bytes()).decode("ascii")
-        imgs.append(f'<h3>{html.escape(Path(p).stem)}</h3><img src="data:image/png;base64,{data}"/>')
-    return (
-        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title></head><body>"
-        f"<h1>{html.escape(title)}</h1><p><b>Verdict:</b> {html.escape(diag.verdict)}</p>"
-        f"<pre>{html.escape(format_diagnosis(diag))}</pre>{''.join(imgs)}</body></html>\n"
-    )
+    """:func:`diagnose` on the equilibrium windows of a run (``acquisition.runlog.Run``), rows and noise
+    from :func:`run_rows` (method tlse)."""
+    rows = run_rows(run, noise)
+    sol = rows.solution
+    return diagnose(rows.robot, rows.meas, rows.sigma, sol.theta[:6], sol.poses, candidates, included, alpha,
+                    max_effects=max_effects, noise_source=rows.source, reference_pose=reference_pose,
+                    reference_sample=sol.reference_sample)

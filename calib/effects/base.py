@@ -64,7 +64,11 @@ class Implausible:
     hi: float
 
     def __str__(self) -> str:
-        return f"{self.param} = {self.value:.4g} {self.unit} outside [{self.lo:.4g}, {self.hi:.4g}]"
+        if self.unit == "rad":
+            return (f"{self.param} = {np.degrees(self.value):.3g} deg outside [{np.degrees(self.lo):.3g}, "
+                    f"{np.degrees(self.hi):.3g}] deg")
+        unit = "" if self.unit == "1" else f" {self.unit}"
+        return f"{self.param} = {self.value:.4g}{unit} outside [{self.lo:.4g}, {self.hi:.4g}]{unit}"
 
 
 @dataclass

@@ -280,6 +280,17 @@ class PulleyPosition(Effect):
     stage = "robot"
     description = "error of the pulleys' entry points D_i (deformation of the pulley set), m"
 
+    def __init__(self):
+        self._bases: dict[bytes, np.ndarray] = {}  # pulley_gauge_basis by pulley points (an SVD per call)
+
+    def basis(self, robot: Robot) -> np.ndarray:
+        key = robot.d.tobytes()
+        if key not in self._bases:
+            if len(self._bases) > 8:
+                self._bases.clear()
+            self._bases[key] = pulley_gauge_basis(robot)
+        return self._bases[key]
+
     def params(self, robot: Robot) -> list[ParamSpec]:
         return [ParamSpec(f"mode_{j + 1}", "m", 0.0, -0.2, 0.2, 0.001) for j in range(3 * robot.n - 4)]
 
@@ -294,7 +305,7 @@ class PulleyPosition(Effect):
                 for k, v in self.report(robot, values).items() if abs(v) > lim]
 
     def modify(self, robot: Robot, values: np.ndarray) -> Robot:
-        return robot.replace(d=robot.d + (pulley_gauge_basis(robot) @ values).reshape(robot.n, 3))
+        return robot.replace(d=robot.d + (self.basis(robot) @ values).reshape(robot.n, 3))
 
     def physical_columns(self, robot, values, poses, recompute):
         _, _, dtau = super().physical_columns(robot, values, poses, recompute)
@@ -305,11 +316,11 @@ class PulleyPosition(Effect):
         for i in range(n):  # q = a - d: dL = t . dq, dsigma = w . dq / (q . u)
             dL[:, i, 3 * i : 3 * i + 3] = -kin.t[:, i]
             ds[:, i, 3 * i : 3 * i + 3] = -kin.w[:, i] / kin.rho_u[:, i, None]
-        B = pulley_gauge_basis(robot)
+        B = self.basis(robot)
         return dL @ B, ds @ B, dtau
 
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
-        off = (pulley_gauge_basis(robot) @ values).reshape(robot.n, 3)
+        off = (self.basis(robot) @ values).reshape(robot.n, 3)
         return {f"d{ax}_{i + 1}": float(off[i, j]) for i in range(robot.n) for j, ax in enumerate("xyz")}
 
 

@@ -34,7 +34,16 @@ from typing import Any
 import numpy as np
 
 from calib.robot import NoiseLevels, Robot
-from calib.selfcal._solve import METHODS, NOISE, noise_levels, paper_noise, sensor_noise, solve_run
+from calib.selfcal._solve import (
+    METHODS,
+    NOISE,
+    measurement_rows,
+    noise_levels,
+    paper_noise,
+    run_signals,
+    sensor_noise,
+    solve_run,
+)
 from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import (
@@ -64,6 +73,8 @@ __all__ = [
     "find_windows",
     "compare_pose",
     "noise_levels",
+    "measurement_rows",
+    "run_signals",
     "paper_noise",
     "sensor_noise",
 ]
