@@ -258,10 +258,10 @@ class Candidate:
     significant: bool = False
     refit_failed: bool = False
     decision: str = ""
-    refit: Fit | None = None
-    prediction: Prediction | None = None
-    span: np.ndarray | None = None
-    direction: np.ndarray | None = None
+    refit: Fit | None = field(default=None, repr=False)
+    prediction: Prediction | None = field(default=None, repr=False)
+    span: np.ndarray | None = field(default=None, repr=False)
+    direction: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def plausible(self) -> bool:
@@ -439,7 +439,7 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements, ref_sample: int 
     return channels, cables, rows
 
 
-REFIT_ITER = 50  # a candidate's refit that has not converged after this many LM iterations is not evidence
+REFIT_ITER = 30  # a candidate's refit that has not converged after this many LM iterations is not evidence
 
 
 def refit(fit0: Fit, effect: Effect, max_iter: int = 200) -> Fit:
@@ -617,20 +617,35 @@ def diagnose(
     steps = [_step(fit0, pred0, reference_pose)]
     selected: list[str] = []
     current, rank_now = fit0, ranking
+    pred_now = pred0
     while len(selected) < max_effects and rank_now:
         best = choose(rank_now)
         if best is None:
-            break
-        selected.append(best.effect)
-        first[best.effect].decision = (f"recommended (step {len(selected)}): significant, within its plausible "
-                                       f"range, predicts left-out poses better (cross-validated chi2 "
-                                       f"{best.cv_gain:+.1f} lower)")
-        current = best.refit
-        steps.append(_step(current, best.prediction, reference_pose))
+            if len(selected) + 2 > max_effects:
+                break
+            pair = _pair_step(current, pred_now, rank_now, {e.name: e for e in cands}, alpha, alpha_each)
+            if pair is None:
+                break
+            (a, b), f2, pred2 = pair
+            for c, f, pr in ((a, a.refit, a.prediction), (b, f2, pred2)):
+                selected.append(c.effect)
+                first[c.effect].decision = (
+                    f"recommended (step {len(selected)}, with {b.effect if c is a else a.effect}): neither alone "
+                    f"explains the misfit; together significant, within their plausible ranges, and predicting "
+                    f"left-out poses better (cross-validated chi2 {pred2.gain_over(pred_now):+.1f} lower)")
+                steps.append(_step(f, pr, reference_pose))
+            current, pred_now = f2, pred2
+        else:
+            selected.append(best.effect)
+            first[best.effect].decision = (f"recommended (step {len(selected)}): significant, within its "
+                                           f"plausible range, predicts left-out poses better (cross-validated "
+                                           f"chi2 {best.cv_gain:+.1f} lower)")
+            current, pred_now = best.refit, best.prediction
+            steps.append(_step(current, pred_now, reference_pose))
         rest = [c for c in cands if c.name not in selected]
         if not rest or len(selected) >= max_effects:
             break
-        rank_now = _rank_round(current, best.prediction, rest, alpha, alpha_each, min(refits, 2))
+        rank_now = _rank_round(current, pred_now, rest, alpha, alpha_each, min(refits, 2))
     p_fit = float(stats.chi2.sf(fit0.chi2, max(fit0.dof, 1)))
     more = bool(selected) and len(selected) >= max_effects and any(
         c.eligible for c in rank_now if c.effect not in selected)
@@ -638,6 +653,37 @@ def diagnose(
                      steps, "", alpha, res0, current, reference_sample)
     diag.verdict = _verdict(diag, more)
     return diag
+
+
+PAIR_POOL = 3  # candidates whose pairs the look-ahead step refits together
+
+
+def _pair_step(current: Fit, pred_now: Prediction, ranked: list[Candidate], effects: dict[str, Effect],
+               alpha: float, alpha_each: float) -> tuple[tuple[Candidate, Candidate], Fit, Prediction] | None:
+    """One look-ahead step, when no single candidate qualifies: two effects acting at once leave each
+    one's refit short of a fit. The pairs of the best PAIR_POOL candidates that are significant, plausible
+    and lower the held-out chi2 are refitted together (the first's refit, then the second added); a pair
+    qualifies like a single candidate (significant jointly, both plausible, lower held-out chi2, and the
+    model fits with it or it predicts most left-out poses better). Returns the best pair by predictive
+    gain, its fit and prediction, or None."""
+    pool = sorted((c for c in ranked if c.significant and c.plausible and c.cv_gain is not None
+                   and c.cv_gain > 0 and c.refit is not None), key=lambda c: -c.cv_gain)[:PAIR_POOL]
+    best = None
+    for i, a in enumerate(pool):
+        for b in pool[i + 1:]:
+            f2 = refit(a.refit, effects[b.effect], REFIT_ITER)
+            if not f2.converged or any(e.implausible(f2.model.robot, f2.theta[sl])
+                                       for e, sl in zip(f2.effects, f2.model.slices, strict=True)):
+                continue
+            q = a.score_dof + b.score_dof
+            if stats.chi2.sf(max(current.chi2 - f2.chi2, 0.0), q) >= alpha_each:
+                continue
+            pred2 = predict_unseen(f2)
+            gain = pred2.gain_over(pred_now)
+            adequate = stats.chi2.sf(f2.chi2, max(f2.dof, 1)) >= alpha
+            if gain > 0 and (adequate or pred2.better_p(pred_now) < LEVEL) and (best is None or gain > best[3]):
+                best = ((a, b), f2, pred2, gain)
+    return None if best is None else best[:3]
 
 
 def _step(f: Fit, pred: Prediction, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
@@ -707,7 +753,9 @@ def _verdict(diag: Diagnosis, more: bool = False) -> str:
         text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {pct} is not explained"
         text += f" by {', '.join(selected)}"
         if more:
-            text += " (other library effects still predict better: raise --max-effects)"
+            text += " (other library effects still predict better: raise --max-effects"
+            text += ", but no single one explains most of the misfit: it may lie outside the library)" if (
+                share < PARTIAL) else ")"
         elif share < PARTIAL:
             text += (" nor by anything else in the library that predicts left-out poses better: no single effect"
                      " explains most of the misfit, it may lie outside the library")

@@ -127,21 +127,20 @@ class Effect:
         self, robot: Robot, values: np.ndarray, poses: np.ndarray, recompute
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Robot stage: dL/dq, dsigma/dq, dtau/dq (k, n, q) at the poses. ``recompute(values)`` returns the
-        (L, sigma, tau) arrays with this effect's values replaced (everything else fixed). Default: central
-        differences."""
+        (L, sigma, tau) arrays with this effect's values replaced (everything else fixed). Default: forward
+        differences of relative step ``fd_steps`` (q + 1 evaluations; the truncation error, of the order of
+        the step, is far below the rounding error of a step of 1e-6 of a parameter's typical size)."""
         specs = self.params(robot)
         cols = [[], [], []]
+        base = recompute(values)
         for j, s in enumerate(specs):
             h = self.fd_steps * s.scale
-            vp, vm = values.copy(), values.copy()
+            vp = values.copy()
             vp[j] += h
-            vm[j] -= h
-            plus, minus = recompute(vp), recompute(vm)
+            plus = recompute(vp)
             for c in range(3):
-                d = (plus[c] - minus[c]) / (2 * h)
-                if c == 1:
-                    d = np.angle(np.exp(1j * (plus[c] - minus[c]))) / (2 * h)
-                cols[c].append(d)
+                diff = plus[c] - base[c]
+                cols[c].append((np.angle(np.exp(1j * diff)) if c == 1 else diff) / h)
         return tuple(np.stack(c, axis=-1) for c in cols)
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
