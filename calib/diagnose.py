@@ -12,12 +12,21 @@ Steps, on the equilibrium rows of a run (or any :class:`calib.selfcal.Measuremen
    weighted residual r and the candidate's Jacobian columns C, after projecting out the nuisance directions
    (the row poses and theta), LM = |P_C r|^2 (P_C: projector on the span of the projected columns),
    chi2-distributed with rank(C) degrees of freedom when the effect is absent;
-4. a refit of the most promising candidates: delta chi2, likelihood-ratio p-value, AIC and BIC, the fitted
-   parameters with 1-sigma uncertainty, and how much of each channel's chi2 the effect removes;
+4. a refit of the significant candidates (and the best scores): delta chi2, likelihood-ratio p-value, AIC
+   and BIC, the fitted parameters with 1-sigma uncertainty against their plausible range
+   (``ParamSpec.plausible``), how much of each channel's chi2 the effect removes, and how much better the
+   fit predicts equilibrium poses left out of it (:mod:`calib.prediction`);
 5. candidates whose explained directions nearly coincide (each explains > 95% of what the other explains)
    are reported as indistinguishable with this data;
-6. forward selection: the best significant effect is added, the score tests are repeated at the new
-   solution, up to ``max_effects``.
+6. forward selection by prediction: an effect is added only when it is significant, within its plausible
+   range and lowers the held-out chi2 (on most poses, where the model still does not fit with it); among
+   nested candidates the one with fewer parameters wins unless the larger predicts clearly better; a
+   look-ahead step tries pairs when two effects acting at once leave each one's refit short; up to
+   ``max_effects``. Every candidate carries the decision and its reason.
+
+:func:`run_rows` and :func:`effect_chain` are shared with ``cdpr solve --effects``: the refits reported
+here and that command's fits are the same computation. The words, tables and plots are in
+``acquisition/diagnose_report.py``.
 
 Significance is family-wise: an effect is significant at level ``alpha`` when its likelihood-ratio p-value
 is below ``alpha / number of candidates`` (Bonferroni over the library).
