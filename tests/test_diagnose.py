@@ -378,6 +378,22 @@ def test_full_simulated_run_with_a_tilted_ahrs_is_diagnosed_and_refitted(full_si
     assert e_rigid > 2e-3 and e_refit < 0.1 * e_rigid and e_refit < 0.5e-3, (e_clean, e_rigid, e_refit)
 
 
+def test_solve_with_effects_is_the_diagnosis_refit_on_a_full_simulated_run(full_sim_runs, capsys):
+    """Done-when 4 of issue 17 on a simulated run: the recommended refit and `cdpr solve --effects`."""
+    from acquisition.runlog import read_run
+    from calib.diagnose import diagnose_run
+
+    run1, _ = full_sim_runs["ahrs_mounting"]
+    diag = diagnose_run(read_run(run1), max_effects=1)
+    assert diag.selected == ["ahrs_mounting"]
+    capsys.readouterr()
+    assert cdpr(["solve", str(run1), "--noise", "estimate", "--effects", "ahrs_mounting", "--json"]) == 0
+    sol = json.loads(capsys.readouterr().out)
+    assert sol["converged"] and diag.final.converged
+    assert np.allclose(sol["initial_pose"], diag.final.theta[:6], rtol=0, atol=1e-6)
+    assert sol["chi2"] == pytest.approx(diag.final.chi2, rel=1e-6)
+
+
 def test_an_implausibly_large_effect_is_never_recommended():
     """Load-cell offsets of 40 N (beyond the 2 % of full scale a cell's zero can be off): the offsets
     explain the misfit but are rejected as implausible, and the verdict says something outside the library
