@@ -13,8 +13,7 @@ import numpy as np
 
 from acquisition.cli.args import add_force, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
-from calib.certify import AXIS_NAMES, CertifyConfig, CertifyResult, certify_anchors
-from calib.certify._nwls import LOSSES
+from calib.certify import AXIS_NAMES, LOSSES, CertifyConfig, CertifyResult, certify_anchors
 from calib.lasertracker import (
     MeasurementFileError,
     read_measurements_csv,

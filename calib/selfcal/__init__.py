@@ -35,7 +35,18 @@ from typing import Any
 import numpy as np
 
 from calib.robot import NoiseLevels, Robot
-from calib.selfcal._solve import METHODS, NOISE, Prepared, noise_levels, paper_noise, prepare, sensor_noise, solve_run
+from calib.selfcal._solve import (
+    METHODS,
+    NOISE,
+    Prepared,
+    measurement_rows,
+    noise_levels,
+    paper_noise,
+    prepare,
+    run_signals,
+    sensor_noise,
+    solve_run,
+)
 from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import (
@@ -81,6 +92,8 @@ __all__ = [
     "Stillness",
     "compare_pose",
     "noise_levels",
+    "measurement_rows",
+    "run_signals",
     "paper_noise",
     "sensor_noise",
 ]

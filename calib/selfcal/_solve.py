@@ -66,7 +66,7 @@ def estimated_noise(robot: Robot, sig: dict[str, np.ndarray], windows: list[Wind
     return out
 
 
-def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
+def run_signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
     """The run's arrays, checked: present, right shapes, finite."""
     n = robot.n
     sig: dict[str, np.ndarray] = {}
@@ -97,7 +97,7 @@ def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
     return sig
 
 
-def _rows(
+def measurement_rows(
     sig: dict[str, np.ndarray], windows: list[Window], method: str, stride: int, ref_sample: int | None
 ) -> tuple[Measurements, int, Window | None, dict[str, np.ndarray], list[int]]:
     """Measurement rows for a method; returns the rows, the reference sample, its window, the reference
@@ -361,7 +361,7 @@ def prepare(
         meas, sig, wins, ref_sample, ref_win, win_of = run, None, list(windows or []), -1, None, [-1] * run.k
         ref = None
     else:
-        sig = _signals(robot, run)
+        sig = run_signals(robot, run)
         if windows is None:
             search = search_windows(
                 robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
@@ -376,7 +376,7 @@ def prepare(
                 f"{len(wins)} equilibrium window(s) found in the run; method '{method}' needs at least 2.{failed}",
                 len(wins),
             )
-        meas, ref_sample, ref_win, ref, win_of = _rows(sig, wins, method, int(stride), reference_sample)
+        meas, ref_sample, ref_win, ref, win_of = measurement_rows(sig, wins, method, int(stride), reference_sample)
     t_rows = time.perf_counter()
     sigma, source = noise_levels(robot, noise, sig, wins)
     problem = Problem(model, meas, sigma)
