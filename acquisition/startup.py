@@ -40,6 +40,7 @@ from calib.design import (
     candidates,
     optimal_plan,
     select_a_optimal,
+    sequential_acquisition,
     window_mean_noise,
 )
 from calib.robot import Robot
@@ -117,11 +118,13 @@ class Plan:
     @classmethod
     def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05,
                   plan: str = "grid", poses: int = 8, tolerance: float | None = None,
-                  noise: dict[str, np.ndarray] | None = None, step: float = 0.1) -> Plan:
+                  noise: dict[str, np.ndarray] | None = None, step: float = 0.1,
+                  time_model: TimeModel | None = None) -> Plan:
         """The grid plan, the A-optimal plan of ``poses`` poses (``plan='optimal'``) or a sequential plan
         that stops at ``tolerance`` m (``plan='sequential'``, at most ``poses`` poses); candidates every
         ``step`` m of the static workspace, ``noise`` the window-mean sigma (default
-        :func:`calib.design.window_mean_noise`). Raises ``calib.planning.PlanningError``."""
+        :func:`calib.design.window_mean_noise`), ``time_model`` the robot time the sequential choice weighs
+        (default :class:`calib.design.TimeModel`). Raises ``calib.planning.PlanningError``."""
         from calib.planning import PlanningError, kinematic_path, plan_poses
 
         if plan not in PLANS:
@@ -148,7 +151,7 @@ class Plan:
             raise PlanningError(f"the tolerance {1000 * tolerance:g} mm cannot be reached: {k} poses of the static "
                                 f"workspace predict at best a 1-sigma of the initial position of "
                                 f"{1000 * reach:.3f} mm.")
-        seq = Sequential(SequentialDesign(cands, TimeModel()), float(tolerance), noise, poses)
+        seq = Sequential(SequentialDesign(cands, time_model or TimeModel()), float(tolerance), noise, poses)
         return cls(np.empty((0, robot.n)), np.empty((0, 6)), cands.tau0, sequential=seq)
 
 
@@ -418,35 +421,33 @@ class StartupRoutine:
 
     def _setpoints(self):
         """(index, setpoint) to visit in order: the plan's, or for a sequential plan the next chosen after each
-        window, until the solve's position 1-sigma is below the tolerance or the plan is exhausted."""
+        window (:func:`calib.design.sequential_acquisition`), until the solve's position 1-sigma is below the
+        tolerance or the plan is exhausted."""
         seq = self.plan.sequential
         if seq is None:
             yield from enumerate(self.plan.setpoints)
             return
         cands = seq.design.cands
         online = OnlineSolve(self.robot, seq.noise, self._means[0], cands.home_pose)
-        current, history, why = self.plan.tau0, [], "exhausted"
-        for j in range(seq.max_poses):
-            c = seq.design.next(current)
-            if c is None:
-                break
+        history: list = []
+        steps = sequential_acquisition(seq.design, online, seq.tolerance, seq.max_poses, history)
+        why, c = "exhausted", next(steps, None)
+        while c is not None:
             self.plan.setpoints = np.vstack([self.plan.setpoints, cands.setpoints[c]])
             self.plan.ideal_poses = np.vstack([self.plan.ideal_poses, cands.poses[c]])
             self.writer.update_procedure(self.plan.setpoints, self.plan.ideal_poses)
-            yield j, cands.setpoints[c]
-            est = online.add(self._means[-1], cands.poses[c])
-            seq.design.update(est)
-            history.append({"pose": j, "position_sigma_m": est.position_sigma, "initial_pose": est.theta[:6].tolist(),
-                            "iterations": est.iterations, "robot_time_s": self.clock.now()})
+            yield len(history), cands.setpoints[c]
+            try:
+                c = steps.send(self._means[-1])
+            except StopIteration as stop:
+                why, c = stop.value, None
+            est = history[-1][1]
             if self.progress is not None:
-                p = est.theta[:3]
-                self.progress.note = (f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m "
-                                      f"1-sigma {1000 * est.position_sigma:.2f} mm")
-            current = cands.setpoints[c]
-            if est.position_sigma < seq.tolerance and j >= 1:  # the run's solve needs two windows
-                why = "tolerance"
-                break
-        self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "windows": history}
+                p, mm = est.theta[:3], 1000 * est.position_sigma
+                self.progress.note = f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
+        self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "windows": [
+            {"pose": i, "position_sigma_m": e.position_sigma, "initial_pose": e.theta[:6].tolist(),
+             "iterations": e.iterations} for i, (_, e) in enumerate(history)]}
         self.writer.update_meta(sequential=self._sequential)
 
     def _kinematic(self) -> None:

@@ -32,7 +32,7 @@ import numpy as np
 from calib.effects import EffectModel
 from calib.effects.builtin import DeviceAccuracy
 from calib.equilibrium import inverse_geometrico_static
-from calib.planning import PlanningError, PosePlan, home, order_setpoints, plan_poses
+from calib.planning import PlanningError, PosePlan, home, order_setpoints
 from calib.robot import Robot
 from calib.selfcal import MeasurementModel, Measurements, Problem
 from calib.workspace import default_volume
@@ -229,23 +229,17 @@ def optimal_plan(robot: Robot, k: int, noise: dict[str, np.ndarray], step: float
                     np.full((k, 3), -1), cost, sp.min_stiffness)
 
 
-def grid_and_optimal(robot: Robot, k: int, noise: dict[str, np.ndarray], time_model: TimeModel, grid: int = 2,
-                     step: float = 0.1) -> tuple[tuple[PosePlan, PlanAssessment], tuple[PosePlan, PlanAssessment]]:
-    """The grid plan and the optimal K-pose plan, each with its assessment (what `cdpr poses --optimal` shows)."""
-    g = plan_poses(robot, grid)
-    o = optimal_plan(robot, k, noise, step)
-    return (g, assess(robot, g, noise, time_model)), (o, assess(robot, o, noise, time_model))
-
-
 @dataclass
 class SequentialDesign:
     """The next pose of a sequential startup: among the reachable candidates not yet visited, the one with
     the largest expected information gain per second of robot time from the current setpoint.
 
-    The gain of a candidate is log(sigma_now / sigma_with_it) of the predicted position sigma (the
-    information of the rows acquired so far plus the candidate's); the cost is the transition from where the
-    platform is plus settling and holding. ``update`` replaces the accumulated information with that of
-    the current solution (its poses and zeta_0), so the choice follows what was actually measured.
+    The gain of a candidate is the increase of the position precision 1/sigma^2 (1/m^2) it brings, sigma the
+    predicted position sigma of the rows acquired so far with and without it (before any row, the precision
+    is zero); the cost is the transition from where the platform is plus settling and holding. (On the
+    IRMA4U this reaches a tolerance with fewer poses than the gain log(sigma_now / sigma_with_it).)
+    ``update`` replaces the accumulated information with that of the current solution (its poses and
+    zeta_0), so the choice follows what was actually measured.
     """
 
     cands: CandidateSet
@@ -268,7 +262,7 @@ class SequentialDesign:
             return None
         now = float(position_sigma(self.total))
         after = position_sigma(self.total[None] + self.cands.info)
-        gain = np.log(np.where(np.isfinite(now), now, 1e6) / after)
+        gain = 1.0 / after**2 - (1.0 / now**2 if np.isfinite(now) else 0.0)
         cost = self.time_model.transition(current[None], self.cands.setpoints) + self.time_model.settle + \
             self.time_model.hold
         rate = np.where(free, gain / cost, -np.inf)
@@ -330,6 +324,39 @@ class OnlineSolve:
         cov = sol.covariance
         return OnlineEstimate(sol.theta, sol.poses, cov, float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
                               sol.iterations)
+
+
+def sequential_acquisition(design: SequentialDesign, online: OnlineSolve, tolerance: float, max_poses: int,
+                           history: list[tuple[int, OnlineEstimate]], min_poses: int = 2):
+    """The sequential startup's choice and stop rule, as a generator: it yields the index of the next candidate
+    (from the home tensions, then from the last one visited) and is sent the :class:`WindowMean` acquired
+    there; after each window it solves again, appends (candidate, estimate) to ``history`` and stops when the
+    position 1-sigma is below ``tolerance`` m (after at least ``min_poses`` windows: the run's solve needs
+    two). Its return value (``StopIteration.value``) is why it stopped: 'tolerance' or 'exhausted'."""
+    current = design.cands.tau0
+    for j in range(max_poses):
+        c = design.next(current)
+        if c is None:
+            break
+        window = yield c
+        est = online.add(window, design.cands.poses[c])
+        design.update(est)
+        history.append((c, est))
+        current = design.cands.setpoints[c]
+        if est.position_sigma < tolerance and j + 1 >= min_poses:
+            return "tolerance"
+    return "exhausted"
+
+
+def drive(steps, acquire) -> str:
+    """Run a :func:`sequential_acquisition` generator with ``acquire(candidate) -> WindowMean``; returns why
+    it stopped."""
+    try:
+        c = next(steps)
+        while True:
+            c = steps.send(acquire(c))
+    except StopIteration as stop:
+        return stop.value
 
 
 @dataclass(frozen=True)

@@ -18,10 +18,12 @@ from calib.design import (
     WindowMean,
     assess,
     candidates,
+    drive,
     information,
     optimal_plan,
     planning_model,
     separating_poses,
+    sequential_acquisition,
     window_mean_noise,
 )
 from calib.diagnose import diagnose
@@ -89,30 +91,22 @@ def test_empty_workspace_is_one_sentence(robot, noise):
 def test_sequential_choice_and_stop_rule_on_simulated_windows(robot, noise, cands):
     """After each window the warm-started solve's 1-sigma shrinks; the stop rule fires at the tolerance, sooner
     than the grid's robot time, and the 1-sigma it stops on covers the error."""
-    config = load_sim_config(None, robot.n)
-    design = SequentialDesign(cands, TimeModel())
     tol = 0.8 * assess(robot, plan_poses(robot, 2), noise, TimeModel()).position_sigma
     # the simulator's window means at every candidate, one draw (the reference window is the home pose)
-    rows = simulated_rows(robot, config, seed=1, noise=noise, plan=_plan_of(cands))
+    rows = simulated_rows(robot, load_sim_config(None, robot.n), seed=1, noise=noise, plan=_plan_of(cands))
     m = rows.meas
     ref = WindowMean(m.ref_tau, np.zeros(robot.n), np.zeros(robot.n), np.r_[m.ref_orientation, 0.0])
-    online = OnlineSolve(robot, noise, ref, cands.home_pose)
-    current, sigmas, time_used = cands.tau0, [], 0.0
-    for _ in range(20):
-        j = design.next(current)
-        w = WindowMean(m.tau[j], m.dl[j], m.dsigma[j], m.orientation[j])
-        est = online.add(w, cands.poses[j])
-        design.update(est)
-        time_used += float(TimeModel().transition(current, cands.setpoints[j])) + 10.0
-        current = cands.setpoints[j]
-        sigmas.append(est.position_sigma)
-        if est.position_sigma < tol:
-            break
-    assert sigmas[-1] < tol
+    online, history = OnlineSolve(robot, noise, ref, cands.home_pose), []
+    steps = sequential_acquisition(SequentialDesign(cands, TimeModel()), online, tol, 20, history)
+    why = drive(steps, lambda j: WindowMean(m.tau[j], m.dl[j], m.dsigma[j], m.orientation[j]))
+    sigmas = [e.position_sigma for _, e in history]
+    assert why == "tolerance" and sigmas[-1] < tol <= sigmas[-2]
     assert all(b <= a * (1 + 1e-6) for a, b in itertools.pairwise(sigmas))
     assert len(sigmas) < 8
-    assert time_used < TimeModel().tour(cands.tau0, plan_poses(robot, 2).setpoints)
+    visited = cands.setpoints[[c for c, _ in history]]
+    assert TimeModel().tour(cands.tau0, visited) < TimeModel().tour(cands.tau0, plan_poses(robot, 2).setpoints)
     assert np.linalg.norm(online.theta[:3] - rows.zeta0[:3]) < 4 * sigmas[-1]
+    assert max(e.iterations for _, e in history[1:]) < 20  # warm starts
 
 
 def _plan_of(cands):

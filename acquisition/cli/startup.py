@@ -109,7 +109,7 @@ def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None,
     default 8) or 'sequential' (stop at ``tolerance`` m, at most ``poses`` poses, default 27); None: grid, or
     sequential when a tolerance is given. The window-mean noise the optimal and sequential plans use is the
     per-sample noise of :data:`calib.design.SAMPLE_NOISE` over the samples of one hold. Raises UsageError."""
-    from calib.design import window_mean_noise
+    from calib.design import TimeModel, window_mean_noise
     from calib.planning import PlanningError
 
     plan = plan or ("sequential" if tolerance is not None else "grid")
@@ -125,7 +125,9 @@ def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None,
     noise = window_mean_noise(robot, max(1, round(cfg.hold_time / cfg.log_period)))
     try:
         return Plan.for_robot(robot, grid, cfg.method, cfg.kinematic_speed, cfg.kinematic_spacing, plan=plan,
-                              poses=poses, tolerance=tolerance, noise=noise, step=step)
+                              poses=poses, tolerance=tolerance, noise=noise, step=step,
+                              time_model=TimeModel(cfg.max_tension_rate, cfg.min_transition, cfg.expected_settle,
+                                                   cfg.hold_time))
     except PlanningError as exc:
         raise UsageError(str(exc)) from exc
 
