@@ -22,7 +22,8 @@ def register(sub) -> None:
                    help="choose K equilibria of the static workspace that minimise the predicted 1-sigma of the "
                         "initial position (A-optimal), shown next to the grid's")
     p.add_argument("--step", type=float, default=0.1,
-                   help="--optimal: spacing of the candidate positions in the static workspace, m (default 0.1)")
+                   help="--optimal, --separate: spacing of the candidate positions in the static workspace, m "
+                        "(default 0.1)")
     p.add_argument("--separate", metavar="A,B",
                    help="propose the poses that would tell apart two effects the diagnosis of RUN confused")
     p.add_argument("run", nargs="?", metavar="RUN", help="--separate: the run folder that was diagnosed")
@@ -50,6 +51,8 @@ def _poses(args) -> int:
         raise UsageError(f"--grid must be a positive integer, got {args.grid}.")
     if args.separate is not None:
         return _separate(args)
+    if args.run:
+        raise UsageError(f"the run folder {args.run} applies to --separate only.")
     if args.optimal is not None:
         return _optimal(args, robot)
     try:
