@@ -503,6 +503,14 @@ class RunWriter:
         self.meta["events"].append({"t": float(t), "kind": str(kind), "message": str(message)})
         _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
 
+    def update_procedure(self, setpoints: Any, ideal_poses: Any) -> None:
+        """Replace the planned setpoints (k, n) and ideal poses (k, 6) (a sequential plan grows as it goes)."""
+        m, pro = self.meta, self.meta["procedure"]
+        fresh = _base_meta(m["robot"], pro["method"], pro["sample_period"], m["source"], setpoints, ideal_poses,
+                           self.robot.n, None)
+        m["procedure"] = fresh["procedure"]
+        _write_atomic(self.path / RUN_YAML, _dump_yaml(m))
+
     def update_meta(self, **keys: Any) -> None:
         """Add or replace extra top-level keys of run.yaml (e.g. where the sensors were zeroed)."""
         for k in keys:

@@ -32,9 +32,21 @@ from acquisition.report import ProgressBar
 from acquisition.runlog import RunWriter
 from acquisition.safety import SafeStop, SafetyLimits, SafetySupervisor
 from acquisition.trajectory import TensionTrajectory
+from calib.design import (
+    OnlineSolve,
+    SequentialDesign,
+    TimeModel,
+    WindowMean,
+    candidates,
+    optimal_plan,
+    select_a_optimal,
+    sequential_acquisition,
+    window_mean_noise,
+)
 from calib.robot import Robot
 
 METHODS = ("equilibrium", "kinematic")
+PLANS = ("grid", "optimal", "sequential")
 
 
 class StartupStopped(RuntimeError):
@@ -89,9 +101,22 @@ class Pause:
 
 
 @dataclass
+class Sequential:
+    """Sequential acquisition (issue 19): the next pose is the candidate of ``design`` with the most expected
+    information per second from where the platform is; after each window the solve is updated and the
+    routine returns as soon as the position 1-sigma (sqrt trace, m) is below ``tolerance``, or after
+    ``max_poses`` poses (the plan is exhausted). ``noise``: sigma of a window mean per channel."""
+
+    design: SequentialDesign
+    tolerance: float
+    noise: dict[str, np.ndarray]
+    max_poses: int = 27
+
+
+@dataclass
 class Plan:
     """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path,
-    pauses."""
+    pauses; a sequential plan starts empty and its setpoints are appended as they are chosen."""
 
     setpoints: np.ndarray
     ideal_poses: np.ndarray
@@ -99,16 +124,46 @@ class Plan:
     path_tensions: np.ndarray | None = None  # (m, n) N, kinematic method
     path_times: np.ndarray | None = None  # (m,) s
     pauses: tuple[Pause, ...] = ()
+    sequential: Sequential | None = None
 
     @classmethod
-    def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05) -> Plan:
-        from calib.planning import kinematic_path, plan_poses
+    def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05,
+                  plan: str = "grid", poses: int = 8, tolerance: float | None = None,
+                  noise: dict[str, np.ndarray] | None = None, step: float = 0.1,
+                  time_model: TimeModel | None = None) -> Plan:
+        """The grid plan, the A-optimal plan of ``poses`` poses (``plan='optimal'``) or a sequential plan
+        that stops at ``tolerance`` m (``plan='sequential'``, at most ``poses`` poses); candidates every
+        ``step`` m of the static workspace, ``noise`` the window-mean sigma (default
+        :func:`calib.design.window_mean_noise`), ``time_model`` the robot time the sequential choice weighs
+        (default :class:`calib.design.TimeModel`). Raises ``calib.planning.PlanningError``."""
+        from calib.planning import PlanningError, kinematic_path, plan_poses
 
-        plan = plan_poses(robot, grid)
+        if plan not in PLANS:
+            raise PlanningError(f"plan must be one of {', '.join(PLANS)}, got {plan!r}.")
         if method == "kinematic":
+            if plan != "grid":
+                raise PlanningError(f"plan '{plan}' applies to the equilibrium method only.")
             path = kinematic_path(robot, grid, speed=speed, spacing=spacing)
-            return cls(np.empty((0, robot.n)), np.empty((0, 6)), plan.tau0, path.tensions, path.times)
-        return cls(plan.setpoints, plan.poses, plan.tau0)
+            return cls(np.empty((0, robot.n)), np.empty((0, 6)), plan_poses(robot, grid).tau0, path.tensions,
+                       path.times)
+        if plan == "grid":
+            g = plan_poses(robot, grid)
+            return cls(g.setpoints, g.poses, g.tau0)
+        noise = noise or window_mean_noise(robot)
+        cands = candidates(robot, noise, step)
+        if plan == "optimal":
+            o = optimal_plan(robot, poses, noise, cands=cands)
+            return cls(o.setpoints, o.poses, o.tau0)
+        if tolerance is None or not tolerance > 0:
+            raise PlanningError(f"a sequential plan needs a positive tolerance, got {tolerance!r} m.")
+        k = min(poses, cands.size)
+        reach = select_a_optimal(cands, k, max_rounds=0)[1]  # greedy: what the sequential choice can attain
+        if reach > tolerance:
+            raise PlanningError(f"the tolerance {1000 * tolerance:g} mm cannot be reached: {k} poses of the static "
+                                f"workspace predict at best a 1-sigma of the initial position of "
+                                f"{1000 * reach:.3f} mm.")
+        seq = Sequential(SequentialDesign(cands, time_model or TimeModel()), float(tolerance), noise, poses)
+        return cls(np.empty((0, robot.n)), np.empty((0, 6)), cands.tau0, sequential=seq)
 
 
 @dataclass
@@ -121,6 +176,9 @@ class StartupResult:
     tau_init: np.ndarray  # (n,) N, tensions at power-on
     zero: dict[str, Any]  # the power-on readings the deltas are taken from
     control: dict[str, float]  # loop statistics
+    # sequential plan: per window the position 1-sigma (m) and estimate, and why it stopped ("tolerance" or
+    # "exhausted"); None for a fixed plan
+    sequential: dict[str, Any] | None = None
 
 
 class StartupRoutine:
@@ -163,6 +221,9 @@ class StartupRoutine:
         self._compute: list[float] = []
         self._total_estimate = 1.0
         self._detector: EquilibriumDetector | None = None
+        self._held: list | None = None  # the rows logged in the window being held
+        self._means: list[WindowMean] = []  # the mean readings of each held window (tau0's first)
+        self._sequential: dict[str, Any] | None = None
 
     # ---- the loop -------------------------------------------------------------------------------------
     def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
@@ -210,6 +271,8 @@ class StartupRoutine:
 
     def _log(self, snap: Snapshot) -> None:
         row = self._row(snap)
+        if self._held is not None:
+            self._held.append(row)
         if self.writer is None:
             self._prerun.append(row)
             return
@@ -246,8 +309,12 @@ class StartupRoutine:
         self._phase, self._setpoint = phase, setpoint
         first = self.writer.count if self.writer else 0
         steps = int(round(self.cfg.hold_time / self.period))
+        self._held = []
         for _ in range(steps):
             self._tick(tau)
+        rows, self._held = self._held, None
+        self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
+                                      np.mean([r[5:8] for r in rows], axis=0)))
         last = self.writer.count - 1
         self.writer.sync()
         return first, last
@@ -274,6 +341,8 @@ class StartupRoutine:
         tr = np.maximum(1.875 * moves / self.cfg.max_tension_rate, self.cfg.min_transition).sum()
         per = self.cfg.expected_settle + self.cfg.hold_time
         total = tr + per * (len(sp) - 1) + 10.0 + sum(p.seconds for p in self.plan.pauses)
+        if self.plan.sequential is not None:  # unknown in advance: the longest it may take
+            total += self.plan.sequential.max_poses * (per + 2 * self.cfg.min_transition)
         if self.plan.path_times is not None:
             total += float(self.plan.path_times[-1])
         return float(total)
@@ -345,8 +414,7 @@ class StartupRoutine:
                 self._kinematic()
             else:
                 prev = tau0
-                for j in range(len(self.plan.setpoints)):
-                    sp = self.plan.setpoints[j]
+                for j, sp in self._setpoints():
                     self._target = j
                     self._move_to(prev, sp, self.cfg.max_tension_rate, "transition", -1)
                     self._settle(sp, "settle", -1)  # a timeout still gives a (quasi-static) window
@@ -373,7 +441,39 @@ class StartupRoutine:
             zero={k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self._zero.items()},
             control={"ticks": float(len(comp)), "compute_mean_s": float(comp.mean()),
                      "compute_p99_s": float(np.percentile(comp, 99)), "compute_max_s": float(comp.max())},
+            sequential=self._sequential,
         )
+
+    def _setpoints(self):
+        """(index, setpoint) to visit in order: the plan's, or for a sequential plan the next chosen after each
+        window (:func:`calib.design.sequential_acquisition`), until the solve's position 1-sigma is below the
+        tolerance or the plan is exhausted."""
+        seq = self.plan.sequential
+        if seq is None:
+            yield from enumerate(self.plan.setpoints)
+            return
+        cands = seq.design.cands
+        online = OnlineSolve(self.robot, seq.noise, self._means[0], cands.home_pose)
+        history: list = []
+        steps = sequential_acquisition(seq.design, online, seq.tolerance, seq.max_poses, history)
+        why, c = "exhausted", next(steps, None)
+        while c is not None:
+            self.plan.setpoints = np.vstack([self.plan.setpoints, cands.setpoints[c]])
+            self.plan.ideal_poses = np.vstack([self.plan.ideal_poses, cands.poses[c]])
+            self.writer.update_procedure(self.plan.setpoints, self.plan.ideal_poses)
+            yield len(history), cands.setpoints[c]
+            try:
+                c = steps.send(self._means[-1])
+            except StopIteration as stop:
+                why, c = stop.value, None
+            est = history[-1][1]
+            if self.progress is not None:
+                p, mm = est.theta[:3], 1000 * est.position_sigma
+                self.progress.note = f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
+        self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "windows": [
+            {"pose": i, "position_sigma_m": e.position_sigma, "initial_pose": e.theta[:6].tolist(),
+             "iterations": e.iterations} for i, (_, e) in enumerate(history)]}
+        self.writer.update_meta(sequential=self._sequential)
 
     def _kinematic(self) -> None:
         """Follow the path's tensions linearly in time (quintic blends in and out), logging throughout."""

@@ -12,6 +12,7 @@ An existing RUN is refused, or with ``--force`` moved aside (acquisition/outputs
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import json
 import logging
@@ -28,6 +29,7 @@ from acquisition.equilibrium import DetectorConfig
 from acquisition.report import ProgressBar, ReportRenderer, StartupSummary, read_offsets, render_text, write_offsets
 from acquisition.safety import SafetyLimits, SafetySupervisor
 from acquisition.startup import (
+    PLANS,
     Pause,
     Plan,
     StartupConfig,
@@ -47,6 +49,16 @@ def register(sub) -> None:
     p.add_argument("--grid", type=int, default=2, help="calibration grid points per axis (default 2)")
     p.add_argument("--method", choices=("equilibrium", "kinematic"), default="equilibrium",
                    help="equilibrium: static poses, tlse (default); kinematic: constant-speed path, lse")
+    p.add_argument("--plan", choices=PLANS, default=None,
+                   help="grid (default), optimal (the A-optimal --poses poses of the static workspace) or "
+                        "sequential (the default with --tolerance)")
+    p.add_argument("--poses", type=int, default=None,
+                   help="optimal plan: number of poses (default 8); sequential: at most this many (default 27)")
+    p.add_argument("--tolerance", type=_length,
+                   help="sequential acquisition: stop as soon as the 1-sigma of the initial position is below "
+                        "this (e.g. 3mm, 0.5cm, 0.002 = metres)")
+    p.add_argument("--step", type=float, default=0.1,
+                   help="optimal and sequential plans: spacing of the candidate positions, m (default 0.1)")
     p.add_argument("--out", help="run folder to write (default: run-<UTC time>); an existing run or a folder "
                    "holding files is refused unless --force")
     p.add_argument("--sim-config", help="simulation configuration YAML (hidden effects, faults)")
@@ -85,6 +97,53 @@ def _config(args, robot) -> StartupConfig:
         raise UsageError(f"invalid option: {exc}") from exc
 
 
+def _length(text: str) -> float:
+    """A length with an optional unit (mm, cm, m; default m) in metres."""
+    t = text.strip().lower()
+    for unit, scale in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
+        if t.endswith(unit):
+            t, f = t[: -len(unit)], scale
+            break
+    else:
+        f = 1.0
+    try:
+        v = float(t) * f
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a length (give e.g. 3mm, 0.5cm or 0.003)") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"'{text}' must be a positive length")
+    return v
+
+
+def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None, poses: int | None = None,
+              tolerance: float | None = None, step: float = 0.1) -> Plan:
+    """The plan `cdpr startup` runs: ``plan`` 'grid' (``grid`` points per axis), 'optimal' (``poses`` poses,
+    default 8) or 'sequential' (stop at ``tolerance`` m, at most ``poses`` poses, default 27); None: grid, or
+    sequential when a tolerance is given. The window-mean noise the optimal and sequential plans use is the
+    per-sample noise of :data:`calib.design.SAMPLE_NOISE` over the samples of one hold. Raises UsageError."""
+    from calib.design import TimeModel, window_mean_noise
+    from calib.planning import PlanningError
+
+    plan = plan or ("sequential" if tolerance is not None else "grid")
+    if tolerance is not None and plan != "sequential":
+        raise UsageError(f"--tolerance applies to the sequential plan, not to --plan {plan}.")
+    if plan == "sequential" and tolerance is None:
+        raise UsageError("--plan sequential needs --tolerance (e.g. --tolerance 3mm).")
+    if not step > 0:
+        raise UsageError(f"--step must be positive, got {step}.")
+    if poses is not None and not 1 <= poses <= 100:
+        raise UsageError(f"--poses {poses} is out of range: give 1 to 100 poses.")
+    poses = poses or (27 if plan == "sequential" else 8)
+    noise = window_mean_noise(robot, max(1, round(cfg.hold_time / cfg.log_period)))
+    try:
+        return Plan.for_robot(robot, grid, cfg.method, cfg.kinematic_speed, cfg.kinematic_spacing, plan=plan,
+                              poses=poses, tolerance=tolerance, noise=noise, step=step,
+                              time_model=TimeModel(cfg.max_tension_rate, cfg.min_transition, cfg.expected_settle,
+                                                   cfg.hold_time))
+    except PlanningError as exc:
+        raise UsageError(str(exc)) from exc
+
+
 def _pause(text: str, k: int) -> Pause:
     """``J:S`` or ``J:S:home`` -> a Pause after setpoint J (0..k-1) of S > 0 seconds."""
     parts = text.split(":")
@@ -106,7 +165,7 @@ def run(args) -> int:
                 # forked first: it loads matplotlib while the robot is planned and connected. During the control
                 # loop the simulated plant needs the second core, and a renderer still loading then slows it down
                 report.start()
-            return _run(args, report)
+            return _print(args, _run(args, report))
     except Interrupted as stop:  # a signal outside the acquisition, whose supervisor owns the stop
         raise OperationError(f"stopped by {stop.args[0]} {_where(getattr(args, 'run_folder', None))}.") from stop
 
@@ -118,8 +177,29 @@ def _where(out: Path | None) -> str:
     return "before the acquisition started; no run was written"
 
 
-def _run(args, report: ReportRenderer) -> int:
-    from calib.planning import PlanningError
+def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | None = None, poses: int | None = None,
+                      seed: int = 0, sim_config: str | None = None, robot: str = "irma4u", step: float = 0.1) -> dict:
+    """One simulated startup in this process, as ``cdpr startup --backend sim --no-html --json`` runs it (the
+    entry point of Monte-Carlo studies): ``plan`` 'gridN' (N points per axis), 'optimal' or 'sequential'
+    (``tolerance`` m), candidates every ``step`` m; returns the ``--json`` summary plus ``truth``, the
+    simulator's initial pose (6,) at the solution's reference sample (also in OUT/truth.json). Raises
+    UsageError or OperationError."""
+    from acquisition.cli import build_parser
+
+    out = Path(out)
+    argv = ["startup", "--backend", "sim", "--no-html", "--out", str(out), "--seed", str(seed), "--robot", robot,
+            "--truth", str(out / "truth.json"), "--step", repr(float(step))]
+    argv += ["--plan", "grid", "--grid", plan[4:] or "2"] if plan.startswith("grid") else ["--plan", plan]
+    argv += [] if tolerance is None else ["--tolerance", repr(float(tolerance))]
+    argv += [] if poses is None else ["--poses", str(poses)]
+    argv += [] if sim_config is None else ["--sim-config", str(sim_config)]
+    args = build_parser().parse_args(argv)
+    with ReportRenderer() as report:
+        summary = _run(args, report)
+    return summary.to_dict() | {"truth": json.loads((out / "truth.json").read_text())["initial_pose"]}
+
+
+def _run(args, report: ReportRenderer) -> StartupSummary:
     from calib.robot import RobotDescriptionError, load_robot
 
     if not args.debug:  # the canopen library logs SDO aborts itself; the CLI says what failed in one sentence
@@ -129,10 +209,7 @@ def _run(args, report: ReportRenderer) -> int:
     except RobotDescriptionError as exc:
         raise UsageError(str(exc)) from exc
     cfg = _config(args, robot)
-    try:
-        plan = Plan.for_robot(robot, args.grid, args.method, cfg.kinematic_speed, cfg.kinematic_spacing)
-    except PlanningError as exc:
-        raise UsageError(str(exc)) from exc
+    plan = make_plan(robot, cfg, args.grid, args.plan, args.poses, args.tolerance, args.step)
     plan.pauses = tuple(_pause(text, len(plan.setpoints)) for text in args.pause)
     meta = {}
     if args.offsets and Path(args.offsets).exists():  # the last calibration, for the record of this run
@@ -163,7 +240,7 @@ def _progress(args) -> ProgressBar:
     return ProgressBar(1.0, stream=sys.stderr)
 
 
-def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
+def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> StartupSummary:
     from sim_backend.backend import SimBackend
     from sim_backend.config import SimConfigError, load_sim_config
 
@@ -198,10 +275,10 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
                 summary.files["truth"] = str(args.truth)
     finally:
         supervisor.restore_signals()
-    return _print(args, summary)
+    return summary
 
 
-def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
+def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> StartupSummary:
     from drivers.config import DeviceConfigError, load_device_config
 
     try:
@@ -223,7 +300,7 @@ def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
             rig.close()
     finally:
         supervisor.restore_signals()
-    return _print(args, _solve_and_report(args, robot, cfg, result, out, report))
+    return _solve_and_report(args, robot, cfg, result, out, report)
 
 
 def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
@@ -296,6 +373,7 @@ def _solve_and_report(args, robot, cfg, result, out: Path, report: ReportRendere
         solution=data, windows=result.windows, events=list(run.events),
         timing={"acquisition_s": result.robot_time, "wall_s": result.wall_time, "solve_s": solve_s,
                 "control_p99_ms": 1000 * result.control["compute_p99_s"]},
+        message=sequential_outcome(result.sequential),
     )
     summary.files["offsets"] = str(write_offsets(out / "offsets.yaml", data, robot.name, str(out)))
     if args.offsets:
@@ -303,6 +381,19 @@ def _solve_and_report(args, robot, cfg, result, out: Path, report: ReportRendere
     if not args.no_html:
         summary.files["report"] = str(report.write(out / "report.html", summary, run.t, run.tau, run.tau_ref))
     return summary
+
+
+def sequential_outcome(seq: dict | None) -> str:
+    """One sentence on why a sequential startup stopped ('' for a fixed plan)."""
+    if not seq:
+        return ""
+    w, tol = seq["windows"], 1000 * seq["tolerance_m"]
+    sigma = 1000 * w[-1]["position_sigma_m"] if w else float("inf")
+    if seq["stop"] == "tolerance":
+        return (f"sequential: 1-sigma of the initial position {sigma:.2f} mm < tolerance {tol:g} mm after "
+                f"{len(w)} poses.")
+    return (f"sequential: the plan is exhausted after {len(w)} poses with a 1-sigma of the initial position of "
+            f"{sigma:.2f} mm, above the tolerance {tol:g} mm.")
 
 
 def _print(args, summary: StartupSummary) -> int:
