@@ -74,6 +74,7 @@ class BusRecorder(can.Listener):
 
     def __init__(self, run: str | Path, settings: dict[str, Any], can_format: str = "blf") -> None:
         folder = Path(run)
+        self._made_folder = not folder.exists()
         folder.mkdir(parents=True, exist_ok=True)
         self.can_path = can_record_path(folder, can_format)
         self.serial_path = folder / SERIAL_RECORD
@@ -122,6 +123,15 @@ class BusRecorder(can.Listener):
                 self._writer.file.flush()  # what the CAN writer has handed to its file so far
 
         return tap
+
+    def discard(self) -> None:
+        """Stop and delete the record, and the run folder when this recorder made it and it is empty (the
+        devices never answered: nothing was run)."""
+        self.stop()
+        self.can_path.unlink(missing_ok=True)
+        self.serial_path.unlink(missing_ok=True)
+        if self._made_folder and not any(self.can_path.parent.iterdir()):
+            self.can_path.parent.rmdir()
 
     def stop(self) -> None:
         """Close both files (the BLF header gets its final counts); safe to call twice."""

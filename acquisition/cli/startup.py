@@ -324,10 +324,10 @@ def _connect(devices, robot, clock, lockstep: bool, period: float, cfg, out: Pat
     try:
         rig = connect(devices, robot, clock, lockstep=lockstep, period=period, every=every, recorder=recorder)
     except DeviceError as exc:
-        recorder.stop()
+        recorder.discard()
         raise OperationError(f"device check failed: {str(exc).rstrip('.')}.") from exc
     except BaseException:
-        recorder.stop()
+        recorder.discard()
         raise
     close_devices = rig.closer
 
