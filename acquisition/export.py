@@ -9,6 +9,8 @@
 - ``npz``: every column of samples.csv by name, plus ``meta`` (JSON text), and when solved ``solution``
   (JSON text) and the absolute columns ``length_i``, ``swivel_i``, ``yaw``.
 - ``csv``: the run's columns, plus the absolute columns where solved.
+- ``mcap``: samples, windows, events and the solution as MCAP channels of JSON messages with JSON Schemas,
+  for Foxglove and PlotJuggler (acquisition/export_mcap.py).
 
 SI units and radians throughout.
 """
@@ -24,7 +26,7 @@ import numpy as np
 
 from acquisition.runlog import Run, csv_text, read_solution, to_plain
 
-FORMATS = ("mat", "npz", "csv")
+FORMATS = ("mat", "npz", "csv", "mcap")
 
 
 class ExportError(ValueError):
@@ -57,7 +59,7 @@ def absolute_channels(run: Run, solution: dict[str, Any] | None) -> dict[str, np
 
 
 def export_run(run: Run, fmt: str, out_file: str | Path, solution: dict[str, Any] | None = None) -> Path:
-    """Write ``run`` in format ``fmt`` (mat | npz | csv) to ``out_file``; returns the path written.
+    """Write ``run`` in format ``fmt`` (mat | npz | csv | mcap) to ``out_file``; returns the path written.
 
     ``solution`` defaults to the run's saved solution (RUN/solution.json) when the run has a path.
     """
@@ -73,6 +75,10 @@ def export_run(run: Run, fmt: str, out_file: str | Path, solution: dict[str, Any
         _export_mat(run, ab, solution, out)
     elif fmt == "npz":
         _export_npz(run, ab, solution, out)
+    elif fmt == "mcap":
+        from acquisition.export_mcap import export_mcap
+
+        export_mcap(run, solution, out)
     else:
         _export_csv(run, ab, out)
     return out

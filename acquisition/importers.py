@@ -13,6 +13,10 @@ pose: dl = absolute length - homing length, dsigma = absolute swivel - homing sw
 yaw. The homing values are stored in run.yaml under ``homing`` so a solve's sensor offsets can be checked
 against them. Time starts at 0 at the first experiment sample; ``time_origin`` keeps the controller's time.
 
+Damaged input follows the run reader's policy (docs/run-format.md): a damaged line of the log, or a damaged
+sample of the .mat, is skipped and counted (:class:`acquisition.runlog.DamageLog`), and :func:`irma_run`
+says so in one warning, or refuses, nothing written, when fewer than ``MIN_HOLDS`` setpoint holds remain.
+
 The two inputs differ in one respect (measured on sc_8_final): the authors' parser recomputes the cable
 lengths from the motor counts with one transmission ratio for all winches (0.0280645 m/rev), whereas the
 controller's ``cable_length`` uses each winch's own ratio (0.028807, 0.028652, 0.028448, 0.028641 m/rev,
@@ -26,14 +30,32 @@ parser's lengths and 52 with the controller's, so the raw import carries a 1.4-2
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from acquisition.runlog import Run, new_run, read_run, write_run
+from acquisition.runlog import (
+    CONFLICT,
+    CUT,
+    FIELDS,
+    FOREIGN,
+    ORDER,
+    REPEATED,
+    VALUE,
+    DamageLog,
+    Run,
+    float_or_nan,
+    new_run,
+    read_run,
+    time_order,
+    write_run,
+)
+
+PARTIAL = "logging cycles lacking a cable or AHRS line"
+MISSING = "samples missing from a field"
+MIN_HOLDS = 2  # steady setpoint holds a run needs to be solved (tlse: two equilibrium windows)
 
 # Homing pose of the IRMA4U prototype: absolute values the homing procedure establishes (README).
 IRMA_HOMING_LENGTHS = (2.27254824660233, 2.27300821626030, 2.27300821626030, 2.27254824660233)  # m
@@ -79,6 +101,7 @@ class IrmaSignals:
     dyaw: np.ndarray
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     homing: dict[str, Any] = field(default_factory=dict)
+    damage: DamageLog | None = None  # what the reader skipped; irma_run warns or refuses
 
 
 # ------------------------------------------------------------------------------------------ parsed .mat
@@ -89,8 +112,8 @@ def read_irma_parsed(file: str | Path) -> IrmaSignals:
     file = Path(file)
     try:
         data = _loadmat(file)
-    except (ValueError, TypeError, OSError, NotImplementedError) as exc:
-        raise IrmaImportError(f"{file}: not a readable MATLAB v5 file ({exc}).") from exc
+    except Exception as exc:  # noqa: BLE001 - scipy raises many kinds on a damaged file; each is one sentence
+        raise IrmaImportError(f"{file}: not a readable MATLAB v5 file ({type(exc).__name__}: {exc}).") from exc
     if "st" not in data:
         names = ", ".join(k for k in data if not k.startswith("__")) or "none"
         raise IrmaImportError(f"{file}: variable 'st' is missing (variables found: {names}).")
@@ -102,27 +125,40 @@ def read_irma_parsed(file: str | Path) -> IrmaSignals:
     def fld(name: str, rows: int | None) -> np.ndarray:
         if name not in st.dtype.names:
             raise IrmaImportError(f"{file}: field 'st.{name}' is missing.")
-        a = np.asarray(st[name], dtype=float)
+        try:
+            a = np.asarray(st[name], dtype=float)
+        except (TypeError, ValueError):
+            raise IrmaImportError(f"{file}: field 'st.{name}' does not hold numbers.") from None
         if rows is None:
             a = a.reshape(-1)
         elif a.ndim != 2 or a.shape[0] != rows:
             raise IrmaImportError(f"{file}: field 'st.{name}' has shape {a.shape}, expected ({rows}, N).")
         return a
 
-    t = fld("t", None)
-    N = t.shape[0]
-    arrays = {"epsilon": fld("epsilon", 3)}
+    arrays = {"t": fld("t", None)[None, :], "epsilon": fld("epsilon", 3)}
     for name in ("cable_length", "swivel", "tensions", "target_tensions"):
         arrays[name] = fld(name, IRMA_CABLES)
-    for name, a in arrays.items():
-        if a.shape[1] != N:
-            raise IrmaImportError(f"{file}: field 'st.{name}' has {a.shape[1]} samples but 'st.t' has {N}.")
-    for name, a in [("t", t), *arrays.items()]:
-        bad = np.argwhere(~np.isfinite(a))
-        if bad.size:
-            raise IrmaImportError(f"{file}: field 'st.{name}' has a NaN or infinite value at index {bad[0].tolist()}.")
+    damage = DamageLog(file)
+    lengths = {name: a.shape[1] for name, a in arrays.items()}
+    N = min(lengths.values())
     if N < 1:
-        raise IrmaImportError(f"{file}: field 'st.t' is empty.")
+        raise IrmaImportError(f"{file}: field 'st.{min(lengths, key=lengths.get)}' is empty.")
+    longest = max(lengths, key=lengths.get)
+    if lengths[longest] > N:
+        short = min(lengths, key=lengths.get)
+        damage.add(MISSING, f"first: field 'st.{short}' has {N} samples, 'st.{longest}' {lengths[longest]}",
+                   lengths[longest] - N)
+    values = np.concatenate([a[:, :N] for a in arrays.values()]).T  # (N, 20): t first
+    ok = np.isfinite(values).all(axis=1)
+    if not ok.all():
+        j = int(np.flatnonzero(~ok)[0])
+        damage.add(VALUE, f"first: sample {j} (index {j + 1} in MATLAB)", int(np.count_nonzero(~ok)))
+    good = np.flatnonzero(ok)
+    keep = good[time_order(values[good, 0], values[good], [f"sample {j}" for j in good], damage)]
+    if keep.size == 0:
+        raise IrmaImportError(f"{file}: no usable sample; damaged input: {damage.summary()}.")
+    arrays = {name: a[:, keep] for name, a in arrays.items()}
+    t = arrays["t"][0]
     eps = arrays["epsilon"]
     return IrmaSignals(
         t=t,
@@ -134,6 +170,7 @@ def read_irma_parsed(file: str | Path) -> IrmaSignals:
         pitch=eps[1].copy(),
         dyaw=eps[2].copy(),  # already yaw minus its homing mean
         homing={"lengths": list(IRMA_HOMING_LENGTHS), "swivels": list(IRMA_HOMING_SWIVELS), "yaw": 0.0},
+        damage=damage,
     )
 
 
@@ -147,57 +184,71 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     go from degrees to radians. The homing means of length, pulley angle and yaw define the zeros.
     """
     file = Path(file)
-    try:
-        text = file.read_bytes().decode("ascii")
-    except UnicodeDecodeError as exc:
-        raise IrmaImportError(f"{file}: not a text log (non-ASCII byte at offset {exc.start}).") from exc
-    lines = text.split("\n")
-    if lines and lines[-1] == "":
+    damage = DamageLog(file)
+    lines = file.read_bytes().decode("ascii", errors="replace").split("\n")
+    if lines[-1] == "":
         lines.pop()
-    elif lines:
-        warnings.warn(
-            f"{file}: line {len(lines)} is incomplete (cut while logging) and was dropped.", UserWarning, stacklevel=2
-        )
+    else:
+        damage.add(CUT, f"line {len(lines)}")
         lines.pop()
     act: dict[float, dict[int, list[float]]] = {}
     ahrs: dict[float, list[float]] = {}
-    order: list[float] = []
+    first_line: dict[float, int] = {}
+    conflict: set[float] = set()
     for k, line in enumerate(lines, start=1):
         line = line.strip()
         if not line:
-            continue
+            continue  # a blank line holds no reading: nothing is lost
         cells = line.split(",")
         kind = cells[0].strip()
+        if kind == "6":
+            continue  # type 6: extras, not used
         if kind not in ("3", "5"):
-            continue  # type 6 and others: not used
+            damage.add(FOREIGN, f"first: line {k} of type {kind[:20]!r}")
+            continue
         expected = 14 if kind == "3" else 5
         if len(cells) != expected:
-            raise IrmaImportError(f"{file}: line {k} (type {kind}) has {len(cells)} fields, expected {expected}.")
-        try:
-            vals = [float(c) for c in cells[1:]]
-        except ValueError:
-            bad = next(c for c in cells[1:] if not _is_float(c))
-            raise IrmaImportError(f"{file}: line {k} has the non-numeric value {bad!r}.") from None
+            damage.add(FIELDS, f"first: line {k} (type {kind}) has {len(cells)} fields, expected {expected}")
+            continue
+        vals = [float_or_nan(c) for c in cells[1:]]
+        if not all(math.isfinite(v) for v in vals):
+            bad = next(c for c, v in zip(cells[1:], vals, strict=True) if not math.isfinite(v))
+            damage.add(VALUE, f"first: line {k} has the value {bad.strip()!r}")
+            continue
         t = vals[0]
-        if t not in act and t not in ahrs:
-            order.append(t)
         if kind == "3":
             cid = int(vals[1])
             if vals[1] != cid or not 0 <= cid < IRMA_CABLES:
-                raise IrmaImportError(f"{file}: line {k} has actuator id {cells[2]!r}, expected 0..{IRMA_CABLES - 1}.")
-            act.setdefault(t, {})[cid] = vals[2:]
+                damage.add(FOREIGN, f"first: line {k} has actuator id {cells[2].strip()!r}, expected 0..3")
+                continue
+            slot, key, reading = act.setdefault(t, {}), cid, vals[2:]
         else:
-            ahrs[t] = vals[1:]
-    complete = [t for t in order if t in ahrs and len(act.get(t, {})) == IRMA_CABLES]
-    dropped = len(order) - len(complete)
-    if dropped:
-        warnings.warn(f"{file}: {dropped} logging cycles lacked a cable or AHRS line and were dropped.", stacklevel=2)
+            slot, key, reading = ahrs, t, vals[1:]
+        first_line.setdefault(t, k)
+        if key in slot:
+            if slot[key] == reading:
+                damage.add(REPEATED, f"first: line {k}")
+            else:
+                conflict.add(t)
+            continue
+        slot[key] = reading
+    times = sorted(first_line)
+    if conflict:
+        damage.add(CONFLICT, f"first: the cycle at line {min(first_line[t] for t in conflict)}", len(conflict))
+    complete = [t for t in times if t in ahrs and len(act.get(t, {})) == IRMA_CABLES and t not in conflict]
+    partial = [t for t in times if t not in complete and t not in conflict]
+    if partial:
+        damage.add(PARTIAL, f"first: the cycle at line {first_line[partial[0]]}", len(partial))
+    appearance = np.array([first_line[t] for t in complete])
+    late = np.flatnonzero(appearance[1:] < np.maximum.accumulate(appearance)[:-1]) + 1 if complete else []
+    if len(late):
+        damage.add(ORDER, f"first: the cycle at line {appearance[late[0]]}", len(late))
     if not complete:
-        raise IrmaImportError(f"{file}: no complete logging cycle (4 type-3 lines and a type-5 line at one time).")
+        raise IrmaImportError(
+            f"{file}: no complete logging cycle (4 type-3 lines and a type-5 line at one time)"
+            + (f"; damaged input: {damage.summary()}." if damage else ".")
+        )
     t_all = np.array(complete)
-    if np.any(np.diff(t_all) <= 0):
-        j = int(np.flatnonzero(np.diff(t_all) <= 0)[0])
-        raise IrmaImportError(f"{file}: time goes back from {t_all[j]} s to {t_all[j + 1]} s.")
     A = np.array([[act[t][i] for i in range(IRMA_CABLES)] for t in complete])  # (cycles, 4, 11)
     E = np.radians(np.array([ahrs[t] for t in complete]))  # (cycles, 3) rad
     gaps = np.flatnonzero(np.diff(t_all) > min_pause)
@@ -230,6 +281,7 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
         },
     }
     return IrmaSignals(
+        damage=damage,
         t=t_all[exp],
         tension=f["cable_tension"][exp],
         target=f["target"][exp],
@@ -243,14 +295,6 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     )
 
 
-def _is_float(s: str) -> bool:
-    try:
-        float(s)
-    except ValueError:
-        return False
-    return True
-
-
 # ------------------------------------------------------------------------------------------- setpoints
 
 
@@ -262,6 +306,44 @@ class SetpointSegmentation:
     phase: np.ndarray  # (N,) str: pretension | transition | hold
     index: np.ndarray  # (N,) int, -1 outside holds
     plateaus: list[tuple[int, int]]  # [first, last] sample of each steady target segment after pretension
+    cut: list[tuple[int, int]] = field(default_factory=list)  # [first, last] sample of each move left unfinished
+
+
+def reference_jumps(target: np.ndarray, floor: float = 0.05) -> np.ndarray:
+    """Samples (sorted) where the target tensions (N, n) jump: the controller restarted its reference from the
+    measured tensions to begin a new move. A jump is a step larger than ``floor`` N and three times either
+    neighbouring step (a smooth trajectory's steps change gradually)."""
+    d = np.abs(np.diff(np.asarray(target, dtype=float), axis=0))
+    if d.shape[0] < 2:
+        return np.zeros(0, dtype=int)
+    prev = np.r_[np.zeros((1, d.shape[1])), d[:-1]]
+    nxt = np.r_[d[1:], np.zeros((1, d.shape[1]))]
+    return np.flatnonzero(np.any((d > floor) & (d > 3.0 * np.maximum(prev, nxt)), axis=1)) + 1
+
+
+def quintic_destination(x: np.ndarray, fit_tol: float = 0.05) -> float | None:
+    """Where a quintic (minimum-jerk) move x (m,) that starts at rest on x[0] was heading when it was cut:
+    the fit of x0 + D s((k - k0) / K), s(u) = 10u^3 - 15u^4 + 6u^5, over its samples k; None when the move is
+    not such a quintic (worst residual above ``fit_tol``, N)."""
+    from scipy.optimize import least_squares  # here: scipy.optimize costs every cdpr command ~0.2 s
+
+    x = np.asarray(x, dtype=float)
+    k = np.arange(x.size, dtype=float)
+    a, peak = x[0], float(np.abs(np.diff(x)).max())
+    moving = np.flatnonzero(np.abs(x - a) > 1e-6)
+    if moving.size < 4 or peak <= 0.0:
+        return None
+
+    def shape(p):
+        u = np.clip((k - p[0]) / p[1], 0.0, 1.0)
+        return u**3 * (10.0 - 15.0 * u + 6.0 * u * u)
+
+    d0 = 1.5 * (x[-1] - a)
+    fit = least_squares(lambda p: a + p[2] * shape(p) - x, [moving[0] - 1.0, 1.875 * abs(d0) / peak, d0],
+                        bounds=([-x.size, 2.0, -np.inf], [x.size, 100.0 * x.size, np.inf]))
+    if not fit.success or np.abs(fit.fun).max() > fit_tol:
+        return None
+    return float(a + fit.x[2])
 
 
 def segment_targets(
@@ -272,12 +354,15 @@ def segment_targets(
     setpoints: np.ndarray | None = None,
     match_tol: float = 0.05,
 ) -> SetpointSegmentation:
-    """Find where the target tensions (N, n) are steady: the setpoints held, in order.
+    """Find the setpoints of the target tensions (N, n), in order.
 
     The pretension phase lasts until a target first departs by more than ``pretension_band`` N from its
     first value. After it, every segment where all targets stay constant for at least ``min_hold`` s is a
-    hold. Without ``setpoints``, the holds' values (consecutive equal ones merged) are the setpoints; with
-    them, each hold takes the index of the setpoint it equals within ``match_tol`` N (-1 if none).
+    hold. A move the controller left unfinished (the reference jumped to begin the next move while a target
+    was still on its way, :func:`reference_jumps`) had a setpoint too: each target still moving is extended
+    to where its quintic was heading (:func:`quintic_destination`); no sample of it is a hold. Without
+    ``setpoints``, these values (consecutive equal ones merged) are the setpoints; with them, each hold takes
+    the index of the setpoint it equals within ``match_tol`` N (-1 if none).
     """
     T = np.asarray(target, dtype=float)
     N = T.shape[0]
@@ -300,20 +385,35 @@ def segment_targets(
         if k - j + 1 >= min_len:
             plateaus.append((j, k))
         j = k + 1
+    # moves cut by a jump of the reference, their last sample not steady: (first, last, destination)
+    cut: list[tuple[int, int, np.ndarray]] = []
+    starts = np.r_[0, reference_jumps(T)]
+    for a, b in zip(starts[:-1], starts[1:] - 1, strict=True):
+        if b < pre_end or b - a < 4 or same[b]:
+            continue
+        dest = T[b].copy()
+        for i in np.flatnonzero(np.abs(T[b] - T[b - 1]) > tol[b - 1]):
+            end = quintic_destination(T[a : b + 1, i])
+            dest[i] = np.nan if end is None else end
+        if np.all(np.isfinite(dest)):
+            cut.append((int(a), int(b), dest))
+    steps = sorted([(a, b, T[a], False) for a, b in plateaus] + [(a, b, v, True) for a, b, v in cut],
+                   key=lambda s: s[0])
     found: list[np.ndarray] = []
-    for a, b in plateaus:
-        phase[a : b + 1] = "hold"
-        value = T[a]
+    for a, b, value, unfinished in steps:
+        if not unfinished:
+            phase[a : b + 1] = "hold"
         if setpoints is None:
             if not found or np.max(np.abs(found[-1] - value)) > match_tol:
                 found.append(value)
-            index[a : b + 1] = len(found) - 1
+            j = len(found) - 1
         else:
             d = np.max(np.abs(np.asarray(setpoints) - value), axis=1)
-            if d.min() <= match_tol:
-                index[a : b + 1] = int(np.argmin(d))
+            j = int(np.argmin(d)) if d.min() <= match_tol else -1
+        if not unfinished:
+            index[a : b + 1] = j
     sp = np.asarray(setpoints, dtype=float) if setpoints is not None else np.array(found).reshape(-1, T.shape[1])
-    return SetpointSegmentation(sp, phase.astype(str), index, plateaus)
+    return SetpointSegmentation(sp, phase.astype(str), index, plateaus, [(a, b) for a, b, _ in cut])
 
 
 def read_irma_targets(file: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -349,26 +449,21 @@ def detect_irma_format(file: str | Path) -> str:
     if not file.is_file():
         raise IrmaImportError(f"{file}: no such file.")
     with open(file, "rb") as fh:
-        head = fh.read(128)
+        head = fh.read(1024)
     if head.startswith(b"MATLAB 5.0"):
         return "parsed"
     if head.startswith(b"MATLAB 7.3") or head[:8] == b"\x89HDF\r\n\x1a\n":
         raise IrmaImportError(f"{file}: MATLAB v7.3 (HDF5) files are not supported; save the struct with -v7.")
     first = head.split(b"\n", 1)[0].strip()
-    if first[:2] in (b"3,", b"5,", b"6,"):
-        return "log"
+    if any(line.strip()[:2] in (b"3,", b"5,", b"6,") for line in head.split(b"\n")[:-1]):
+        return "log"  # a record among the first lines (a damaged first line is the reader's to skip)
     raise IrmaImportError(
         f"{file}: neither a MATLAB v5 *_parsed.mat nor a controller log (it starts with {first[:20]!r})."
     )
 
 
-def import_irma(
-    file: str | Path,
-    out_dir: str | Path,
-    targets: str | Path | None = None,
-    overwrite: bool = False,
-) -> Run:
-    """Convert an IRMA recording (``*_parsed.mat`` or raw ``.log``) into a run folder and return it.
+def irma_run(file: str | Path, targets: str | Path | None = None) -> Run:
+    """An IRMA recording (``*_parsed.mat`` or raw ``.log``) as a run in memory (path None).
 
     ``targets`` (optional): the ``sc_control_target_*.mat`` of the same experiment, giving the planned
     setpoints and ideal poses; without it the setpoints are those found steady in the target tensions.
@@ -378,6 +473,14 @@ def import_irma(
     sig = read_irma_parsed(file) if kind == "parsed" else read_irma_log(file)
     planned = read_irma_targets(targets) if targets is not None else None
     seg = segment_targets(sig.target, IRMA_SAMPLE_PERIOD, setpoints=None if planned is None else planned[0])
+    if len(seg.plateaus) < MIN_HOLDS:
+        damaged = f"; damaged input: {sig.damage.summary()}" if sig.damage else ""
+        raise IrmaImportError(
+            f"{file}: {len(seg.plateaus)} steady setpoint hold(s) in the experiment ({len(sig.t)} samples), a solve "
+            f"needs at least {MIN_HOLDS}{damaged}."
+        )
+    if sig.damage:
+        sig.damage.warn(len(sig.t), stacklevel=2)
     t0 = float(sig.t[0])
     meta_extra: dict[str, Any] = {
         "homing": sig.homing,
@@ -387,7 +490,7 @@ def import_irma(
     }
     if planned is not None:
         meta_extra["targets_from"] = Path(targets).name
-    run = new_run(
+    return new_run(
         "irma4u",
         "equilibrium",
         IRMA_SAMPLE_PERIOD,
@@ -407,7 +510,16 @@ def import_irma(
         extra=sig.extra,
         meta_extra=meta_extra,
     )
-    write_run(out_dir, run, overwrite=overwrite)
+
+
+def import_irma(
+    file: str | Path,
+    out_dir: str | Path,
+    targets: str | Path | None = None,
+    overwrite: bool = False,
+) -> Run:
+    """Convert an IRMA recording into a run folder (see :func:`irma_run`) and return it as read back."""
+    write_run(out_dir, irma_run(file, targets), overwrite=overwrite)
     return read_run(out_dir)
 
 

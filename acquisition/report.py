@@ -46,6 +46,7 @@ class ProgressBar:
         self.enabled = bool(getattr(self.stream, "isatty", lambda: False)()) if enabled is None else enabled
         self._last_draw = -math.inf
         self._drawn = False
+        self.note = ""  # appended to the line (a sequential startup's current estimate and 1-sigma)
 
     def line(self, elapsed: float, phase: str, setpoint: int, count: int) -> str:
         """The text of the bar at robot time ``elapsed`` (s) of ``total``."""
@@ -53,7 +54,9 @@ class ProgressBar:
         full = int(round(frac * self.width))
         left = max(self.total - elapsed, 0.0)
         sp = f"setpoint {setpoint + 1}/{count}" if setpoint >= 0 else f"{count} setpoints"
-        return f"[{'#' * full}{'.' * (self.width - full)}] {frac * 100:5.1f}%  {phase:<10} {sp}  ~{left:5.0f} s left"
+        note = f"  {self.note}" if self.note else ""
+        return (f"[{'#' * full}{'.' * (self.width - full)}] {frac * 100:5.1f}%  {phase:<10} {sp}  ~{left:5.0f} s left"
+                f"{note}")
 
     def update(self, elapsed: float, phase: str, setpoint: int, count: int, force: bool = False) -> None:
         if not self.enabled:

@@ -4,7 +4,8 @@ A run is a folder with ``run.yaml`` (metadata: robot, procedure, events) and ``s
 logged sample). SI units, angles in radians. Readers accept extra keys and columns; :func:`read_run`
 validates what it knows and raises :class:`RunFormatError` with one sentence naming the file, the field or
 column and the value. A ``samples.csv`` cut in the middle of a line (a crash while logging) reads back up to
-its last complete line, with a warning.
+its last complete line, with a warning; other damaged lines are skipped and counted the same way
+(:class:`DamageLog`, the policy of docs/run-format.md, which the importers share).
 
 Numbers are written with ``repr`` (shortest string that reads back to the same float), so writing is
 lossless and deterministic: the same values give the same bytes.
@@ -41,8 +42,78 @@ class RunFormatError(ValueError):
     """A run that does not follow `cdpr-run/1`; the message names the file, field or column, and value."""
 
 
-class RunTruncatedWarning(UserWarning):
-    """samples.csv ends in the middle of a line; the incomplete line was dropped."""
+class DamagedInputWarning(UserWarning):
+    """A reader or importer skipped damaged lines (or samples) of a file: one warning per file, counting them."""
+
+
+# Why a line or sample is skipped (or repaired): the same words for every format (docs/run-format.md).
+CUT = "cut short (the log was cut while writing it)"
+FIELDS = "wrong number of fields"
+VALUE = "a non-numeric or non-finite value"
+FOREIGN = "not a record of the format"
+REPEATED = "repeated (same time, same values; kept once)"
+CONFLICT = "same time as another line with other values"
+ORDER = "out of time order (put back in place, nothing skipped)"
+
+
+@dataclass
+class DamageLog:
+    """What a reader skipped in one file, by reason, with the first place each reason was met.
+
+    ``unit`` names what is counted ("line", "sample", "cycle"). :meth:`warn` issues the one
+    :class:`DamagedInputWarning` line; :meth:`summary` is the same text for an error sentence.
+    """
+
+    file: Path
+    counts: dict[str, int] = field(default_factory=dict)
+    first: dict[str, str] = field(default_factory=dict)
+
+    def add(self, reason: str, where: str, count: int = 1) -> None:
+        """Count ``count`` damaged items for ``reason``; ``where`` says where the first was (e.g. "line 57")."""
+        if count <= 0:
+            return
+        self.counts[reason] = self.counts.get(reason, 0) + count
+        self.first.setdefault(reason, where)
+
+    def __bool__(self) -> bool:
+        return bool(self.counts)
+
+    def summary(self) -> str:
+        """'2 wrong number of fields (first: line 31 has 25 values), 1 repeated (...) (line 9)'."""
+        return ", ".join(f"{c} {r} ({self.first[r]})" for r, c in self.counts.items())
+
+    def warn(self, kept: int, stacklevel: int = 3) -> None:
+        """One warning line naming the file, what was skipped and why, and how many samples were kept."""
+        if self:
+            warnings.warn(f"{self.file}: damaged input: {self.summary()}; {kept} samples kept.",
+                          DamagedInputWarning, stacklevel=stacklevel)
+
+
+def time_order(t: np.ndarray, values: np.ndarray, places: Sequence[str], damage: DamageLog) -> np.ndarray:
+    """Indices of the samples to keep, in time order, under the damage policy: samples out of order are put
+    back in place; a sample repeated with the same values is kept once; samples that share a time with other
+    values are all skipped (which one is right cannot be told). ``values`` (N, m) finite, ``places`` (N,)
+    names each sample for the message."""
+    N = t.shape[0]
+    if N == 0:
+        return np.zeros(0, dtype=int)
+    late = np.flatnonzero(t[1:] < np.maximum.accumulate(t)[:-1]) + 1
+    if late.size:
+        damage.add(ORDER, places[int(late[0])], late.size)
+    order = np.argsort(t, kind="stable")
+    ts = t[order]
+    keep = np.ones(N, dtype=bool)
+    repeats = np.flatnonzero(ts[1:] == ts[:-1]) + 1
+    for start in np.unique(np.searchsorted(ts, ts[repeats], side="left")):
+        end = int(np.searchsorted(ts, ts[start], side="right"))
+        group = order[start:end]
+        if np.all(values[group] == values[group[0]]):
+            keep[start + 1 : end] = False
+            damage.add(REPEATED, places[int(group[1])], group.size - 1)
+        else:
+            keep[start:end] = False
+            damage.add(CONFLICT, places[int(group[0])], group.size)
+    return order[keep]
 
 
 def sample_columns(n: int) -> list[str]:
@@ -432,6 +503,14 @@ class RunWriter:
         self.meta["events"].append({"t": float(t), "kind": str(kind), "message": str(message)})
         _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
 
+    def update_procedure(self, setpoints: Any, ideal_poses: Any) -> None:
+        """Replace the planned setpoints (k, n) and ideal poses (k, 6) (a sequential plan grows as it goes)."""
+        m, pro = self.meta, self.meta["procedure"]
+        fresh = _base_meta(m["robot"], pro["method"], pro["sample_period"], m["source"], setpoints, ideal_poses,
+                           self.robot.n, None)
+        m["procedure"] = fresh["procedure"]
+        _write_atomic(self.path / RUN_YAML, _dump_yaml(m))
+
     def update_meta(self, **keys: Any) -> None:
         """Add or replace extra top-level keys of run.yaml (e.g. where the sensors were zeroed)."""
         for k in keys:
@@ -544,30 +623,23 @@ def _parse_meta(folder: Path, meta: dict[str, Any]) -> tuple[Robot, str, float, 
     return robot, method, period, setpoints, ideal, events
 
 
-def _read_samples(folder: Path, n: int) -> tuple[list[str], list[list[str]]]:
+def _read_samples(folder: Path, n: int) -> tuple[list[str], list[list[str]], list[int], DamageLog]:
+    """Header, the cells of the lines with the header's width, their line numbers, and what was skipped."""
     f = folder / SAMPLES_CSV
     if not f.is_file():
         raise _fail(f, "missing (a cdpr-run/1 folder holds run.yaml and samples.csv)")
-    raw = f.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise _fail(f, f"is not UTF-8 text (byte {exc.start})") from exc
+    text = f.read_bytes().decode("utf-8", errors="replace")
     if not text.strip():
         raise _fail(f, "is empty (no header line)")
+    damage = DamageLog(f)
     lines = text.split("\n")
     if lines[-1] == "":
         lines.pop()
     elif len(lines) > 1:
-        warnings.warn(
-            f"{f}: line {len(lines)} is incomplete (the log was cut while writing it); "
-            f"it was dropped and the {len(lines) - 2} complete samples before it were kept.",
-            RunTruncatedWarning,
-            stacklevel=3,
-        )
+        damage.add(CUT, f"line {len(lines)}")
         lines.pop()
-    while len(lines) > 1 and lines[-1].strip() == "":
-        lines.pop()  # blank lines at the end (a hand edit): nothing lost
+    if "\ufffd" in lines[0]:
+        raise _fail(f, "header line is not UTF-8 text")
     header = [h.strip() for h in lines[0].rstrip("\r").split(",")]
     seen = set()
     for h in header:
@@ -580,74 +652,103 @@ def _read_samples(folder: Path, n: int) -> tuple[list[str], list[list[str]]]:
         if c not in seen:
             raise _fail(f, f"required column '{c}' is missing from the header (robot with {n} cables)")
     width = len(header)
-    rows = []
+    rows, numbers = [], []
     for k, line in enumerate(lines[1:], start=2):
-        cells = line.rstrip("\r").split(",")
+        line = line.rstrip("\r")
+        if line.strip() == "":
+            continue  # a blank line holds no sample: nothing is lost
+        cells = line.split(",")
         if len(cells) != width:
-            if line.strip() == "":
-                raise _fail(f, f"line {k} is blank")
-            raise _fail(f, f"line {k} has {len(cells)} values but the header has {width} columns (ragged line)")
+            damage.add(FIELDS, f"first: line {k} has {len(cells)} values, the header {width}")
+            continue
         rows.append(cells)
-    return header, rows
+        numbers.append(k)
+    return header, rows, numbers, damage
 
 
-def _numeric_column(f: Path, name: str, cells: list[str], first_line: int, required: bool) -> np.ndarray:
+def _floats(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Floats of a column of cells and where they are finite numbers (False for text, NaN, inf)."""
     try:
         a = np.array(cells, dtype=float)
     except ValueError:
-        for k, c in enumerate(cells):
+        a = np.array([float_or_nan(c) for c in cells], dtype=float)
+    return a, np.isfinite(a)
+
+
+def float_or_nan(c: str) -> float:
+    """float(c), or NaN for a cell that is not a number (the damage policy then skips its line)."""
+    try:
+        return float(c)
+    except ValueError:
+        return math.nan
+
+
+def _setpoints(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The setpoint column as ints (-1 for an empty cell) and where the cells are integers."""
+    out = np.full(cells.shape[0], -1, dtype=int)
+    ok = np.ones(cells.shape[0], dtype=bool)
+    for k, c in enumerate(cells):
+        c = c.strip()
+        if c:
             try:
-                float(c)
+                out[k] = int(c)
             except ValueError:
-                raise _fail(f, f"line {k + first_line} column '{name}' has the non-numeric value {c!r}") from None
-        raise
-    if required:
-        bad = np.flatnonzero(~np.isfinite(a))
-        if bad.size:
-            k = int(bad[0])
-            raise _fail(f, f"line {k + first_line} column '{name}' has the value {cells[k]!r} (NaN or infinite)")
-    return a
+                ok[k] = False
+    return out, ok
 
 
 def read_run(path: str | Path) -> Run:
-    """Read and validate a run folder. Raises RunFormatError naming file, field/column and value."""
+    """Read and validate a run folder. Raises RunFormatError naming file, field/column and value.
+
+    Damaged lines of samples.csv are skipped under the damage policy (docs/run-format.md) and counted in
+    one :class:`DamagedInputWarning`; a file whose every line is damaged is an error.
+    """
     folder = Path(path)
     meta = _read_meta(folder)
     robot, method, period, setpoints, ideal, events = _parse_meta(folder, meta)
     n = robot.n
     f = folder / SAMPLES_CSV
-    header, rows = _read_samples(folder, n)
+    header, rows, numbers, damage = _read_samples(folder, n)
     index = {h: j for j, h in enumerate(header)}
-    cols = list(zip(*rows, strict=True)) if rows else [()] * len(header)
-    N = len(rows)
-
-    def num(name: str, required: bool = True) -> np.ndarray:
-        return _numeric_column(f, name, list(cols[index[name]]), 2, required)
-
-    t = num("t")
-    groups = {g: np.stack([num(f"{g}_{i}") for i in range(1, n + 1)], axis=1).reshape(N, n) for g in CABLE_GROUPS}
-    scal = {s: num(s) for s in SCALAR_COLUMNS}
-    phase = np.array([c.strip() for c in cols[index["phase"]]], dtype=str) if "phase" in index else np.full(N, "")
+    cells = np.array(rows, dtype=str).reshape(len(rows), len(header))
+    lines = np.array(numbers, dtype=int)
+    names = required_columns(n)
+    values = np.empty((len(rows), len(names)))
+    good = np.ones(len(rows), dtype=bool)
+    first_bad: dict[int, str] = {}
+    for j, name in enumerate(names):
+        values[:, j], ok = _floats(cells[:, index[name]])
+        for k in np.flatnonzero(~ok & good)[:1]:
+            first_bad[int(k)] = f"first: line {lines[k]} column '{name}' = {str(cells[k, index[name]])!r}"
+        good &= ok
+    setpoint = np.full(len(rows), -1, dtype=int)
     if "setpoint" in index:
-        setpoint = np.empty(N, dtype=int)
-        for k, c in enumerate(cols[index["setpoint"]]):
-            s = c.strip()
-            try:
-                setpoint[k] = -1 if s == "" else int(s)
-            except ValueError:
-                raise _fail(f, f"line {k + 2} column 'setpoint' has the value {c!r} (expected an integer)") from None
-    else:
-        setpoint = np.full(N, -1, dtype=int)
+        setpoint, ok = _setpoints(cells[:, index["setpoint"]])
+        for k in np.flatnonzero(~ok & good)[:1]:
+            first_bad[int(k)] = f"first: line {lines[k]} column 'setpoint' = {str(cells[k, index['setpoint']])!r}"
+        good &= ok
+    if first_bad:
+        damage.add(VALUE, first_bad[min(first_bad)], int(np.count_nonzero(~good)))
+    ok_rows = np.flatnonzero(good)
+    keep = ok_rows[time_order(values[ok_rows, 0], values[ok_rows], [f"line {x}" for x in lines[ok_rows]], damage)]
+    if damage and keep.size == 0:
+        raise _fail(f, f"holds no usable sample: {damage.summary()}")
+    damage.warn(keep.size)
+    cells, values, setpoint = cells[keep], values[keep], setpoint[keep]
+    N = keep.size
+    col = {name: values[:, j] for j, name in enumerate(names)}
+    groups = {g: np.stack([col[f"{g}_{i}"] for i in range(1, n + 1)], axis=1).reshape(N, n) for g in CABLE_GROUPS}
+    phase = np.char.strip(cells[:, index["phase"]]) if "phase" in index else np.full(N, "")
     known = set(sample_columns(n))
     extra: dict[str, np.ndarray] = {}
     for name in header:
         if name in known:
             continue
-        cells = [c.strip() for c in cols[index[name]]]
+        cs = [c.strip() for c in cells[:, index[name]]]
         try:
-            extra[name] = np.array([float(c) if c != "" else np.nan for c in cells], dtype=float)
+            extra[name] = np.array([float(c) if c != "" else np.nan for c in cs], dtype=float)
         except ValueError:
-            extra[name] = np.array(cells, dtype=str)
+            extra[name] = np.array(cs, dtype=str)
     return Run(
         path=folder,
         meta=meta,
@@ -657,15 +758,15 @@ def read_run(path: str | Path) -> Run:
         setpoints=setpoints,
         ideal_poses=ideal,
         events=events,
-        t=t,
+        t=col["t"],
         tau=groups["tau"],
         tau_ref=groups["tau_ref"],
         dl=groups["dl"],
         dsigma=groups["dsigma"],
-        roll=scal["roll"],
-        pitch=scal["pitch"],
-        dyaw=scal["dyaw"],
-        phase=phase,
+        roll=col["roll"],
+        pitch=col["pitch"],
+        dyaw=col["dyaw"],
+        phase=np.asarray(phase, dtype=str),
         setpoint=setpoint,
         extra=extra,
     )

@@ -3,7 +3,8 @@
 connect and check every device -> zero the relative sensors (the power-on readings are stored; the run logs
 deltas since then) -> record the initial tensions -> smooth transition to tau0 -> wait for equilibrium ->
 start the run log -> for each planned setpoint: quintic tension trajectory, wait until the ripple falls below
-the sensors' uncertainty (online detector with a timeout), hold and log the window (phase ``hold``) -> for the
+the sensors' uncertainty or the noise they show (online detector with a timeout), hold and log the window
+(phase ``hold``), then any pause the plan has after it (phase ``pause``, :class:`Pause`) -> for the
 kinematic method, a constant-speed path through the workspace logged throughout -> back to tau0 -> solve ->
 report. The safety supervisor watches every tick; any stop ends in a safe stop (hold, then ramp down to a safe
 pretension), an event in run.yaml and a :class:`StartupStopped` with one sentence.
@@ -15,7 +16,6 @@ is logged as phase ``return``; the final rest under tau0 is not logged.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -32,9 +32,21 @@ from acquisition.report import ProgressBar
 from acquisition.runlog import RunWriter
 from acquisition.safety import SafeStop, SafetyLimits, SafetySupervisor
 from acquisition.trajectory import TensionTrajectory
+from calib.design import (
+    OnlineSolve,
+    SequentialDesign,
+    TimeModel,
+    WindowMean,
+    candidates,
+    optimal_plan,
+    select_a_optimal,
+    sequential_acquisition,
+    window_mean_noise,
+)
 from calib.robot import Robot
 
 METHODS = ("equilibrium", "kinematic")
+PLANS = ("grid", "optimal", "sequential")
 
 
 class StartupStopped(RuntimeError):
@@ -78,25 +90,80 @@ class StartupConfig:
                              f"(1/{self.rate:g} s).")
 
 
+@dataclass(frozen=True)
+class Pause:
+    """A pause of the sequence after setpoint ``after``'s window: ``seconds`` at rest, at that setpoint or
+    (``home``) back under tau0; logged as phase ``pause`` with setpoint -1 (not a planned equilibrium)."""
+
+    after: int
+    seconds: float
+    home: bool = False
+
+
+@dataclass
+class Sequential:
+    """Sequential acquisition (issue 19): the next pose is the candidate of ``design`` with the most expected
+    information per second from where the platform is; after each window the solve is updated and the
+    routine returns as soon as the position 1-sigma (sqrt trace, m) is below ``tolerance``, or after
+    ``max_poses`` poses (the plan is exhausted). ``noise``: sigma of a window mean per channel."""
+
+    design: SequentialDesign
+    tolerance: float
+    noise: dict[str, np.ndarray]
+    max_poses: int = 27
+
+
 @dataclass
 class Plan:
-    """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path."""
+    """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path,
+    pauses; a sequential plan starts empty and its setpoints are appended as they are chosen."""
 
     setpoints: np.ndarray
     ideal_poses: np.ndarray
     tau0: np.ndarray
     path_tensions: np.ndarray | None = None  # (m, n) N, kinematic method
     path_times: np.ndarray | None = None  # (m,) s
+    pauses: tuple[Pause, ...] = ()
+    sequential: Sequential | None = None
 
     @classmethod
-    def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05) -> Plan:
-        from calib.planning import kinematic_path, plan_poses
+    def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05,
+                  plan: str = "grid", poses: int = 8, tolerance: float | None = None,
+                  noise: dict[str, np.ndarray] | None = None, step: float = 0.1,
+                  time_model: TimeModel | None = None) -> Plan:
+        """The grid plan, the A-optimal plan of ``poses`` poses (``plan='optimal'``) or a sequential plan
+        that stops at ``tolerance`` m (``plan='sequential'``, at most ``poses`` poses); candidates every
+        ``step`` m of the static workspace, ``noise`` the window-mean sigma (default
+        :func:`calib.design.window_mean_noise`), ``time_model`` the robot time the sequential choice weighs
+        (default :class:`calib.design.TimeModel`). Raises ``calib.planning.PlanningError``."""
+        from calib.planning import PlanningError, kinematic_path, plan_poses
 
-        plan = plan_poses(robot, grid)
+        if plan not in PLANS:
+            raise PlanningError(f"plan must be one of {', '.join(PLANS)}, got {plan!r}.")
         if method == "kinematic":
+            if plan != "grid":
+                raise PlanningError(f"plan '{plan}' applies to the equilibrium method only.")
             path = kinematic_path(robot, grid, speed=speed, spacing=spacing)
-            return cls(np.empty((0, robot.n)), np.empty((0, 6)), plan.tau0, path.tensions, path.times)
-        return cls(plan.setpoints, plan.poses, plan.tau0)
+            return cls(np.empty((0, robot.n)), np.empty((0, 6)), plan_poses(robot, grid).tau0, path.tensions,
+                       path.times)
+        if plan == "grid":
+            g = plan_poses(robot, grid)
+            return cls(g.setpoints, g.poses, g.tau0)
+        noise = noise or window_mean_noise(robot)
+        cands = candidates(robot, noise, step)
+        if plan == "optimal":
+            o = optimal_plan(robot, poses, noise, cands=cands)
+            return cls(o.setpoints, o.poses, o.tau0)
+        if tolerance is None or not tolerance > 0:
+            raise PlanningError(f"a sequential plan needs a positive tolerance, got {tolerance!r} m.")
+        k = min(poses, cands.size)
+        reach = select_a_optimal(cands, k, max_rounds=0)[1]  # greedy: what the sequential choice can attain
+        if reach > tolerance:
+            raise PlanningError(f"the tolerance {1000 * tolerance:g} mm cannot be reached: {k} poses of the static "
+                                f"workspace predict at best a 1-sigma of the initial position of "
+                                f"{1000 * reach:.3f} mm.")
+        seq = Sequential(SequentialDesign(cands, time_model or TimeModel()), float(tolerance), noise, poses)
+        return cls(np.empty((0, robot.n)), np.empty((0, 6)), cands.tau0, sequential=seq)
 
 
 @dataclass
@@ -109,6 +176,9 @@ class StartupResult:
     tau_init: np.ndarray  # (n,) N, tensions at power-on
     zero: dict[str, Any]  # the power-on readings the deltas are taken from
     control: dict[str, float]  # loop statistics
+    # sequential plan: per window the position 1-sigma (m) and estimate, and why it stopped ("tolerance" or
+    # "exhausted"); None for a fixed plan
+    sequential: dict[str, Any] | None = None
 
 
 class StartupRoutine:
@@ -150,6 +220,10 @@ class StartupRoutine:
         self._target = -1  # the setpoint being approached or held, for the progress line
         self._compute: list[float] = []
         self._total_estimate = 1.0
+        self._detector: EquilibriumDetector | None = None
+        self._held: list | None = None  # the rows logged in the window being held
+        self._means: list[WindowMean] = []  # the mean readings of each held window (tau0's first)
+        self._sequential: dict[str, Any] | None = None
 
     # ---- the loop -------------------------------------------------------------------------------------
     def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
@@ -197,6 +271,8 @@ class StartupRoutine:
 
     def _log(self, snap: Snapshot) -> None:
         row = self._row(snap)
+        if self._held is not None:
+            self._held.append(row)
         if self.writer is None:
             self._prerun.append(row)
             return
@@ -218,10 +294,11 @@ class StartupRoutine:
                 timeout: float | None = None) -> bool:
         """Hold ``tau`` until the detector says the platform rests; False on its timeout (s)."""
         self._phase, self._setpoint = phase, setpoint
-        base = self.cfg.detector or DetectorConfig.for_robot(self.robot)
-        dcfg = base if timeout is None else dataclasses.replace(base, timeout=timeout)
-        det = EquilibriumDetector(self.cfg.log_period, dcfg)
-        det.start(self.clock.now())
+        if self._detector is None:  # one detector for the whole routine: it learns the sensors' noise
+            self._detector = EquilibriumDetector(self.cfg.log_period,
+                                                 self.cfg.detector or DetectorConfig.for_robot(self.robot))
+        det = self._detector
+        det.start(self.clock.now(), timeout)
         while True:
             _, state = self._tick(tau, log=log, detector=det)
             if state is not None and (state.settled or state.timed_out):
@@ -232,11 +309,25 @@ class StartupRoutine:
         self._phase, self._setpoint = phase, setpoint
         first = self.writer.count if self.writer else 0
         steps = int(round(self.cfg.hold_time / self.period))
+        self._held = []
         for _ in range(steps):
             self._tick(tau)
+        rows, self._held = self._held, None
+        self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
+                                      np.mean([r[5:8] for r in rows], axis=0)))
         last = self.writer.count - 1
         self.writer.sync()
         return first, last
+
+    def _pause(self, at: np.ndarray, pause: Pause) -> np.ndarray:
+        """Rest for the pause (back under tau0 first if it says so); returns the tensions it ends at."""
+        target = self.plan.tau0 if pause.home else at
+        if pause.home:
+            self._move_to(at, target, self.cfg.max_tension_rate, "pause")
+        self._phase, self._setpoint = "pause", -1
+        for _ in range(int(round(pause.seconds / self.period))):
+            self._tick(target)
+        return target
 
     def _move_to(self, a: np.ndarray, b: np.ndarray, rate: float, phase: str, setpoint: int = -1) -> None:
         traj = TensionTrajectory(np.stack([a, b]), np.array([max(
@@ -249,7 +340,9 @@ class StartupRoutine:
         moves = np.abs(np.diff(sp, axis=0)).max(axis=1)
         tr = np.maximum(1.875 * moves / self.cfg.max_tension_rate, self.cfg.min_transition).sum()
         per = self.cfg.expected_settle + self.cfg.hold_time
-        total = tr + per * (len(sp) - 1) + 10.0
+        total = tr + per * (len(sp) - 1) + 10.0 + sum(p.seconds for p in self.plan.pauses)
+        if self.plan.sequential is not None:  # unknown in advance: the longest it may take
+            total += self.plan.sequential.max_poses * (per + 2 * self.cfg.min_transition)
         if self.plan.path_times is not None:
             total += float(self.plan.path_times[-1])
         return float(total)
@@ -321,13 +414,14 @@ class StartupRoutine:
                 self._kinematic()
             else:
                 prev = tau0
-                for j in range(len(self.plan.setpoints)):
-                    sp = self.plan.setpoints[j]
+                for j, sp in self._setpoints():
                     self._target = j
                     self._move_to(prev, sp, self.cfg.max_tension_rate, "transition", -1)
                     self._settle(sp, "settle", -1)  # a timeout still gives a (quasi-static) window
                     self._windows.append(self._hold(sp, j))
                     prev = sp
+                    for pause in (p for p in self.plan.pauses if p.after == j):
+                        prev = self._pause(prev, pause)
                 self._move_to(prev, tau0, self.cfg.max_tension_rate, "return", -1)
             self.writer.sync()
         except SafeStop as stop:
@@ -347,7 +441,39 @@ class StartupRoutine:
             zero={k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self._zero.items()},
             control={"ticks": float(len(comp)), "compute_mean_s": float(comp.mean()),
                      "compute_p99_s": float(np.percentile(comp, 99)), "compute_max_s": float(comp.max())},
+            sequential=self._sequential,
         )
+
+    def _setpoints(self):
+        """(index, setpoint) to visit in order: the plan's, or for a sequential plan the next chosen after each
+        window (:func:`calib.design.sequential_acquisition`), until the solve's position 1-sigma is below the
+        tolerance or the plan is exhausted."""
+        seq = self.plan.sequential
+        if seq is None:
+            yield from enumerate(self.plan.setpoints)
+            return
+        cands = seq.design.cands
+        online = OnlineSolve(self.robot, seq.noise, self._means[0], cands.home_pose)
+        history: list = []
+        steps = sequential_acquisition(seq.design, online, seq.tolerance, seq.max_poses, history)
+        why, c = "exhausted", next(steps, None)
+        while c is not None:
+            self.plan.setpoints = np.vstack([self.plan.setpoints, cands.setpoints[c]])
+            self.plan.ideal_poses = np.vstack([self.plan.ideal_poses, cands.poses[c]])
+            self.writer.update_procedure(self.plan.setpoints, self.plan.ideal_poses)
+            yield len(history), cands.setpoints[c]
+            try:
+                c = steps.send(self._means[-1])
+            except StopIteration as stop:
+                why, c = stop.value, None
+            est = history[-1][1]
+            if self.progress is not None:
+                p, mm = est.theta[:3], 1000 * est.position_sigma
+                self.progress.note = f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
+        self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "windows": [
+            {"pose": i, "position_sigma_m": e.position_sigma, "initial_pose": e.theta[:6].tolist(),
+             "iterations": e.iterations} for i, (_, e) in enumerate(history)]}
+        self.writer.update_meta(sequential=self._sequential)
 
     def _kinematic(self) -> None:
         """Follow the path's tensions linearly in time (quintic blends in and out), logging throughout."""
@@ -456,9 +582,11 @@ def ahrs_rate_for(log_period: float, base: int = 400) -> int:
 
 
 def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, timeout: float = 0.5,
-            every: tuple[int, int] = (1, 1)) -> Rig:
+            every: tuple[int, int] = (1, 1), recorder=None, bus=None) -> Rig:
     """Open and check every device of a :class:`drivers.config.DeviceConfig`; a :class:`Rig` over them.
     ``every``: the drives and the encoders send their readings every n-th SYNC (see :func:`feedback_every`).
+    ``recorder``: an ``acquisition.busrecord.BusRecorder`` that gets every CAN frame and serial byte from the
+    first on; ``bus``: a python-can bus to use instead of the one ``devices.can`` names (a replay's).
 
     The CAN drivers take their time stamps (heartbeat supervision) from the loop's clock; in lockstep the
     serial drivers' own wall-time staleness rule is switched off (the supervisor judges staleness on the
@@ -474,7 +602,8 @@ def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, 
         raise DeviceError(f"{devices.source}: the device configuration needs 'loadcells' and 'ahrs'.")
     opened = open_devices(devices, robot.sensors.length_per_motor_rev, robot.sensors.swivel_counts_per_rev,
                           clock=clock.now, every=every, control_period=period, polled=lockstep,
-                          stale_periods=1e9 if lockstep else 3.0)
+                          stale_periods=1e9 if lockstep else 3.0, bus=bus, listener=recorder,
+                          serial_tap=None if recorder is None else recorder.serial_tap)
     rig = Rig(opened.drives, opened.encoders, opened.loadcells, opened.ahrs, opened.send_sync, period, lockstep,
               ahrs_period=1.0 / float(devices.ahrs.rate), timeout=timeout)
     rig.closer = opened.close

@@ -12,12 +12,21 @@ Steps, on the equilibrium rows of a run (or any :class:`calib.selfcal.Measuremen
    weighted residual r and the candidate's Jacobian columns C, after projecting out the nuisance directions
    (the row poses and theta), LM = |P_C r|^2 (P_C: projector on the span of the projected columns),
    chi2-distributed with rank(C) degrees of freedom when the effect is absent;
-4. a refit of the most promising candidates: delta chi2, likelihood-ratio p-value, AIC and BIC, the fitted
-   parameters with 1-sigma uncertainty, and how much of each channel's chi2 the effect removes;
+4. a refit of the significant candidates (and the best scores): delta chi2, likelihood-ratio p-value, AIC
+   and BIC, the fitted parameters with 1-sigma uncertainty against their plausible range
+   (``ParamSpec.plausible``), how much of each channel's chi2 the effect removes, and how much better the
+   fit predicts equilibrium poses left out of it (:mod:`calib.prediction`);
 5. candidates whose explained directions nearly coincide (each explains > 95% of what the other explains)
    are reported as indistinguishable with this data;
-6. forward selection: the best significant effect is added, the score tests are repeated at the new
-   solution, up to ``max_effects``.
+6. forward selection by prediction: an effect is added only when it is significant, within its plausible
+   range and lowers the held-out chi2 (on most poses, where the model still does not fit with it); among
+   nested candidates the one with fewer parameters wins unless the larger predicts clearly better; a
+   look-ahead step tries pairs when two effects acting at once leave each one's refit short; up to
+   ``max_effects``. Every candidate carries the decision and its reason.
+
+:func:`run_rows` and :func:`effect_chain` are shared with ``cdpr solve --effects``: the refits reported
+here and that command's fits are the same computation. The words, tables and plots are in
+``acquisition/diagnose_report.py``.
 
 Significance is family-wise: an effect is significant at level ``alpha`` when its likelihood-ratio p-value
 is below ``alpha / number of candidates`` (Bonferroni over the library).
@@ -28,16 +37,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
-from calib.effects import BUILTIN, Effect, EffectModel
-from calib.effects.base import Projected
+from calib.effects import BUILTIN, Effect, EffectModel, Implausible, Projected
 from calib.effects.builtin import DeviceAccuracy
-from calib.kinematics import inverse_kinematics
+from calib.prediction import LEVEL, Prediction, leave_one_pose_out
 from calib.robot import Robot
 from calib.selfcal.lm import levenberg_marquardt
 from calib.selfcal.model import CHANNELS
@@ -59,6 +66,7 @@ class Fit:
     chi2: float
     n_residuals: int
     converged: bool
+    iterations: int = 0
 
     @property
     def n_free(self) -> int:
@@ -169,7 +177,7 @@ def observable_basis(MC: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, np
     return scales[:, None] * Vt[keep].T, U[:, keep], s[keep]
 
 
-def _restrict(robot: Robot, meas: Measurements, sigma, effects: list[Effect], theta0: np.ndarray,
+def restrict_to_observable(robot: Robot, meas: Measurements, sigma, effects: list[Effect], theta0: np.ndarray,
               poses0: np.ndarray) -> list[Effect]:
     """The effects, each restricted to the parameter directions this data can observe (Projected) where
     some are not (after projecting out the pose and zeta_0 directions)."""
@@ -177,7 +185,7 @@ def _restrict(robot: Robot, meas: Measurements, sigma, effects: list[Effect], th
     problem = Problem(model, meas, sigma)
     res = residuals(problem, theta0, poses0)
     k = poses0.shape[0]
-    Q = _orth(res.A[:, : 6 * k + 6])
+    Q = orthonormal_columns(res.A[:, : 6 * k + 6])
     out = []
     for e, sl, specs in zip(effects, model.slices, model.specs, strict=True):
         C = res.A[:, 6 * k + sl.start : 6 * k + sl.stop]
@@ -189,7 +197,7 @@ def _restrict(robot: Robot, meas: Measurements, sigma, effects: list[Effect], th
     return out
 
 
-def _orth(A: np.ndarray) -> np.ndarray:
+def orthonormal_columns(A: np.ndarray) -> np.ndarray:
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     U, s, _ = np.linalg.svd(A / scale, full_matrices=False)
@@ -210,7 +218,7 @@ def fit(
     if theta0.shape[0] < model.n_params:
         theta0 = np.r_[theta0, model.absent_values()[theta0.shape[0] - 6 :]]
     if restrict and effects:
-        new = _restrict(robot, meas, sigma, effects, theta0, poses0)
+        new = restrict_to_observable(robot, meas, sigma, effects, theta0, poses0)
         if any(a is not b for a, b in zip(new, effects, strict=True)):
             # restart the restricted effects at their absent values, keep the others' values
             vals = []
@@ -222,32 +230,59 @@ def fit(
     problem = Problem(model, meas, sigma)
     res = levenberg_marquardt(problem, theta0, poses0, max_iter=max_iter)
     return Fit(effects, model, problem, res.theta, res.poses, res.cov_theta, 2.0 * res.cost,
-               problem.n_residuals, bool(res.converged))
+               problem.n_residuals, bool(res.converged), int(res.iterations))
 
 
 @dataclass
 class Candidate:
     """One candidate effect's evidence. ``score``/``score_dof``/``score_p``: the LM test at the current
-    solution; ``delta_chi2``/``p_value``/``delta_aic``/``delta_bic``: from the refit (None when not refitted);
-    ``params`` and ``params_sigma`` as fitted; ``channels``: share of each channel's chi2 removed;
-    ``confused_with``: candidates that explain the same thing with this data."""
+    solution, ``epc``: the expected parameter change of that test (one Gauss-Newton step, as reported);
+    ``delta_chi2``/``p_value``/``delta_aic``/``delta_bic``: from the refit (None when not refitted);
+    ``params`` and ``params_sigma`` as fitted, ``implausible``: the fitted values outside their plausible
+    ranges; ``cv_gain``: how much lower the leave-one-pose-out chi2 is with the effect (positive: it
+    predicts unseen equilibrium poses better); ``channels``: share of each channel's chi2 removed;
+    ``confused_with``: candidates that explain the same thing with this data; ``decision``: why it is
+    recommended or rejected."""
 
     effect: str
     n_params: int
     score: float
     score_dof: int
     score_p: float
+    epc: dict[str, float] = field(default_factory=dict)
     delta_chi2: float | None = None
     p_value: float | None = None
     delta_aic: float | None = None
     delta_bic: float | None = None
     params: dict[str, float] = field(default_factory=dict)
     params_sigma: dict[str, float] = field(default_factory=dict)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    implausible: list[Implausible] = field(default_factory=list)
+    cv_chi2: float | None = None
+    cv_gain: float | None = None
+    cv_p: float | None = None
+    adequate: bool = False
     channels: dict[str, float] = field(default_factory=dict)
     confused_with: list[str] = field(default_factory=list)
     significant: bool = False
     refit_failed: bool = False
-    refit: Fit | None = None
+    decision: str = ""
+    refit: Fit | None = field(default=None, repr=False)
+    prediction: Prediction | None = field(default=None, repr=False)
+    span: np.ndarray | None = field(default=None, repr=False)
+    direction: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def plausible(self) -> bool:
+        return not self.implausible
+
+    @property
+    def eligible(self) -> bool:
+        """Significant, refitted, physically plausible and predicting unseen poses better; where the model
+        with it still does not fit (its chi2 test rejects: the likelihood-ratio test then rests on a wrong
+        model), better on most of them (one-sided signed-rank p below calib.prediction.LEVEL)."""
+        return (self.significant and self.plausible and self.cv_gain is not None and self.cv_gain > 0
+                and (self.adequate or (self.cv_p is not None and self.cv_p < LEVEL)))
 
     def to_json(self) -> dict[str, Any]:
         d = self.delta_chi2 if self.delta_chi2 is not None else self.score
@@ -258,16 +293,24 @@ class Candidate:
             "p_value": float(p),
             "params": {k: _num(v) for k, v in self.params.items()},
             "params_sigma": {k: _num(v) for k, v in self.params_sigma.items()},
+            "plausible_range": {k: [_num(a), _num(b)] for k, (a, b) in self.bounds.items()},
+            "plausible": self.plausible,
+            "implausible": [str(v) for v in self.implausible],
             "score": float(self.score),
             "score_dof": int(self.score_dof),
             "score_p": float(self.score_p),
+            "expected_change": {k: _num(v) for k, v in self.epc.items()},
             "refitted": self.delta_chi2 is not None,
             "refit_failed": bool(self.refit_failed),
             "delta_aic": None if self.delta_aic is None else float(self.delta_aic),
             "delta_bic": None if self.delta_bic is None else float(self.delta_bic),
+            "cv_chi2": None if self.cv_chi2 is None else float(self.cv_chi2),
+            "cv_gain": None if self.cv_gain is None else float(self.cv_gain),
+            "cv_p": None if self.cv_p is None else float(self.cv_p),
             "significant": bool(self.significant),
             "channels": {k: float(v) for k, v in self.channels.items()},
             "confused_with": list(self.confused_with),
+            "decision": self.decision,
         }
 
 
@@ -284,31 +327,45 @@ class ScoreBasis:
 
 
 def score_basis(res: Residuals) -> ScoreBasis:
-    return ScoreBasis(_orth(res.A), res.r)
+    return ScoreBasis(orthonormal_columns(res.A), res.r)
 
 
-def score_test(fit0: Fit, effect: Effect, basis: ScoreBasis) -> tuple[float, int, np.ndarray, np.ndarray]:
-    """LM statistic, its dof (number of observable directions), the unit vector of the explained part of
-    the residual (m,) and an orthonormal basis of the effect's projected span (m, dof), for adding
-    ``effect`` to ``fit0`` (no refit)."""
+@dataclass
+class Score:
+    """A score test: LM statistic, its dof (observable directions), the unit vector of the explained part
+    of the residual (m,), an orthonormal basis of the effect's projected span (m, dof) and the expected
+    parameter change (the effect's values after one Gauss-Newton step from absent, q)."""
+
+    lm: float
+    dof: int
+    direction: np.ndarray
+    span: np.ndarray
+    values: np.ndarray
+
+
+def score_test(fit0: Fit, effect: Effect, basis: ScoreBasis) -> Score:
+    """Score test of adding ``effect`` to ``fit0`` (no refit)."""
     model = EffectModel(fit0.model.robot, fit0.effects + [effect])
     problem = Problem(model, fit0.problem.meas, fit0.problem.sigma)
-    theta = np.r_[fit0.theta, model.absent_values()[fit0.theta.shape[0] - 6 :]]
+    absent = model.absent_values()[fit0.theta.shape[0] - 6 :]
+    theta = np.r_[fit0.theta, absent]
     res = residuals(problem, theta, fit0.poses)
     C = res.A[:, 6 * fit0.poses.shape[0] + fit0.theta.shape[0] :]
     Q = basis.Q
-    _, Uk, _ = observable_basis(C - Q @ (Q.T @ C), np.array([s.scale for s in model.specs[-1]]))
+    B, Uk, s = observable_basis(C - Q @ (Q.T @ C), np.array([sp.scale for sp in model.specs[-1]]))
     proj = Uk.T @ basis.r
     lm = float(proj @ proj)
     u = Uk @ proj
     nu = np.linalg.norm(u)
-    return lm, int(Uk.shape[1]), (u / nu if nu > 0 else u), Uk
+    values = absent + (B @ (-proj / s) if s.size else 0.0)  # r is prediction - reading: the step is -pinv(C) r
+    return Score(lm, int(Uk.shape[1]), (u / nu if nu > 0 else u), Uk, values)
 
 
 @dataclass
 class Diagnosis:
-    """Outcome of :func:`diagnose` (see the module doc). ``steps``: chi2 as effects are added one by one
-    (names, chi2, dof, initial pose)."""
+    """Outcome of :func:`diagnose` (see the module doc). ``steps``: chi2 and the leave-one-pose-out chi2
+    as effects are added one by one (names, chi2, dof, initial pose); ``reference_sample``: the run's sample
+    of the reference row (None: unknown)."""
 
     fit: Fit
     chi2: float
@@ -325,6 +382,7 @@ class Diagnosis:
     alpha: float
     residual_data: Residuals
     final: Fit
+    reference_sample: int | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The `cdpr diagnose --json` object of spec/cli.md (plus extra keys)."""
@@ -346,7 +404,8 @@ class Diagnosis:
         }
 
 
-def _channel_tables(res: Residuals, n: int, meas: Measurements) -> tuple[dict, dict, list]:
+def _channel_tables(res: Residuals, n: int, meas: Measurements, ref_sample: int | None = None
+                    ) -> tuple[dict, dict, list]:
     channels, cables = {}, {}
     for c in CHANNELS:
         m = res.channel == c
@@ -370,11 +429,17 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements) -> tuple[dict, d
         m = res.row == i
         z = res.r[m]
         worst = int(np.argmax(np.abs(z)))
+        if i >= 0:
+            sample = int(meas.samples[i]) if meas.samples is not None else -1
+        else:
+            sample = -1 if ref_sample is None else int(ref_sample)
         entry = {
             "row": int(i),
-            "sample": int(meas.samples[i]) if (i >= 0 and meas.samples is not None) else -1,
+            "label": "reference pose" if i < 0 else f"pose {i + 1}",
+            "sample": sample,
             "rms_normalized": float(np.sqrt(np.mean(z**2))),
             "max_normalized": float(np.abs(z).max()),
+            "chi2": float(z @ z),
             "worst": f"{res.channel[m][worst]}[{int(res.index[m][worst]) + 1}]",
         }
         if i >= 0 and meas.windows is not None:
@@ -383,23 +448,42 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements) -> tuple[dict, d
     return channels, cables, rows
 
 
-def _refit(fit0: Fit, effect: Effect) -> Fit:
+REFIT_ITER = 30  # a candidate's refit that has not converged after this many LM iterations is not evidence
+
+
+def refit(fit0: Fit, effect: Effect, max_iter: int = 200) -> Fit:
+    """``fit0`` with one more effect, started from fit0's solution (the effect absent)."""
     return fit(fit0.model.robot, fit0.problem.meas, fit0.problem.sigma, fit0.effects + [effect], fit0.theta,
-               fit0.poses)
+               fit0.poses, max_iter=max_iter)
 
 
-def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refits: int) -> list[Candidate]:
-    """Score tests of every candidate at fit0, refits of the most promising, ordered most likely first."""
+def predict_unseen(f: Fit) -> Prediction:
+    """Leave-one-pose-out chi2 of a fit (:mod:`calib.prediction`)."""
+    res = residuals(f.problem, f.theta, f.poses)
+    return leave_one_pose_out(res.r, res.A, res.row, f.poses.shape[0])
+
+
+def _bounds(effect: Effect, robot: Robot) -> dict[str, tuple[float, float]]:
+    inner = effect.inner if isinstance(effect, Projected) else effect
+    return {s.name: s.plausible for s in inner.params(robot) if np.isfinite(s.plausible).any()}
+
+
+def _rank_round(fit0: Fit, pred0: Prediction, candidates: Sequence[Effect], alpha: float, alpha_each: float,
+                refits: int) -> list[Candidate]:
+    """Score tests of every candidate at fit0; refits (with their leave-one-pose-out chi2) of the
+    significant ones and of the ``refits`` best scores; ordered: eligible first by predictive gain, then
+    the other refitted ones by AIC, then those only scored."""
     base = residuals(fit0.problem, fit0.theta, fit0.poses)
     basis = score_basis(base)
     m = base.r.shape[0]
+    robot = fit0.model.robot
     out: list[Candidate] = []
-    dirs, spans = {}, {}
     for eff in candidates:
-        lm, q, u, Uk = score_test(fit0, eff, basis)
-        p = float(stats.chi2.sf(lm, q)) if q > 0 else 1.0
-        out.append(Candidate(eff.name, len(eff.params(fit0.model.robot)), lm, q, p))
-        dirs[eff.name], spans[eff.name] = u, Uk
+        sc = score_test(fit0, eff, basis)
+        p = float(stats.chi2.sf(sc.lm, sc.dof)) if sc.dof > 0 else 1.0
+        out.append(Candidate(eff.name, len(eff.params(robot)), sc.lm, sc.dof, p, span=sc.span,
+                             direction=sc.direction, bounds=_bounds(eff, robot),
+                             epc=eff.report(robot, sc.values) if sc.dof > 0 else {}))
     by_score = sorted(range(len(out)), key=lambda i: (out[i].score_p, -out[i].score))
     chosen = [i for i in by_score if out[i].score_dof > 0][: max(refits, 0)]
     chosen += [i for i in by_score if out[i].score_p < alpha_each and i not in chosen and out[i].score_dof > 0]
@@ -407,7 +491,7 @@ def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refi
     for i in chosen:
         cand = out[i]
         eff = candidates[i]
-        f1 = _refit(fit0, eff)
+        f1 = refit(fit0, eff, REFIT_ITER)
         d = fit0.chi2 - f1.chi2
         q = cand.score_dof
         cand.refit = f1
@@ -417,7 +501,14 @@ def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refi
         cand.delta_bic = d - q * math.log(max(m, 2))
         cand.params = f1.params()[eff.name]
         cand.params_sigma = f1.param_sigmas()[eff.name]
-        r1 = residuals(f1.problem, f1.theta, f1.poses, jacobian=False)
+        used = f1.effects[-1]
+        cand.implausible = used.implausible(robot, f1.theta[f1.model.slices[-1]])
+        r1 = residuals(f1.problem, f1.theta, f1.poses)
+        cand.prediction = leave_one_pose_out(r1.r, r1.A, r1.row, f1.poses.shape[0])
+        cand.cv_chi2 = cand.prediction.total
+        cand.cv_gain = cand.prediction.gain_over(pred0)
+        cand.cv_p = cand.prediction.better_p(pred0)
+        cand.adequate = bool(stats.chi2.sf(f1.chi2, max(f1.dof, 1)) >= alpha)
         cand.channels = {
             c: (per_channel0[c] - float(np.sum(r1.r[r1.channel == c] ** 2))) / per_channel0[c]
             for c in CHANNELS if per_channel0[c] > 0
@@ -426,24 +517,78 @@ def _rank_round(fit0: Fit, candidates: Sequence[Effect], alpha_each: float, refi
         cand.refit_failed = (not f1.converged) or (cand.score > 25.0 and d < 0.1 * cand.score)
         cand.significant = cand.p_value < alpha_each and not cand.refit_failed
     for a in out:
-        if a.score_dof == 0 or np.linalg.norm(dirs[a.effect]) == 0:
+        if a.score_dof == 0 or np.linalg.norm(a.direction) == 0:
             continue
         for b in out:
-            if a is b or b.score_dof == 0 or np.linalg.norm(dirs[b.effect]) == 0:
+            if a is b or b.score_dof == 0 or np.linalg.norm(b.direction) == 0:
                 continue
-            ab = np.linalg.norm(spans[b.effect].T @ dirs[a.effect])
-            ba = np.linalg.norm(spans[a.effect].T @ dirs[b.effect])
+            ab = np.linalg.norm(b.span.T @ a.direction)
+            ba = np.linalg.norm(a.span.T @ b.direction)
             if ab > OVERLAP and ba > OVERLAP:
                 a.confused_with.append(b.effect)
+    for c in out:
+        c.decision = _rejection(c, alpha_each)
 
-    def key(c: Candidate):  # refitted first, by AIC; then those only scored; a refit that failed to move last
+    def key(c: Candidate):
+        if c.eligible:
+            return (0, -c.cv_gain)
         if c.delta_chi2 is not None and not c.refit_failed:
-            return (0, -c.delta_aic)
+            return (1, -c.delta_aic)
         if c.delta_chi2 is None:
-            return (1, c.score_p)
-        return (2, -c.delta_aic)
+            return (2, c.score_p)
+        return (3, -c.delta_aic)
 
     return sorted(out, key=key)
+
+
+def _rejection(c: Candidate, alpha_each: float) -> str:
+    """Why a candidate is not (yet) recommended, in words; empty when it is eligible."""
+    if c.score_dof == 0:
+        return "rejected: this data cannot observe it"
+    if c.delta_chi2 is None:
+        return f"rejected: not significant (score test p = {c.score_p:.2g}, needs < {alpha_each:.2g})"
+    if c.refit_failed:
+        return (f"rejected: its refit did not converge in {REFIT_ITER} iterations" if not c.refit.converged
+                else "rejected: its refit did not move (ill-conditioned)")
+    if not c.significant:
+        return f"rejected: not significant (p = {c.p_value:.2g}, needs < {alpha_each:.2g})"
+    if not c.plausible:
+        return "rejected: implausibly large (" + "; ".join(str(v) for v in c.implausible[:3]) + ")"
+    if c.cv_gain is not None and c.cv_gain <= 0:
+        return (f"rejected: does not predict left-out poses better (cross-validated chi2 "
+                f"{c.cv_chi2:.1f}, {-c.cv_gain:+.1f})")
+    if not c.adequate and c.cv_p is not None and c.cv_p >= LEVEL:
+        return (f"rejected: the model still does not fit with it, and it predicts some left-out poses better, "
+                f"others worse (cross-validated chi2 {c.cv_gain:.1f} lower in sum, signed-rank p = {c.cv_p:.2g} "
+                f">= {LEVEL:g})")
+    return ""
+
+
+def _nested(small: Candidate, large: Candidate) -> bool:
+    """The smaller candidate's explained direction lies in the larger one's span."""
+    u = small.direction
+    return u is not None and large.span is not None and float(np.linalg.norm(large.span.T @ u)) > OVERLAP
+
+
+def choose(ranked: list[Candidate]) -> Candidate | None:
+    """The candidate to add: among the eligible ones the best predictor of left-out poses, unless one with
+    fewer observable parameters explains the same directions (its direction lies in the best one's span)
+    and the best one does not predict clearly better (:meth:`Prediction.clearly_better_than`)."""
+    ok = [c for c in ranked if c.eligible]
+    if not ok:
+        return None
+    best = max(ok, key=lambda c: c.cv_gain)
+    simpler = [c for c in ok if c.score_dof < best.score_dof and _nested(c, best)
+               and not best.prediction.clearly_better_than(c.prediction)]
+    if simpler:
+        pick = min(simpler, key=lambda c: (c.score_dof, -c.cv_gain))
+        best.decision = (f"rejected: {pick.effect} ({pick.score_dof} parameter(s)) explains the same misfit and "
+                         f"{best.effect} ({best.score_dof}) does not predict left-out poses clearly better")
+        best = pick
+    for c in ok:
+        if c is not best and not c.decision:
+            c.decision = f"not added: {best.effect} predicts left-out poses better"
+    return best
 
 
 def diagnose(
@@ -460,6 +605,7 @@ def diagnose(
     noise_source: str = "given",
     reference_pose: np.ndarray | None = None,
     device_priors: bool = True,
+    reference_sample: int | None = None,
 ) -> Diagnosis:
     """Fit, locate the misfit and rank the candidate effects (module doc). theta0/poses0: initial guess.
     With ``device_priors`` every fit holds the devices' constant errors within their datasheet accuracy
@@ -472,31 +618,86 @@ def diagnose(
     cands = [c for c in candidates if c.name not in inc_names]
     alpha_each = alpha / max(len(cands), 1)
     fit0 = fit(robot, meas, sigma, list(included), theta0, poses0)
+    pred0 = predict_unseen(fit0)
     res0 = residuals(fit0.problem, fit0.theta, fit0.poses, jacobian=False)
-    channels, cables, rows = _channel_tables(res0, robot.n, meas)
-    ranking = _rank_round(fit0, cands, alpha_each, refits)
-    steps = [_step(fit0, reference_pose)]
+    channels, cables, rows = _channel_tables(res0, robot.n, meas, reference_sample)
+    ranking = _rank_round(fit0, pred0, cands, alpha, alpha_each, refits)
+    first = {c.effect: c for c in ranking}
+    steps = [_step(fit0, pred0, reference_pose)]
     selected: list[str] = []
     current, rank_now = fit0, ranking
-    while len(selected) < max_effects and rank_now and rank_now[0].significant:
-        best = rank_now[0]
-        selected.append(best.effect)
-        current = best.refit
-        steps.append(_step(current, reference_pose))
+    pred_now = pred0
+    while len(selected) < max_effects and rank_now:
+        best = choose(rank_now)
+        if best is None:
+            if len(selected) + 2 > max_effects:
+                break
+            pair = _pair_step(current, pred_now, rank_now, {e.name: e for e in cands}, alpha, alpha_each)
+            if pair is None:
+                break
+            (a, b), f2, pred2 = pair
+            for c, f, pr in ((a, a.refit, a.prediction), (b, f2, pred2)):
+                selected.append(c.effect)
+                first[c.effect].decision = (
+                    f"recommended (step {len(selected)}, with {b.effect if c is a else a.effect}): neither alone "
+                    f"explains the misfit; together significant, within their plausible ranges, and predicting "
+                    f"left-out poses better (cross-validated chi2 {pred2.gain_over(pred_now):+.1f} lower)")
+                steps.append(_step(f, pr, reference_pose))
+            current, pred_now = f2, pred2
+        else:
+            selected.append(best.effect)
+            first[best.effect].decision = (f"recommended (step {len(selected)}): significant, within its "
+                                           f"plausible range, predicts left-out poses better (cross-validated "
+                                           f"chi2 {best.cv_gain:+.1f} lower)")
+            current, pred_now = best.refit, best.prediction
+            steps.append(_step(current, pred_now, reference_pose))
         rest = [c for c in cands if c.name not in selected]
         if not rest or len(selected) >= max_effects:
             break
-        rank_now = _rank_round(current, rest, alpha_each, min(refits, 2))
+        rank_now = _rank_round(current, pred_now, rest, alpha, alpha_each, min(refits, 2))
     p_fit = float(stats.chi2.sf(fit0.chi2, max(fit0.dof, 1)))
     more = bool(selected) and len(selected) >= max_effects and any(
-        c.significant for c in rank_now if c.effect not in selected)
-    verdict = _verdict(fit0, ranking, selected, current, alpha, more)
-    return Diagnosis(fit0, fit0.chi2, fit0.dof, p_fit, noise_source, channels, cables, rows, ranking, selected,
-                     steps, verdict, alpha, res0, current)
+        c.eligible for c in rank_now if c.effect not in selected)
+    diag = Diagnosis(fit0, fit0.chi2, fit0.dof, p_fit, noise_source, channels, cables, rows, ranking, selected,
+                     steps, "", alpha, res0, current, reference_sample)
+    diag.verdict = _verdict(diag, more)
+    return diag
 
 
-def _step(f: Fit, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
-    out = {"effects": f.names, "chi2": float(f.chi2), "dof": int(f.dof),
+PAIR_POOL = 3  # candidates whose pairs the look-ahead step refits together
+
+
+def _pair_step(current: Fit, pred_now: Prediction, ranked: list[Candidate], effects: dict[str, Effect],
+               alpha: float, alpha_each: float) -> tuple[tuple[Candidate, Candidate], Fit, Prediction] | None:
+    """One look-ahead step, when no single candidate qualifies: two effects acting at once leave each
+    one's refit short of a fit. The pairs of the best PAIR_POOL candidates that are significant, plausible
+    and lower the held-out chi2 are refitted together (the first's refit, then the second added); a pair
+    qualifies like a single candidate (significant jointly, both plausible, lower held-out chi2, and the
+    model fits with it or it predicts most left-out poses better). Returns the best pair by predictive
+    gain, its fit and prediction, or None."""
+    pool = sorted((c for c in ranked if c.significant and c.plausible and c.cv_gain is not None
+                   and c.cv_gain > 0 and c.refit is not None), key=lambda c: -c.cv_gain)[:PAIR_POOL]
+    best = None
+    for i, a in enumerate(pool):
+        for b in pool[i + 1:]:
+            f2 = refit(a.refit, effects[b.effect], REFIT_ITER)
+            if not f2.converged or any(e.implausible(f2.model.robot, f2.theta[sl])
+                                       for e, sl in zip(f2.effects, f2.model.slices, strict=True)):
+                continue
+            q = a.score_dof + b.score_dof
+            if stats.chi2.sf(max(current.chi2 - f2.chi2, 0.0), q) >= alpha_each:
+                continue
+            pred2 = predict_unseen(f2)
+            gain = pred2.gain_over(pred_now)
+            adequate = stats.chi2.sf(f2.chi2, max(f2.dof, 1)) >= alpha
+            if gain > 0 and (adequate or pred2.better_p(pred_now) < LEVEL) and (best is None or gain > best[3]):
+                best = ((a, b), f2, pred2, gain)
+    return None if best is None else best[:3]
+
+
+def _step(f: Fit, pred: Prediction, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
+    out = {"effects": [n for n in f.names if n != DeviceAccuracy.name], "chi2": float(f.chi2), "dof": int(f.dof),
+           "cv_chi2": pred.total, "converged": bool(f.converged),
            "initial_pose": [float(v) for v in f.theta[:6]],
            "params": {e: {k: _num(v) for k, v in p.items()} for e, p in f.params().items()}}
     if reference_pose is not None:
@@ -504,60 +705,86 @@ def _step(f: Fit, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
     return out
 
 
-PARTIAL = 0.9  # a single effect explaining less than this share of the excess only explains part of it
+def misfit_location(diag: Diagnosis, top: int = 2) -> dict[str, list[str]]:
+    """Where the misfit sits: the channels by share of chi2, in each the cables (components) with the
+    largest rms, and the rows (poses) with the largest chi2, named."""
+    tot = sum(d["chi2"] for d in diag.channels.values()) or 1.0
+    chans = sorted(diag.channels, key=lambda c: -diag.channels[c]["chi2"])
+    names = {"orientation": ("roll", "pitch", "yaw")}
+    out_ch, out_cab = [], []
+    for c in chans[:top]:
+        out_ch.append(f"{c} ({100 * diag.channels[c]['chi2'] / tot:.0f}% of chi2)")
+        vals = diag.cables.get(c, [])
+        worst = np.argsort(vals)[::-1][:top]
+        label = names.get(c, [f"cable {i + 1}" for i in range(len(vals))])
+        out_cab += [f"{c} {label[j]} (rms {vals[j]:.1f} sigma)" for j in worst]
+    rows = sorted(diag.rows, key=lambda r: -r["chi2"])[:top + 1]
+    out_rows = [f"{r['label']}" + (f" (sample {r['sample']})" if r["sample"] >= 0 else "")
+                + f": worst {r['worst']}, rms {r['rms_normalized']:.1f} sigma" for r in rows]
+    return {"channels": out_ch, "cables": out_cab, "rows": out_rows}
 
 
-def _verdict(fit0: Fit, ranking: list[Candidate], selected: list[str], final: Fit, alpha: float,
-             more: bool = False) -> str:
+def _verdict(diag: Diagnosis, more: bool = False) -> str:
+    fit0, ranking, selected, final, alpha = diag.fit, diag.ranking, diag.selected, diag.final, diag.alpha
     dof = max(fit0.dof, 1)
     excess = fit0.chi2 - dof
     p0 = stats.chi2.sf(fit0.chi2, dof)
+    if p0 >= alpha and not selected:
+        return (f"the model fits within the noise (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}); "
+                f"no effect in the library is significant at the {alpha:g} level")
+    where = misfit_location(diag)
+    loc = f"the misfit sits in {', '.join(where['channels'])}; worst at {'; '.join(where['rows'][:2])}"
+    implausible = [c for c in ranking if c.significant and not c.plausible]
     if not selected:
-        if p0 >= alpha:
-            return (f"the model fits within the noise (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}); "
-                    f"no effect in the library is significant at the {alpha:g} level")
-        return (f"the model does not fit (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}) but nothing in the "
-                "library explains what is left: look for an effect outside it")
-    best = ranking[0]
-    share = best.delta_chi2 / excess if excess > 0 else 1.0
+        text = f"the model does not fit (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}): {loc}. "
+        if implausible:
+            c = implausible[0]
+            text += (f"{c.effect} would explain {100 * min(1.0, c.delta_chi2 / excess):.0f}% of the excess only "
+                     f"with {c.implausible[0]}, implausibly large: something outside the library acts there")
+        else:
+            text += "nothing in the library explains it and predicts left-out poses better: look for an effect "
+            text += "outside it"
+        return text
+    first = next(c for c in ranking if c.effect == selected[0])
+    share = first.delta_chi2 / excess if excess > 0 else 1.0
     if excess > 0:
-        text = f"{best.effect} explains {100.0 * min(1.0, share):.0f}% of the excess"
+        text = f"{first.effect} explains {100.0 * min(1.0, share):.0f}% of the excess"
     else:
-        text = (f"{best.effect} explains a significant part (delta chi2 {best.delta_chi2:.1f}, p = "
-                f"{best.p_value:.2g}) although chi2 is within the noise")
-    if best.confused_with:
-        text += f" (cannot be told apart from {', '.join(best.confused_with)} with this data)"
-    pf = stats.chi2.sf(final.chi2, max(final.dof, 1))
+        text = (f"{first.effect} explains a significant part (delta chi2 {first.delta_chi2:.1f}, p = "
+                f"{first.p_value:.2g}) although chi2 is within the noise")
+    if first.confused_with:
+        text += f" (cannot be told apart from {', '.join(first.confused_with)} with this data)"
     text += f"; refit with --effects {','.join(selected)}"
+    pf = stats.chi2.sf(final.chi2, max(final.dof, 1))
     if pf < alpha:
         left = final.chi2 - max(final.dof, 1)
         pct = f"{100.0 * left / excess:.0f}% of the excess" if excess > 0 else "part of the misfit"
         text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {pct} is not explained"
         text += f" by {', '.join(selected)}"
         if more:
-            text += " (other library effects still test significant: raise --max-effects"
+            text += " (other library effects still predict better: raise --max-effects"
             text += ", but no single one explains most of the misfit: it may lie outside the library)" if (
                 share < PARTIAL) else ")"
+        elif share < PARTIAL:
+            text += (" nor by anything else in the library that predicts left-out poses better: no single effect"
+                     " explains most of the misfit, it may lie outside the library")
+        elif implausible:
+            c = implausible[0]
+            text += (f"; {c.effect} would take more only with {c.implausible[0]}, implausibly large: something "
+                     "outside the library acts there")
         else:
-            text += " nor by anything else in the library"
+            text += " nor by anything else in the library that predicts left-out poses better"
     elif share < PARTIAL and len(selected) > 1:
-        text += f" (no single effect explains most of the misfit: {best.effect} alone {100.0 * share:.0f}%)"
+        text += f" (no single effect explains most of the misfit: {first.effect} alone {100.0 * share:.0f}%)"
     return text
+
+
+PARTIAL = 0.9  # a single effect explaining less than this share of the excess only explains part of it
 
 
 def pose_error(a: np.ndarray, b: np.ndarray) -> float:
     """Distance between the positions of two poses, m."""
     return float(np.linalg.norm(np.asarray(a, float)[:3] - np.asarray(b, float)[:3]))
-
-
-def reveal_quantities(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, meas: Measurements) -> dict[str, Any]:
-    """Per row (k,) the quantities against which residuals reveal effects: tension (k, n) N, cable length
-    (k, n) m, height z (k,) m, swivel angle (k, n) rad, tilt (k,) rad; the reference row appended last."""
-    Z = np.vstack([poses, np.asarray(zeta0)[None, :6]])
-    kin = inverse_kinematics(robot, Z)
-    tau = np.vstack([meas.tau, meas.ref_tau[None]])
-    tilt = np.hypot(Z[:, 3], Z[:, 4])
-    return {"tension": tau, "length": kin.lengths, "height": Z[:, 2], "swivel": kin.swivel, "tilt": tilt}
 
 
 def window_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> dict[str, np.ndarray]:
@@ -589,6 +816,56 @@ def window_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> dict[str,
     return out
 
 
+@dataclass
+class RunRows:
+    """What both the diagnosis and ``cdpr solve --effects`` fit on a run: the rows of a method's windows,
+    their noise (``source`` names it), the rigid solve whose solution is the start of every fit."""
+
+    robot: Robot
+    meas: Measurements
+    sigma: dict[str, np.ndarray]
+    source: str
+    solution: Any
+
+
+def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: int = 1,
+             reference_sample: int | None = None) -> RunRows:
+    """The rows, noise and start of a run: the windows, rows and initial guess are those of
+    ``calib.selfcal.solve(method)``; noise ``estimate`` is :func:`window_noise`, ``accuracy`` the window
+    scatter floored at the sensors' accuracy class, ``paper`` (eq. 18) and ``sensors`` as in solve."""
+    from calib.selfcal import measurement_rows, noise_levels, run_signals, solve
+
+    robot = run.robot
+    sol = solve(robot, run, method=method, noise="estimate" if noise == "accuracy" else noise, stride=stride,
+                reference_sample=reference_sample)
+    sig = run_signals(robot, run)
+    meas = measurement_rows(sig, sol.windows, method, stride, sol.reference_sample)[0]
+    if noise == "estimate":
+        sigma, source = window_noise(robot, sig, sol.windows), "estimate"
+    elif noise == "accuracy":  # the window scatter floored at the sensors' accuracy
+        sigma, source = noise_levels(robot, "estimate", sig, sol.windows)[0], "accuracy"
+    else:
+        sigma, source = noise_levels(robot, noise, sig, sol.windows)
+    return RunRows(robot, meas, sigma, source, sol)
+
+
+def base_fit(rows: RunRows, included: Sequence[Effect] = ()) -> Fit:
+    """The diagnosis's base model on a run's rows: the devices' constant errors within their datasheet
+    accuracy plus the included effects, started from the rigid solve."""
+    sol = rows.solution
+    return fit(rows.robot, rows.meas, rows.sigma, [DeviceAccuracy(), *included], sol.theta[:6], sol.poses)
+
+
+def effect_chain(rows: RunRows, effects: Sequence[Effect]) -> list[Fit]:
+    """The base fit, then the effects added one at a time, each fit started from the previous one: the
+    fits the diagnosis's forward selection makes, and those of ``cdpr solve --effects`` (same noise, same
+    priors, same start, so the same numbers)."""
+    fits = [base_fit(rows)]
+    for e in effects:
+        fits.append(refit(fits[-1], e))
+    return fits
+
+
 def diagnose_run(
     run: Any,
     noise: str = "estimate",
@@ -598,161 +875,10 @@ def diagnose_run(
     max_effects: int = 2,
     reference_pose: np.ndarray | None = None,
 ) -> Diagnosis:
-    """:func:`diagnose` on the equilibrium windows of a run (``acquisition.runlog.Run``): the windows,
-    rows and initial guess are those of ``calib.selfcal.solve(method='tlse')``; noise ``estimate`` is
-    :func:`window_noise`, ``accuracy`` the same scatter floored at the sensors' accuracy class (what
-    ``cdpr solve --noise estimate`` uses), ``paper`` the eq. 18 levels."""
-    from calib.selfcal import solve
-    from calib.selfcal._solve import _rows, _signals, noise_levels
-
-    robot = run.robot
-    sol = solve(robot, run, method="tlse", noise="estimate" if noise == "accuracy" else noise)
-    sig = _signals(robot, run)
-    meas, _, _, _, _ = _rows(sig, sol.windows, "tlse", 1, sol.reference_sample)
-    if noise == "estimate":
-        sigma, source = window_noise(robot, sig, sol.windows), "estimate"
-    elif noise == "accuracy":  # the window scatter floored at the sensors' accuracy (solve's 'estimate')
-        sigma, source = noise_levels(robot, "estimate", sig, sol.windows)[0], "accuracy"
-    else:
-        sigma, source = noise_levels(robot, noise, sig, sol.windows)
-    return diagnose(robot, meas, sigma, sol.theta[:6], sol.poses, candidates, included, alpha,
-                    max_effects=max_effects, noise_source=source, reference_pose=reference_pose)
-
-
-QUANTITIES = {
-    "tension": ("tension [N]", True),
-    "length": ("cable length [m]", True),
-    "height": ("platform height z [m]", False),
-    "swivel": ("swivel angle [rad]", True),
-    "tilt": ("tilt [rad]", False),
-}
-
-
-def plot_residuals(diag: Diagnosis, outdir: str | Path) -> list[Path]:
-    """PNG files (matplotlib, Agg) of the normalised residuals against tension, cable length, height,
-    swivel angle and tilt, one file per quantity with a panel per channel, and the chi2 of each step."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(outdir)
-    out.mkdir(parents=True, exist_ok=True)
-    f0 = diag.fit
-    robot = f0.model.true_robot(f0.theta)
-    q = reveal_quantities(robot, f0.poses, f0.theta, f0.problem.meas)
-    res = diag.residual_data
-    k = f0.poses.shape[0]
-    rowpos = np.where(res.row < 0, k, res.row)
-    files = []
-    for name, (label, per_cable) in QUANTITIES.items():
-        fig, axes = plt.subplots(1, 4, figsize=(16, 3.6), sharex=False)
-        for ax, c in zip(axes, CHANNELS, strict=True):
-            m = res.channel == c
-            if not m.any():
-                ax.set_visible(False)
-                continue
-            x = q[name]
-            comp = res.index[m]
-            if per_cable and c != "orientation":
-                xv = x[rowpos[m], comp]
-            elif per_cable:
-                xv = x[rowpos[m]].mean(axis=1)
-            else:
-                xv = x[rowpos[m]]
-            width = 3 if c == "orientation" else robot.n
-            labels = ("roll", "pitch", "yaw") if c == "orientation" else [f"cable {i + 1}" for i in range(width)]
-            for a in range(width):
-                sel = comp == a
-                if sel.any():
-                    ax.plot(xv[sel], res.r[m][sel], "o", ms=4, label=labels[a])
-            ax.axhline(0.0, color="k", lw=0.6)
-            ax.set_title(c)
-            ax.set_xlabel(label)
-            ax.set_ylabel("residual / sigma")
-            ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = out / f"residuals_vs_{name}.png"
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
-        files.append(path)
-    files.append(plot_steps(diag.steps, out / "chi2_by_effect.png"))
-    return files
-
-
-def plot_steps(steps: Sequence[dict[str, Any]], path: str | Path) -> Path:
-    """The error falling as effects are added one by one: chi2 (log) and, where known, eps_p per step."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    labels = ["rigid model"] + ["+ " + s["effects"][-1] for s in steps[1:]]
-    fig, ax = plt.subplots(figsize=(6, 3.6))
-    ax.plot(range(len(steps)), [max(s["chi2"], 1e-9) for s in steps], "o-", label="chi2")
-    ax.plot(range(len(steps)), [max(s["dof"], 1) for s in steps], "k--", lw=0.8, label="dof")
-    ax.set_yscale("log")
-    ax.set_xticks(range(len(steps)), labels, rotation=15, fontsize=8)
-    ax.set_ylabel("chi2")
-    if all("eps_p" in s for s in steps):
-        ax2 = ax.twinx()
-        ax2.plot(range(len(steps)), [1000 * s["eps_p"] for s in steps], "s-", color="tab:red", label="eps_p")
-        ax2.set_ylabel("eps_p [mm]", color="tab:red")
-    ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    return p
-
-
-def format_diagnosis(diag: Diagnosis) -> str:
-    """A readable report of a diagnosis."""
-    lines = [f"chi2 {diag.chi2:.1f} on {diag.dof} dof (p = {diag.p_value:.3g}), noise {diag.noise_source}"]
-    lines.append("channel        rms/sigma   max/sigma   chi2     per cable (rms/sigma)")
-    for c, d in diag.channels.items():
-        cab = "  ".join(f"{v:.2f}" for v in diag.cables.get(c, []))
-        lines.append(f"  {c:<12} {d['rms_normalized']:>9.2f}  {d['max_normalized']:>9.2f}  {d['chi2']:>8.1f}  {cab}")
-    dev = diag.fit.params().get("device_accuracy")
-    if dev:
-        lines.append("devices' constant errors, fitted within their datasheet accuracy: " + ", ".join(
-            f"{k}={v:.3g} N" if not k.endswith(("roll", "pitch")) else f"{k}={math.degrees(v):.3g} deg"
-            for k, v in dev.items()))
-    lines.append("row  sample  rms/sigma  max/sigma  worst")
-    for r in diag.rows:
-        lines.append(f"  {r['row']:>3} {r['sample']:>6}  {r['rms_normalized']:>9.2f}  {r['max_normalized']:>9.2f}  "
-                     f"{r['worst']}")
-    lines.append("effect             score (dof)   delta chi2   p-value    dAIC      parameters")
-    for c in diag.ranking:
-        d = "" if c.delta_chi2 is None else f"{c.delta_chi2:>10.1f}"
-        p = c.score_p if c.p_value is None else c.p_value
-        aic = "" if c.delta_aic is None else f"{c.delta_aic:>8.1f}"
-        par = ", ".join(f"{k}={v:.4g}" for k, v in list(c.params.items())[:6])
-        flag = "*" if c.significant else " "
-        conf = f"  ~ {', '.join(c.confused_with)}" if c.confused_with else ""
-        conf += "  (refit failed to move)" if c.refit_failed else ""
-        lines.append(f" {flag}{c.effect:<17} {c.score:>8.1f} ({c.score_dof:>2})  {d:>10}  {p:>9.2g}  {aic:>8}  "
-                     f"{par}{conf}")
-    if len(diag.steps) > 1:
-        lines.append("chi2 as effects are added: " + " -> ".join(
-            f"{s['chi2']:.1f}" + (f" (eps_p {1000 * s['eps_p']:.1f} mm)" if "eps_p" in s else "")
-            for s in diag.steps))
-    lines.append("verdict: " + diag.verdict)
-    return "\n".join(lines) + "\n"
-
-
-def html_report(diag: Diagnosis, pngs: Sequence[str | Path], title: str = "cdpr diagnose") -> str:
-    """A self-contained HTML page: the tables of :func:`format_diagnosis` and the plots (embedded)."""
-    import base64
-    import html
-
-    imgs = []
-    for p in pngs:
-        data = base64.b64encode(Path(p).read_bytes()).decode("ascii")
-        imgs.append(f'<h3>{html.escape(Path(p).stem)}</h3><img src="data:image/png;base64,{data}"/>')
-    return (
-        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title></head><body>"
-        f"<h1>{html.escape(title)}</h1><p><b>Verdict:</b> {html.escape(diag.verdict)}</p>"
-        f"<pre>{html.escape(format_diagnosis(diag))}</pre>{''.join(imgs)}</body></html>\n"
-    )
+    """:func:`diagnose` on the equilibrium windows of a run (``acquisition.runlog.Run``), rows and noise
+    from :func:`run_rows` (method tlse)."""
+    rows = run_rows(run, noise)
+    sol = rows.solution
+    return diagnose(rows.robot, rows.meas, rows.sigma, sol.theta[:6], sol.poses, candidates, included, alpha,
+                    max_effects=max_effects, noise_source=rows.source, reference_pose=reference_pose,
+                    reference_sample=sol.reference_sample)

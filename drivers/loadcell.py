@@ -14,7 +14,7 @@ import operator
 import re
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -199,6 +199,7 @@ class LoadCellConfig:
     stuck_samples: int = 50  # identical consecutive values that mark a stuck channel
     info_timeout: float = 1.0  # s
     polled: bool = False  # read the port in the waiting thread, not a reader thread (lockstep simulation)
+    tap: Callable[[bytes, bool], None] | None = field(default=None, compare=False)  # raw record (PortReader)
 
 
 class LoadCellDriver(LoadCellBase):
@@ -225,7 +226,7 @@ class LoadCellDriver(LoadCellBase):
             return
         self._port = open_port(self.config.port, self.config.baud, "load-cell amplifier")
         self._reader = PortReader(self._port, self._on_bytes, name=f"loadcell-{self.config.port}",
-                                  threaded=not self.config.polled)
+                                  threaded=not self.config.polled, tap=self.config.tap)
         self._box.attach(self._reader)
         self._reader.start()
         try:
@@ -238,7 +239,7 @@ class LoadCellDriver(LoadCellBase):
     def _handshake(self) -> None:
         self._info_event.clear()
         try:
-            self._port.write(frame("INFO"))
+            self._reader.write(frame("INFO"))
         except Exception as exc:  # serial.SerialException, OSError, write timeout
             raise DeviceError(f"load-cell amplifier: writing INFO to {self.config.port} failed ({exc}).") from exc
         if self.config.polled:

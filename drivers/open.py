@@ -12,6 +12,8 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+import can
+
 from drivers.can_bus import CanNetwork, SyncProducer, open_bus_from_config, open_network
 from drivers.canopen_drive import CanopenWinchDrive
 from drivers.config import DeviceConfig, DeviceConfigError
@@ -90,14 +92,18 @@ class DeviceSet:
 def open_devices(config: DeviceConfig, length_per_motor_rev: Sequence[float], swivel_counts_per_rev: int = 65536,
                  clock: Callable[[], float] = time.monotonic, every: tuple[int, int] = (1, 1),
                  control_period: float = 0.005, polled: bool = False, stale_periods: float = 3.0,
-                 open_now: bool = True) -> DeviceSet:
+                 open_now: bool = True, bus: can.BusABC | None = None, listener: can.Listener | None = None,
+                 serial_tap: Callable[[str], Callable | None] | None = None) -> DeviceSet:
     """The drivers of every device of ``config`` on a freshly opened bus, opened at once with ``open_now``.
 
     ``length_per_motor_rev``: m of cable per motor revolution, one per drive (the robot description's
     ``sensors.length_per_motor_rev``); ``clock``: the CAN drivers' time stamps and heartbeat checks (the loop's
     clock); ``every``: the drives and the encoders send their readings every n-th SYNC; ``control_period``: s,
     the load cells' expected sample period; ``polled`` and ``stale_periods``: the serial drivers read their ports
-    in the waiting thread, and call a reading stale after that many periods. DeviceError (one sentence) when the
+    in the waiting thread, and call a reading stale after that many periods. ``bus``: a python-can bus to use
+    instead of the one the file names (a replay's); ``listener``: gets every CAN frame received and sent from
+    the first on (:meth:`CanNetwork.add_listener`, a raw record); ``serial_tap(name)``: the tap of the serial
+    device ``name`` ("loadcells", "ahrs") that gets its bytes both ways. DeviceError (one sentence) when the
     bus or a device does not answer, DeviceConfigError when the file asks for what a driver cannot do.
     """
     if len(length_per_motor_rev) < len(config.drives):
@@ -106,7 +112,8 @@ def open_devices(config: DeviceConfig, length_per_motor_rev: Sequence[float], sw
     ahrs = None
     if config.ahrs is not None:
         ahrs_config = XsensConfig(config.ahrs.port, config.ahrs.baud, rate_hz=int(config.ahrs.rate),
-                                  stale_periods=stale_periods, polled=polled)
+                                  stale_periods=stale_periods, polled=polled,
+                                  tap=serial_tap and serial_tap("ahrs"))
         problem = config_problem(ahrs_config)
         if problem:
             raise DeviceConfigError(f"{config.source}: field 'ahrs.rate' = {config.ahrs.rate}: {problem}")
@@ -115,10 +122,13 @@ def open_devices(config: DeviceConfig, length_per_motor_rev: Sequence[float], sw
     if config.loadcells is not None:
         loadcells = LoadCellDriver(LoadCellConfig(config.loadcells.port, config.loadcells.baud,
                                                   channels=len(config.drives), rate_hz=1.0 / control_period,
-                                                  stale_periods=stale_periods, polled=polled))
-    bus = open_bus_from_config(config.can)
+                                                  stale_periods=stale_periods, polled=polled,
+                                                  tap=serial_tap and serial_tap("loadcells")))
+    bus = open_bus_from_config(config.can) if bus is None else bus
     try:
         network = open_network(bus)
+        if listener is not None:
+            network.add_listener(listener)
     except BaseException:
         bus.shutdown()
         raise

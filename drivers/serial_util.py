@@ -22,15 +22,27 @@ def open_port(port: str, baud: int, what: str) -> serial.Serial:
         raise DeviceError(f"{what}: cannot open serial port {port} at {baud} baud ({exc}).") from exc
 
 
+def _tapped(tap: Callable[[bytes, bool], None],
+            on_bytes: Callable[[bytes, float], None]) -> Callable[[bytes, float], None]:
+    def both(data: bytes, t: float) -> None:
+        tap(data, False)
+        on_bytes(data, t)
+
+    return both
+
+
 class PortReader:
     """Reads a port and hands every chunk of bytes to ``on_bytes``: in a daemon thread, or, not ``threaded``,
     in the thread that calls :meth:`poll` (the drivers' waits do, in lockstep with a simulated prototype whose
-    bytes are already written when the loop asks for them: no thread hand-off per reading)."""
+    bytes are already written when the loop asks for them: no thread hand-off per reading). The driver writes
+    through :meth:`write`. ``tap(data, sent)`` gets every chunk read (``sent`` False) first, and every chunk
+    written (``sent`` True): the raw serial record, acquisition/busrecord.py."""
 
     def __init__(self, port: serial.Serial, on_bytes: Callable[[bytes, float], None], name: str,
-                 threaded: bool = True) -> None:
+                 threaded: bool = True, tap: Callable[[bytes, bool], None] | None = None) -> None:
         self.port = port
-        self.on_bytes = on_bytes
+        self.tap = tap
+        self.on_bytes = on_bytes if tap is None else _tapped(tap, on_bytes)
         self.threaded = threaded
         self.error: str | None = None
         self._stop = threading.Event()
@@ -48,6 +60,12 @@ class PortReader:
     def start(self) -> None:
         if self.threaded:
             self._thread.start()
+
+    def write(self, data: bytes) -> None:
+        """Write ``data`` to the port (the tap sees it first)."""
+        if self.tap is not None:
+            self.tap(data, True)
+        self.port.write(data)
 
     def stop(self) -> None:
         self._stop.set()

@@ -13,7 +13,8 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 from drivers import xbus
 from drivers.interfaces import Ahrs as AhrsBase
@@ -31,6 +32,7 @@ class XsensConfig:
     retries: int = 3  # GoToConfig attempts (a device streaming fast may miss the first)
     stale_periods: float = 3.0
     polled: bool = False  # read the port in the waiting thread, not a reader thread (lockstep simulation)
+    tap: Callable[[bytes, bool], None] | None = field(default=None, compare=False)  # raw record (PortReader)
 
 
 FRAME_BYTES = 32  # our MTData2 on the wire: 4 header + 5 + 7 + 15 item bytes + 1 checksum
@@ -75,7 +77,7 @@ class XsensMti(AhrsBase):
             return
         self._port = open_port(self.config.port, self.config.baud, "Xsens MTi")
         self._reader = PortReader(self._port, self._on_bytes, name=f"xsens-{self.config.port}",
-                                  threaded=not self.config.polled)
+                                  threaded=not self.config.polled, tap=self.config.tap)
         self._box.attach(self._reader)
         self._reader.start()
         try:
@@ -123,7 +125,7 @@ class XsensMti(AhrsBase):
         with self._reply_cond:
             self._replies.clear()
         try:
-            self._port.write(xbus.encode(mid, payload))
+            self._reader.write(xbus.encode(mid, payload))
         except Exception as exc:  # serial.SerialException, OSError, write timeout
             raise DeviceError(f"Xsens MTi: writing {xbus.mid_name(mid)} to {self.config.port} failed ({exc}).") from exc
         deadline = time.monotonic() + self.config.ack_timeout

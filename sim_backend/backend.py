@@ -45,11 +45,11 @@ from calib.robot import Robot
 from calib.statics import tension_model
 from drivers.can_bus import SYNC_COB_ID
 from drivers.config import AhrsConfig, CanConfig, DeviceConfig, NodeConfig, SerialConfig
-from sim_backend.can_drive_emulator import CanDriveEmulator
+from sim_backend.can_drive_emulator import CanDriveEmulator, DriveEmulatorConfig
 from sim_backend.can_encoder_emulator import CanEncoderEmulator
 from sim_backend.config import SimConfig, SimConfigError, load_sim_config
 from sim_backend.loadcell_emulator import LoadCellEmulator
-from sim_backend.physics import CablePhysics, pose_of, snapshot_parts
+from sim_backend.physics import CablePhysics, Sway, pose_of, snapshot_parts
 from sim_backend.plant_link import (
     ChildPlantLink,
     InProcessPlantLink,
@@ -60,7 +60,7 @@ from sim_backend.plant_link import (
 )
 from sim_backend.pty import open_pty_pair
 from sim_backend.sim_bus import SimBus
-from sim_backend.xsens_emulator import XsensEmulator
+from sim_backend.xsens_emulator import XsensEmulator, XsensNoise
 
 DRIVE_IDS = (1, 2, 3, 4, 5, 6, 7, 8)
 ENCODER_IDS = (11, 12, 13, 14, 15, 16, 17, 18)
@@ -168,19 +168,24 @@ class SimBackend:
         rngs = [np.random.default_rng(s) for s in seeds]
         try:
             physics = self._make_physics()
+            noise = self.config.sensors
+            k_true = self.config.true_transmission(self.robot)
             lc_fd, lc_path = open_pty_pair()
             self._fds.append(lc_fd)
             loadcells = LoadCellEmulator(
                 lc_fd, rngs[2 * n], channels=n, offsets=self.config.tension_offset(n),
                 gains=self.config.tension_gain(n), rate_hz=1.0 / self.control_period,
                 full_scale=self.robot.sensors.load_cell_full_scale, accuracy=self.robot.sensors.load_cell_accuracy,
+                noise_std=noise.loadcell_sigma,
             )
             ahrs_fd, ahrs_path = open_pty_pair()
             self._fds.append(ahrs_fd)
             roll, pitch = self.config.ahrs_mounting()
+            r_sd, p_sd, y_sd = noise.ahrs_sigma
             ahrs = XsensEmulator(ahrs_fd, rngs[2 * n + 1], mounting_roll=roll, mounting_pitch=pitch,
                                  input_convention=self.robot.orientation,
-                                 output_convention=self.robot.ahrs_convention)
+                                 output_convention=self.robot.ahrs_convention,
+                                 noise=XsensNoise(roll_pitch_std=r_sd, pitch_std=p_sd, yaw_std=y_sd))
             core = PlantCore(physics, loadcells, ahrs, self.control_period,
                              [f for f in self.config.faults if f.kind not in _CAN_FAULTS])
             torques = [float(x) for x in physics.motor_torque()]
@@ -194,11 +199,12 @@ class SimBackend:
             for i in range(n):
                 self.drives.append(
                     CanDriveEmulator(self._network, DRIVE_IDS[i], self.physics, i, rng=rngs[i],
-                                     control_period=self.control_period)
+                                     control_period=self.control_period,
+                                     config=DriveEmulatorConfig(position_noise=noise.encoder_sigma / abs(k_true[i])))
                 )
             for i in range(n):
                 self.encoders.append(CanEncoderEmulator(self._network, ENCODER_IDS[i], self.physics, i,
-                                                        rng=rngs[n + i]))
+                                                        noise=noise.swivel_sigma, rng=rngs[n + i]))
             self._nodes = self.drives + self.encoders  # in the order they answer a SYNC
             self._schedule_faults()
             self.devices = DeviceConfig(
@@ -253,18 +259,23 @@ class SimBackend:
         k = self.config.true_transmission(self.robot)
         if self.initial_pose is None:
             pose, tau = power_on_state(robot, self.seed, self.config.initial_spread)
-            return CablePhysics(robot, params, k, pose, tau, brakes=True)
+            return CablePhysics(robot, params, k, pose, tau, brakes=True, sway=self._sway())
         tau = tension_model(robot, self.initial_pose, derivatives=False).tau[0]
         if not np.all(tau > 0):
             raise SimConfigError(
                 f"SimBackend: initial_pose = {self.initial_pose.tolist()} needs a slack cable (model tensions "
                 f"{np.round(tau, 2).tolist()} N)."
             )
-        ph = CablePhysics(robot, params, k, self.initial_pose, tau, brakes=True)
+        ph = CablePhysics(robot, params, k, self.initial_pose, tau, brakes=True, sway=self._sway())
         for _ in range(int(round(5.0 / self.control_period))):  # settle on the locked winches
             ph.step(self.control_period, t_end=self.sync_count * self.control_period)
         ph.rezero()
         return ph
+
+    def _sway(self) -> Sway | None:
+        """The configuration's sway with its phases drawn from this backend's seed."""
+        sw = self.config.sway
+        return None if sw is None else Sway(sw.amplitude, sw.period, self.seed)
 
     def _open_link(self, core: PlantCore) -> PlantLink:
         """The core in a child process when asked or possible (forked here, before the CAN bus and its nodes

@@ -347,6 +347,7 @@ class DriveEmulatorConfig:
     hold_kd: float = 0.02  # N m s/rad, quick-stop velocity damping on a plant without brake
     stop_velocity: float = 0.05  # rad/s, below this a quick stop with option code 1/2 ends
     torque_noise: float = 0.0  # N m, standard deviation of the reported torque
+    position_noise: float = 0.0  # rad of motor, standard deviation of the reported position
     encoder_bits: int = 20
 
 
@@ -378,6 +379,7 @@ class CanDriveEmulator(SimulatedNode):
         self._scheduled: list[tuple[float, int]] = []
         self.faults: list[tuple[float, int]] = []
         self._torque_now = scalar_reader(plant, "motor_torque", index)  # N m; before booting, which maps TPDOs
+        self._position_now = scalar_reader(plant, "motor_position", index)  # rad
         super().__init__(network, node_id, plant, index, rng, eds)
         self.rated_torque = self.node.object_dictionary[0x6076].default / 1000.0  # N m
         self.max_torque = self.node.object_dictionary[0x6072].default  # per mille
@@ -397,12 +399,21 @@ class CanDriveEmulator(SimulatedNode):
         scale = self.counts_per_rev / (2 * math.pi)
         if index == 0x6041:
             return lambda: self.statusword
-        if index in (0x6064, 0x606C):
-            read = scalar_reader(self.plant, "motor_position" if index == 0x6064 else "motor_velocity", self.index)
+        if index == 0x6064:
+            return lambda: _wrap32(self.position_actual() * scale)
+        if index == 0x606C:
+            read = scalar_reader(self.plant, "motor_velocity", self.index)
             return lambda: _wrap32(read() * scale)
         if index == 0x6077:
             return self.torque_actual
         return None  # the rest: process_value, rounded and saturated
+
+    def position_actual(self) -> float:
+        """The motor angle (rad) the encoder reports: the plant's, with the configured noise."""
+        pos = self._position_now()
+        if self.config.position_noise:
+            pos += self.config.position_noise * self.rng.standard_normal()
+        return pos
 
     def torque_actual(self) -> int:
         """0x6077: the torque commanded to the plant, per mille of the rated torque, with the configured noise."""
@@ -415,7 +426,7 @@ class CanDriveEmulator(SimulatedNode):
         if index == 0x6041:
             return self.statusword
         if index == 0x6064:
-            return clamp_int("i", float(self.plant.motor_position()[self.index]) * self.counts_per_rev / (2 * math.pi))
+            return clamp_int("i", self.position_actual() * self.counts_per_rev / (2 * math.pi))
         if index == 0x606C:
             return clamp_int("i", float(self.plant.motor_velocity()[self.index]) * self.counts_per_rev / (2 * math.pi))
         if index == 0x6077:

@@ -22,6 +22,16 @@ The YAML file (every section optional; nothing is on by default)::
       - {kind: cable_slack, t: 12.0, cable: 1, length: 0.05}   # the cable slips on its drum by 'length' m
     physics: {linear_damping: 20.0}            # overrides of sim_backend.physics.PhysicsParams (SI)
     initial: {spread: 0.03}                    # m, power-on position randomised within this of home
+    sensors:                                   # per-sample noise (standard deviation) of the emulated sensors
+      loadcell_sigma: 0.1                      #   N, every load-cell channel
+      encoder_sigma: 0.0                       #   m of cable length (winch encoders; 0: their counts only)
+      swivel_sigma: 0.0                        #   rad (swivel encoders; 0: their counts only)
+      ahrs_sigma: [0.03, 0.03, 0.1]            #   deg: roll, pitch, yaw
+    sway: {amplitude: 0.002, period: 8.0}      # slow random horizontal push on the platform: m of position
+                                               #   amplitude it gives, s of period (off without the section)
+
+The values shown for ``sensors`` are the prototype's (the defaults); ``sway`` is a force on the platform in
+the physics (sim_backend.physics.Sway), so it shows in every signal: lengths, angles and tensions.
 
 Effect names are those of the diagnosis (spec/cli.md). Validation errors name file, field and value.
 """
@@ -39,7 +49,7 @@ import numpy as np
 import yaml
 
 from calib.robot import Robot
-from sim_backend.physics import PhysicsParams, WinchParams, transmission_of
+from sim_backend.physics import PhysicsParams, Sway, WinchParams, transmission_of
 
 EFFECTS = (
     "cable_elasticity",
@@ -94,6 +104,16 @@ class Fault:
 
 
 @dataclass(frozen=True)
+class SensorNoise:
+    """Per-sample noise (standard deviation) of the emulated sensors; the defaults are the prototype's."""
+
+    loadcell_sigma: float = 0.1  # N
+    encoder_sigma: float = 0.0  # m of cable length
+    swivel_sigma: float = 0.0  # rad
+    ahrs_sigma: tuple[float, float, float] = (0.03, 0.03, 0.1)  # deg: roll, pitch, yaw
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """A validated simulation configuration."""
 
@@ -102,6 +122,8 @@ class SimConfig:
     physics: PhysicsParams = field(default_factory=PhysicsParams)
     initial_spread: float = 0.03  # m
     source: str = "<nominal>"
+    sensors: SensorNoise = field(default_factory=SensorNoise)
+    sway: Sway | None = None  # amplitude (m) and period (s); its seed is the backend's
 
     def true_robot(self, robot: Robot) -> Robot:
         """The robot as the simulated prototype really is: geometry, mass and centre of mass with effects."""
@@ -316,7 +338,7 @@ def sim_config_from_dict(data: Any, n: int = 4, origin: str = "<sim config>") ->
     c = _Check(origin)
     if data is None:
         data = {}
-    m = c.mapping(data, "", ("effects", "faults", "physics", "initial"))
+    m = c.mapping(data, "", ("effects", "faults", "physics", "initial", "sensors", "sway"))
     effects = _effects(c, m["effects"], n) if m.get("effects") is not None else HiddenEffects()
     faults = _faults(c, m["faults"], n) if m.get("faults") is not None else ()
     physics = _physics(c, m["physics"]) if m.get("physics") is not None else PhysicsParams()
@@ -324,7 +346,25 @@ def sim_config_from_dict(data: Any, n: int = 4, origin: str = "<sim config>") ->
     if m.get("initial") is not None:
         ini = c.mapping(m["initial"], "initial", ("spread",))
         spread = c.number(ini.get("spread", spread), "initial.spread", 0.0, 0.2)
-    return SimConfig(effects, faults, physics, spread, origin)
+    sensors = _sensors(c, m["sensors"]) if m.get("sensors") is not None else SensorNoise()
+    sway = None
+    if m.get("sway") is not None:
+        sw = c.mapping(m["sway"], "sway", ("amplitude", "period"))
+        sway = Sway(c.number(c.required(sw, "amplitude", "sway"), "sway.amplitude", 0.0, 0.05),
+                    c.number(sw.get("period", 8.0), "sway.period", 0.5, 120.0))
+    return SimConfig(effects, faults, physics, spread, origin, sensors, sway)
+
+
+def _sensors(c: _Check, raw: Any) -> SensorNoise:
+    m = c.mapping(raw, "sensors", tuple(f.name for f in dataclasses.fields(SensorNoise)))
+    base = SensorNoise()
+    vals: dict[str, Any] = {}
+    for name in ("loadcell_sigma", "encoder_sigma", "swivel_sigma"):
+        if name in m:
+            vals[name] = c.number(m[name], f"sensors.{name}", 0.0, 100.0 if name == "loadcell_sigma" else 0.1)
+    if "ahrs_sigma" in m:
+        vals["ahrs_sigma"] = c.vector(m["ahrs_sigma"], "sensors.ahrs_sigma", 3, 0.0, 10.0)
+    return dataclasses.replace(base, **vals)
 
 
 def load_sim_config(path: str | Path | None, n: int = 4) -> SimConfig:

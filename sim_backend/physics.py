@@ -88,6 +88,31 @@ class PhysicsParams:
 
 
 @dataclass(frozen=True)
+class Sway:
+    """A slow random horizontal push on the platform (air, a hand, a cable's twist): ``amplitude`` m of
+    platform position it gives, ``period`` s, ``seed`` of its phases."""
+
+    amplitude: float = 0.0
+    period: float = 8.0
+    seed: int = 0
+
+    def forces(self, force: float):
+        """f(t) -> (fx, fy) N: per axis three sines about 1/period (0.8, 1, 1.25 times it) with random phases,
+        weights summing to one, so that the push never exceeds ``force`` N."""
+        rng = np.random.default_rng([self.seed, 11])
+        w = [2.0 * math.pi / self.period * r for r in (0.8, 1.0, 1.25)]
+        ph = rng.uniform(0.0, 2.0 * math.pi, (2, 3)).tolist()
+        a = force / 3.0
+
+        def f(t: float) -> tuple[float, float]:
+            x, y = ph
+            return (a * (math.sin(w[0] * t + x[0]) + math.sin(w[1] * t + x[1]) + math.sin(w[2] * t + x[2])),
+                    a * (math.sin(w[0] * t + y[0]) + math.sin(w[1] * t + y[1]) + math.sin(w[2] * t + y[2])))
+
+        return f
+
+
+@dataclass(frozen=True)
 class PhysicsState:
     """A snapshot of the simulated state: time s, pose (6,) m/rad, motor angles (n,) rad, tensions (n,) N."""
 
@@ -171,6 +196,7 @@ class CablePhysics:
         pose: np.ndarray,
         tensions: np.ndarray,
         brakes: bool = True,
+        sway: Sway | None = None,
     ):
         n = robot.n
         self.n = n
@@ -217,6 +243,10 @@ class CablePhysics:
         self._tau_cell = self._cell_tensions(self._geo, self._tau)
         if not brakes:
             self._u = [-self._k[i] * tensions[i] for i in range(n)]
+        # the sway's force amplitude: the cables' lateral stiffness at power-on (sum tau_i / l_i) times its
+        # position amplitude
+        stiffness = sum(t / g[0] for t, g in zip(tensions, geo, strict=True) if t > 0)
+        self._sway = None if sway is None or sway.amplitude <= 0 else sway.forces(stiffness * sway.amplitude)
 
     # --- Plant protocol -------------------------------------------------------------------------------
     @property
@@ -486,6 +516,10 @@ class CablePhysics:
         w0, w1, w2 = self._wb
         cl, ca = p.linear_damping, p.angular_damping
         f0, f1, f2 = -cl * v0, -cl * v1, -cl * v2 - m * self._g
+        if self._sway is not None:
+            sx, sy = self._sway(self._t)
+            f0 += sx
+            f1 += sy
         iw0 = i00 * w0 + i01 * w1 + i02 * w2
         iw1 = i10 * w0 + i11 * w1 + i12 * w2
         iw2 = i20 * w0 + i21 * w1 + i22 * w2

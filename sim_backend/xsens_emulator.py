@@ -42,6 +42,7 @@ class XsensNoise:
     roll_pitch_std: float = 0.03
     yaw_drift: float = 0.001  # bound of the uniform drift rate, deg/s
     yaw_std: float = 0.1
+    pitch_std: float | None = None  # None: roll_pitch_std
 
 
 def euler_to_quaternion(roll: float, pitch: float, yaw: float, convention: str = "xyz") -> tuple[float, ...]:
@@ -159,7 +160,8 @@ class XsensEmulator(PtyEmulator):
         n = self.noise
         z_roll, z_pitch, z_yaw = self._normals.take()  # as rng.normal(0.0, std, 2) then rng.normal(0.0, yaw_std)
         a_roll += self._bias_roll + math.radians(0.0 + n.roll_pitch_std * z_roll)
-        a_pitch += self._bias_pitch + math.radians(0.0 + n.roll_pitch_std * z_pitch)
+        a_pitch += self._bias_pitch + math.radians(0.0 + (n.roll_pitch_std if n.pitch_std is None else n.pitch_std)
+                                                   * z_pitch)
         a_yaw += -self._yaw0 + self._drift * (sim_time - self._t0) + math.radians(0.0 + n.yaw_std * z_yaw)
         a_yaw = (a_yaw + math.pi) % (2 * math.pi) - math.pi
         return a_roll, a_pitch, a_yaw

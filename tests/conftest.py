@@ -2,8 +2,9 @@
 
 `irma_data`: the folder of the authors' IRMA4U recordings (see /work/shared/data/irma4u/README.md).
 It is taken from the environment variable CDPR_DATA, else from `<repo>/../shared/data/irma4u`;
-tests that use it are skipped, with the reason, when the folder is absent. The data are never
-copied into the repository.
+tests that use it are skipped, with the reason, when the folder is absent, and FAIL instead when
+CDPR_REQUIRE_DATA=1 (what .ci/run sets: a CI run never passes with the real-data tests silently off).
+The data are never copied into the repository.
 """
 
 from __future__ import annotations
@@ -22,9 +23,14 @@ def irma_data() -> Path:
     """Path to the IRMA4U data folder, or skip when it is not available."""
     env = os.environ.get("CDPR_DATA")
     folder = Path(env) if env else DEFAULT_DATA
+    missing = None
     if not folder.is_dir():
         source = "CDPR_DATA" if env else "the default location"
-        pytest.skip(f"IRMA4U data folder {folder} (from {source}) not found")
-    if not (folder / "sc_8_final_parsed.mat").is_file():
-        pytest.skip(f"IRMA4U data folder {folder} has no sc_8_final_parsed.mat")
+        missing = f"IRMA4U data folder {folder} (from {source}) not found"
+    elif not (folder / "sc_8_final_parsed.mat").is_file():
+        missing = f"IRMA4U data folder {folder} has no sc_8_final_parsed.mat"
+    if missing is not None:
+        if os.environ.get("CDPR_REQUIRE_DATA") == "1":
+            pytest.fail(f"{missing}, and CDPR_REQUIRE_DATA=1 requires the real-data tests to run", pytrace=False)
+        pytest.skip(missing)
     return folder

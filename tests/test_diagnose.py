@@ -170,6 +170,18 @@ def test_two_effects_are_found_by_forward_selection():
     assert diag.steps[-1]["chi2"] < 2 * diag.steps[-1]["dof"]
 
 
+@pytest.mark.parametrize("pair, seed", [(("pulley_radius", "com_offset"), 0), (("ahrs_mounting", "com_offset"), 3)])
+def test_two_hidden_effects_at_once_are_both_selected(pair, seed):
+    """Cases of benchmarks/bench_diagnose_pairs.py: exactly the injected pair is selected and the refit
+    brings zeta_0 within 1.5 mm of the truth (measured 0.58 and 0.4 mm; the base fit 1.7 and 1.9 mm). The
+    second case needs the look-ahead step: each effect alone leaves the other's misfit and predicts one of
+    the eight left-out poses slightly worse (signed-rank p = 0.055)."""
+    d = simulated_rows(ROBOT, sim_config_from_dict({"effects": {e: HIDDEN[e][e] for e in pair}}), seed=seed)
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses)
+    assert sorted(diag.selected) == sorted(pair)
+    assert pose_error(diag.final.theta, d.zeta0) < 1.5e-3 < pose_error(diag.fit.theta, d.zeta0)
+
+
 def test_unexplained_misfit_is_said_so():
     """Cable sag is not in the library: with a heavy cable its misfit is reported as not (fully) explained.
     Emulated here by a swivel-encoder gain error, which no built-in effect models."""
@@ -195,7 +207,50 @@ def real_run(request, irma_data, tmp_path_factory):
     return out, np.asarray(ws["zeta_0_real"], float)
 
 
-def test_real_run_diagnosis_ranks_effects_and_the_refit_lowers_chi2(real_run, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def real_diagnosis(real_run):
+    from acquisition.runlog import read_run
+    from calib.diagnose import diagnose_run
+
+    run, zeta_real = real_run
+    return diagnose_run(read_run(run), reference_pose=zeta_real)
+
+
+def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(real_diagnosis):
+    """Done-when 3 of issue 17: on sc_8_final every recommended effect lies within its plausible range and
+    following the recommendation does not move zeta_0 farther from the authors' zeta_0_real than the base
+    fit. Measured (parsed and raw log alike): nothing recommended, eps_p 8.8 mm; the tensions read ~10 %
+    above the model, which only implausible effects take (offsets of 33 N, gains of 10-15 %, a 10 % heavier
+    platform), and com_offset, which would move zeta_0 to 25 mm from zeta_0_real, predicts 3 of 7 left-out
+    poses worse (signed-rank p = 0.15)."""
+    diag = real_diagnosis
+    by = {c.effect: c for c in diag.ranking}
+    assert len(by) == 10 and diag.p_value < 1e-6
+    for name in diag.selected:
+        assert by[name].plausible and by[name].cv_gain > 0
+    assert diag.steps[-1]["eps_p"] <= diag.steps[0]["eps_p"] + 1e-9
+    # the verdict names what only an implausibly large effect would explain
+    assert not by["tension_offset"].plausible and by["tension_offset"].params["o_1"] > 19.62
+    assert not by["mass_scale"].plausible and by["mass_scale"].params["s"] > 0.05
+    assert not diag.selected or "implausibly large" in diag.verdict
+    assert "reference pose" in [r["label"] for r in diag.rows]
+
+
+def test_real_run_refit_is_what_solve_with_effects_computes(real_run, real_diagnosis, capsys):
+    """Done-when 4 of issue 17: `cdpr solve --noise estimate --effects X` is the diagnosis's refit with X."""
+    run, zeta_real = real_run
+    cand = next(c for c in real_diagnosis.ranking if c.refit is not None and c.refit.converged)
+    capsys.readouterr()
+    assert cdpr(["solve", str(run), "--noise", "estimate", "--effects", cand.effect, "--json"]) == 0
+    sol = json.loads(capsys.readouterr().out)
+    assert sol["converged"] and cand.refit.converged
+    assert np.allclose(sol["initial_pose"], cand.refit.theta[:6], rtol=0, atol=1e-6)
+    for k, v in cand.params.items():
+        assert sol["effects"][cand.effect][k] == pytest.approx(v, rel=1e-6, abs=1e-9)
+    assert sol["chi2"] == pytest.approx(cand.refit.chi2, rel=1e-6)
+
+
+def test_real_run_cli_report(real_run, tmp_path, capsys):
     run, zeta_real = real_run
     ref = ",".join(f"{v:.9g}" for v in zeta_real)
     capsys.readouterr()
@@ -205,19 +260,14 @@ def test_real_run_diagnosis_ranks_effects_and_the_refit_lowers_chi2(real_run, tm
     assert code == 0, out.err
     doc = json.loads(out.out)
     assert doc["noise"] == "estimate" and doc["dof"] > 0 and doc["chi2"] > doc["dof"]
-    assert len(doc["ranking"]) == 10 and doc["ranking"][0]["delta_chi2"] > 0
-    assert doc["steps"][-1]["chi2"] < doc["steps"][0]["chi2"]
-    assert doc["verdict"]
+    assert len(doc["ranking"]) == 10 and doc["verdict"]
+    top = doc["ranking"][0]
+    assert {"expected_change", "plausible_range", "cv_gain", "decision"} <= set(top)
     pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))
-    assert "residuals_vs_tension.png" in pngs and "chi2_by_effect.png" in pngs and len(pngs) == 6
-    assert (tmp_path / "report.html").read_text().count("data:image/png;base64") == 6
-    best = doc["ranking"][0]["effect"]
-    code = cdpr(["solve", str(run), "--noise", "estimate", "--effects", best, "--reference", ref, "--json"])
-    out = capsys.readouterr()
-    assert code == 0, out.err
-    sol = json.loads(out.out)
-    assert set(sol["effects"]) == {best}
-    assert sol["chi2"] < doc["chi2"]
+    assert "residuals_by_pose.png" in pngs and "chi2_by_effect.png" in pngs and len(pngs) == 7
+    page = (tmp_path / "report.html").read_text()
+    assert page.count("data:image/png;base64") == 7 and "rejected: implausibly large" in page
+    assert "reference pose" in page
 
 
 def test_cli_errors_name_the_value(real_run, tmp_path, capsys):
@@ -251,19 +301,21 @@ def test_simulated_rows_are_rest_states_of_the_simulator_physics(name):
 
 
 def test_plots_and_html_report(tmp_path):
-    from calib.diagnose import format_diagnosis, html_report, plot_residuals
+    from acquisition.diagnose_report import format_diagnosis, html_report, plot_residuals
 
     d = _rows(HIDDEN["cable_elasticity"])
     diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=1, max_effects=1,
                     reference_pose=d.zeta0)
     pngs = plot_residuals(diag, tmp_path / "plots")
     assert sorted(p.name for p in pngs) == sorted(
-        [f"residuals_vs_{q}.png" for q in ("tension", "length", "height", "swivel", "tilt")] + ["chi2_by_effect.png"])
+        [f"residuals_vs_{q}.png" for q in ("tension", "length", "height", "swivel", "tilt")]
+        + ["chi2_by_effect.png", "residuals_by_pose.png"])
     assert all(p.stat().st_size > 5000 for p in pngs)
-    page = html_report(diag, pngs)
-    assert page.count("data:image/png;base64") == 6 and "cable_elasticity" in page
-    text = format_diagnosis(diag)
+    page = html_report(diag, pngs, run="runs/a b")
+    assert page.count("data:image/png;base64") == 7 and "cable_elasticity" in page
+    text = format_diagnosis(diag, run="runs/a b")
     assert "verdict: cable_elasticity explains" in text
+    assert "recommended: cdpr solve 'runs/a b' --noise given --effects cable_elasticity" in text
     assert diag.steps[1]["eps_p"] < 0.2 * diag.steps[0]["eps_p"]  # the initial-pose error falls
 
 
@@ -324,3 +376,37 @@ def test_full_simulated_run_with_a_tilted_ahrs_is_diagnosed_and_refitted(full_si
     # measured at seeds 0, 1, 2: nominal 0.048, 0.113, 0.160 mm; tilted, rigid 3.14, 3.41, 3.18 mm; refit
     # 0.173, 0.109, 0.217 mm: RMS 1.5x the nominal runs' (seed 0 alone 3.6x: its nominal run is lucky)
     assert e_rigid > 2e-3 and e_refit < 0.1 * e_rigid and e_refit < 0.5e-3, (e_clean, e_rigid, e_refit)
+
+
+def test_solve_with_effects_is_the_diagnosis_refit_on_a_full_simulated_run(full_sim_runs, capsys):
+    """Done-when 4 of issue 17 on a simulated run: the recommended refit and `cdpr solve --effects`."""
+    from acquisition.runlog import read_run
+    from calib.diagnose import diagnose_run
+
+    run1, _ = full_sim_runs["ahrs_mounting"]
+    diag = diagnose_run(read_run(run1), max_effects=1)
+    assert diag.selected == ["ahrs_mounting"]
+    capsys.readouterr()
+    assert cdpr(["solve", str(run1), "--noise", "estimate", "--effects", "ahrs_mounting", "--json"]) == 0
+    sol = json.loads(capsys.readouterr().out)
+    assert sol["converged"] and diag.final.converged
+    assert np.allclose(sol["initial_pose"], diag.final.theta[:6], rtol=0, atol=1e-6)
+    assert sol["chi2"] == pytest.approx(diag.final.chi2, rel=1e-6)
+
+
+def test_an_implausibly_large_effect_is_never_recommended():
+    """Load-cell offsets of 40 N (beyond the 2 % of full scale a cell's zero can be off): the offsets
+    explain the misfit but are rejected as implausible, and the verdict says something outside the library
+    acts; offsets within the range are recommended, the score test's expected change close to the refit."""
+    d = _rows({"tension_offset": {"offset": [40.0, -30.0, 0.0, 25.0]}})
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=1)
+    cand = next(c for c in diag.ranking if c.effect == "tension_offset")
+    assert cand.significant and not cand.plausible and "tension_offset" not in diag.selected
+    assert cand.params["o_1"] > 19.62 and cand.decision.startswith("rejected: implausibly large")
+    assert "implausibly large" in diag.verdict and "outside the library" in diag.verdict
+    d = _rows(HIDDEN["tension_offset"])
+    diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=1)
+    cand = diag.ranking[0]
+    assert diag.selected == ["tension_offset"] and cand.plausible and cand.cv_gain > 0
+    for k, v in cand.params.items():
+        assert abs(cand.epc[k] - v) < 0.1 * abs(v) + 0.05  # one Gauss-Newton step: the effect is linear

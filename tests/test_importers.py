@@ -13,12 +13,14 @@ from scipy.optimize import least_squares
 from acquisition.importers import (
     IRMA_HOMING_LENGTHS,
     IRMA_HOMING_SWIVELS,
+    PARTIAL,
     IrmaImportError,
     import_irma,
+    irma_run,
     read_irma_log,
     segment_targets,
 )
-from acquisition.runlog import read_run
+from acquisition.runlog import CUT, DamagedInputWarning, read_run
 from calib.kinematics import inverse_kinematics
 from calib.robot import load_robot
 
@@ -137,15 +139,30 @@ def test_raw_log_extra_columns_agree_with_the_lengths(log_run):
 def test_setpoints_found_in_the_target_tensions(parsed_run, plan):
     planned, _ = plan
     found = parsed_run.setpoints
-    # two of the eight poses were left before every target had settled: six steady setpoints remain
-    assert found.shape == (6, 4)
-    matches = [int(np.argmin(np.max(np.abs(planned - s), axis=1))) for s in found]
-    assert matches == [1, 2, 3, 5, 6, 7]
-    for s, m in zip(found, matches, strict=True):
-        np.testing.assert_allclose(s, planned[m], atol=1e-3)
+    # all eight: the two poses the controller left before every target had settled (the next move began)
+    # are recovered from the quintic their still-moving targets followed (the authors' static_tensions)
+    assert found.shape == (8, 4)
+    np.testing.assert_allclose(found, planned, atol=2e-3)
     hold = parsed_run.setpoint >= 0
     np.testing.assert_array_equal(parsed_run.tau_ref[hold], found[parsed_run.setpoint[hold]])
+    assert sorted(set(parsed_run.setpoint[hold])) == [1, 2, 3, 5, 6, 7]  # 0 and 4 were never held
     assert set(parsed_run.phase[:79]) == {"pretension"} and set(parsed_run.phase[hold]) == {"hold"}
+
+
+def test_raw_log_import_lists_the_eight_setpoints(log_run, plan):
+    np.testing.assert_allclose(log_run.setpoints, plan[0], atol=2e-3)
+
+
+def test_a_move_cut_by_the_next_one_is_extended_to_its_destination():
+    k = np.arange(60.0)
+    u = np.clip(k / 80.0, 0, 1)  # an 80-sample quintic from 50 to 130 N, cut at 60 samples
+    T = np.full((200, 2), 50.0)
+    T[10:70, 0] = 50.0 + 80.0 * u**3 * (10 - 15 * u + 6 * u**2)
+    T[10:70, 1] = 50.0 + np.minimum(k, 30) * 1.0  # the other target reached 80 N and stays there
+    T[70:] = [110.0, 79.0]  # the reference restarts from the measured tensions and holds them
+    seg = segment_targets(T, 0.1)
+    np.testing.assert_allclose(seg.setpoints, [[130.0, 80.0], [110.0, 79.0]], atol=1e-3)
+    assert seg.cut == [(0, 69)] and seg.plateaus == [(70, 199)] and set(seg.index[10:70]) == {-1}
 
 
 def test_import_with_the_planned_targets(irma_data, plan, tmp_path):
@@ -176,18 +193,20 @@ def test_truncated_raw_log_drops_its_last_incomplete_cycle(irma_data, tmp_path):
     data = (irma_data / "sc_8_final.log").read_bytes()
     cut = tmp_path / "cut.log"
     cut.write_bytes(data[:-20])  # the log stops inside the last AHRS line
-    with pytest.warns(UserWarning) as rec:
-        sig = read_irma_log(cut)
-    assert any("incomplete" in str(w.message) for w in rec)
+    sig = read_irma_log(cut)
+    assert sig.damage.counts == {CUT: 1, PARTIAL: 1}  # the cut line, and the cycle it belonged to
     assert sig.t.shape == (1279,) and sig.t[-1] == pytest.approx(385.654)
+    with pytest.warns(DamagedInputWarning, match=r"cut\.log: damaged input: 1 cut short .*; 1279 samples kept"):
+        irma_run(cut)
 
 
 @pytest.mark.parametrize(
     "content, message",
     [
-        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,0.2\n", r"line 2 \(type 5\) has 4 fields, expected 5"),
-        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,abc,0.3\n", r"line 2 has the non-numeric value 'abc'"),
-        ("3,1.0,7,9,1,2,3,0.5,0,40,55,1,0,0.3\n", r"line 1 has actuator id '7'"),
+        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,0.2\n",
+         r"no complete logging cycle .*; damaged input: 1 wrong number of fields \(first: line 2 \(type 5\) has 4 "),
+        ("3,1.0,0,9,1,2,3,0.5,0,40,55,1,0,0.3\n5,1.0,0.1,abc,0.3\n", r"\(first: line 2 has the value 'abc'\)"),
+        ("3,1.0,7,9,1,2,3,0.5,0,40,55,1,0,0.3\n", r"\(first: line 1 has actuator id '7', expected 0\.\.3\)"),
     ],
 )
 def test_bad_raw_logs(tmp_path, content, message):
@@ -222,7 +241,9 @@ def test_bad_parsed_files(tmp_path: Path):
         import_irma(g, tmp_path / "r2")
     st["target_tensions"] = np.zeros((4, 5))
     scipy.io.savemat(g, {"st": st})
-    with pytest.raises(IrmaImportError, match=r"field 'st\.tensions' has 4 samples but 'st\.t' has 5"):
+    with pytest.raises(IrmaImportError, match=r"0 steady setpoint hold\(s\) in the experiment \(4 samples\), a solve "
+                       r"needs at least 2; damaged input: 1 samples missing from a field \(first: field 'st\.tensions' "
+                       r"has 4 samples, 'st\.t' 5\)\."):
         import_irma(g, tmp_path / "r3")
     h = tmp_path / "notes.txt"
     h.write_text("hello\n")

@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from acquisition.runlog import (
+    DamagedInputWarning,
     RunFormatError,
-    RunTruncatedWarning,
     RunWriter,
     new_run,
     read_run,
@@ -173,7 +173,8 @@ def test_a_run_cut_mid_line_reads_back_up_to_its_last_complete_line(tmp_path: Pa
     f = tmp_path / "c" / "samples.csv"
     data = f.read_bytes()
     f.write_bytes(data[: len(data) - 40])  # crash in the middle of the 20th sample's line
-    with pytest.warns(RunTruncatedWarning, match="line 21 is incomplete"):
+    cut = r"1 cut short \(the log was cut while writing it\) \(line 21\); 19 samples kept"
+    with pytest.warns(DamagedInputWarning, match=cut):
         back = read_run(tmp_path / "c")
     assert len(back) == 19
     assert_same_samples(run, back, count=19)
@@ -223,11 +224,6 @@ def _drop_column(lines, column):
         (lambda m: m["procedure"].update(ideal_poses=[[0.0] * 6, [0.0] * 6]), None,
          r"'procedure\.ideal_poses' has 2 poses but 'procedure\.setpoints' has 1"),
         (None, lambda ls: _drop_column(ls, "tau_3"), r"samples\.csv: required column 'tau_3' is missing"),
-        (None, lambda ls: _set_cell(ls, 57, "dl_2", "0.1x"),
-         r"samples\.csv: line 57 column 'dl_2' has the non-numeric value '0\.1x'"),
-        (None, lambda ls: _set_cell(ls, 12, "pitch", "nan"), r"line 12 column 'pitch' has the value 'nan'"),
-        (None, lambda ls: ls.__setitem__(30, ls[30] + ",7"), r"line 31 has 25 values but the header has 24 columns"),
-        (None, lambda ls: _set_cell(ls, 9, "setpoint", "two"), r"line 9 column 'setpoint' has the value 'two'"),
     ],
 )
 def test_bad_runs_give_one_sentence_naming_file_field_and_value(tmp_path, yaml_edit, csv_edit, message):
@@ -236,6 +232,25 @@ def test_bad_runs_give_one_sentence_naming_file_field_and_value(tmp_path, yaml_e
         read_run(folder)
     text = str(info.value)
     assert str(folder) in text and text.endswith(".") and "\n" not in text
+
+
+@pytest.mark.parametrize(
+    "csv_edit, message",
+    [
+        (lambda ls: _set_cell(ls, 57, "dl_2", "0.1x"),
+         r"samples\.csv: damaged input: 1 a non-numeric or non-finite value \(first: line 57 column 'dl_2' = "
+         r"'0\.1x'\); 59 samples kept\."),
+        (lambda ls: _set_cell(ls, 12, "pitch", "nan"), r"\(first: line 12 column 'pitch' = 'nan'\); 59 samples"),
+        (lambda ls: ls.__setitem__(30, ls[30] + ",7"),
+         r"1 wrong number of fields \(first: line 31 has 25 values, the header 24\); 59 samples kept"),
+        (lambda ls: _set_cell(ls, 9, "setpoint", "two"), r"\(first: line 9 column 'setpoint' = 'two'\); 59 samples"),
+    ],
+)
+def test_a_damaged_line_is_skipped_and_counted_in_one_warning(tmp_path, csv_edit, message):
+    folder = _edit(tmp_path, None, csv_edit)
+    with pytest.warns(DamagedInputWarning, match=message) as rec:
+        back = read_run(folder)
+    assert len(rec) == 1 and len(back) == 59
 
 
 def test_missing_files_and_extra_keys(tmp_path: Path):

@@ -180,7 +180,7 @@ def test_validation_errors_name_file_field_and_value():
 
 
 def test_every_shipped_example_loads_and_nominal_changes_nothing(tmp_path):
-    from sim_backend.config import example_names, example_path, load_sim_config
+    from sim_backend.config import SensorNoise, example_names, example_path, load_sim_config
 
     names = example_names()
     assert {"nominal", "cable_sag", "fault_drive_fault"} <= set(names)
@@ -188,6 +188,8 @@ def test_every_shipped_example_loads_and_nominal_changes_nothing(tmp_path):
         cfg = load_sim_config(example_path(name))
         if name.startswith("fault_"):
             assert len(cfg.faults) == 1 and cfg.faults[0].kind == name[6:]
+        elif name in ("noisy_sensors", "realistic_noise"):  # the sensors' noise and a sway, no hidden effect
+            assert cfg.effects.active() == [] and cfg.sensors != SensorNoise() and cfg.sway.amplitude > 0
         elif name != "nominal":
             assert cfg.effects.active() == [name]
     nominal = load_sim_config(example_path("nominal"))

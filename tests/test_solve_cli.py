@@ -42,6 +42,13 @@ def test_solve_json_follows_the_spec(parsed_run, capsys):
     assert np.allclose(np.abs(doc["sensor_offsets"]["swivel"]), 0.5681, atol=math.radians(1.0))
     saved = json.loads((parsed_run / "solution.json").read_text())
     assert saved["initial_pose"] == doc["initial_pose"]
+    # the 8 windows are matched one to one to the 8 setpoints the import recovered, in order; the rest under
+    # the pretension before the sequence is listed and not used
+    ws = doc["window_search"]
+    assert ws["planned"] == 8 and ws["used"] == 8 and ws["missing"] == []
+    assert [w["setpoint"] for w in ws["found"]] == [-1, *range(8)]
+    assert [w["used"] for w in ws["found"]] == [False] + [True] * 8 and ws["found"][0]["last"] < 79
+    assert [[w["first"], w["last"]] for w in ws["found"] if w["used"]] == doc["windows"]
 
 
 def test_raw_log_import_then_solve(irma_data, tmp_path, capsys):
@@ -51,8 +58,11 @@ def test_raw_log_import_then_solve(irma_data, tmp_path, capsys):
     assert main(["solve", str(run), "--reference", ref]) == 0
     text = capsys.readouterr().out
     assert "initial pose" in text and "eps_p" in text
+    assert "windows: 8 planned, 9 found, 8 used" in text and text.count("no setpoint - not used") == 1
+    assert [f"setpoint {j}" in text for j in range(8)] == [True] * 8
     doc = json.loads((run / "solution.json").read_text())
     assert len(doc["windows"]) == 8
+    assert [w["setpoint"] for w in doc["window_search"]["found"]] == [-1, *range(8)]
     assert doc["reference"]["eps_p"] < 0.0105
 
 

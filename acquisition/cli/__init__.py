@@ -3,14 +3,22 @@
 Each module in ``COMMAND_MODULES`` exposes ``register(subparsers)``, which adds its sub-commands and sets
 ``func`` on their parsers. ``func(args) -> int`` returns the exit status. Errors follow the contract of
 ../shared/spec/cli.md: one sentence on stderr, exit 2 for bad input (:class:`UsageError`), 1 for a failed
-operation (:class:`OperationError`); ``--debug`` shows the traceback.
+operation (:class:`OperationError`); ``--debug`` shows the traceback. A warning of the project's code
+(a ``UserWarning``: damaged lines skipped, a log cut short) is one line ``cdpr: warning: ...``.
+
+SIGINT and SIGTERM are routed to :class:`KeyboardInterrupt` from the first line of :func:`main`, before the
+command modules are imported, so a stop at any moment ends in one sentence; a command that owns the stop
+(`cdpr startup`'s safety supervisor) installs its own handlers over these and restores them.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
+import warnings
 
 from acquisition.cli.errors import OperationError, UsageError
 
@@ -21,8 +29,10 @@ COMMAND_MODULES = (
     "acquisition.cli.runs",
     "acquisition.cli.devices",
     "acquisition.cli.startup",
+    "acquisition.cli.replay",
     "acquisition.cli.diagnose",
     "acquisition.cli.certify",
+    "acquisition.cli.study",
 )
 
 
@@ -33,9 +43,20 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("cdpr")
+    except PackageNotFoundError:  # run from a checkout that was not installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="cdpr", description="Self-calibration of underactuated cable-driven parallel robots.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    parser.add_argument("--version", action="version", version=f"cdpr {_version()}",
+                        help="print the installed version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMAND_MODULES:
         try:
@@ -48,12 +69,56 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM received while no command owned the stop; ``args[0]`` is the signal's name."""
+
+
+def _interrupt(signum, frame) -> None:
+    raise Interrupted(signal.Signals(signum).name)
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    if issubclass(category, UserWarning):
+        sys.stderr.write(f"cdpr: warning: {message}\n")
+    else:  # a library's own warning (numpy, matplotlib): as Python shows it
+        _show_warning(message, category, filename, lineno, file, line)
+
+
+_show_warning = warnings.showwarning
+
+
+def _route_signals() -> dict:
+    """SIGINT and SIGTERM raise :class:`Interrupted` (main thread only: elsewhere Python allows no handler)."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+
 def main(argv: list[str] | None = None) -> int:
+    previous = _route_signals()
+    started: list[str] = []  # the command, once it runs
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", UserWarning)
+            warnings.showwarning = _warning_line
+            return _main(argv, started)
+    except KeyboardInterrupt as exc:
+        name = exc.args[0] if isinstance(exc, Interrupted) else "SIGINT"
+        when = f" during cdpr {started[0]}" if started else " before the command started; nothing was written"
+        sys.stderr.write(f"cdpr: interrupted by the operator ({name}){when}.\n")
+        return 1
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _main(argv: list[str] | None, started: list[str]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2
+    started.append(str(args.command))
     try:
         return int(args.func(args) or 0)
     except UsageError as exc:
@@ -65,9 +130,6 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         sys.stderr.write(f"cdpr: {exc}\n")
-        return 1
-    except KeyboardInterrupt:
-        sys.stderr.write("cdpr: interrupted by the operator.\n")
         return 1
 
 

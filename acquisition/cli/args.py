@@ -1,12 +1,15 @@
-"""Parsers of option values shared by several commands; bad values raise UsageError (exit 2)."""
+"""Option values and outputs shared by several commands: parsers and checks (bad values raise UsageError,
+exit 2) and the CLI side of the output policy (acquisition/outputs.py)."""
 
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 
 from acquisition.cli.errors import UsageError
+from acquisition.outputs import OutputExistsError, check_output, claim_output
 
 
 def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
@@ -20,3 +23,39 @@ def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | No
     if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
         raise UsageError(f"{option} '{text}' must be six numbers x,y,z,roll,pitch,yaw (m, rad).")
     return np.array(vals)
+
+
+GRID_POINTS = (2, 6)  # calibration grid points per axis that `cdpr startup` can acquire and solve
+
+
+def check_grid(grid: int) -> None:
+    """Refuse a --grid outside GRID_POINTS: the same range for planning (poses) and acquiring (startup)."""
+    lo, hi = GRID_POINTS
+    if not lo <= grid <= hi:
+        raise UsageError(f"--grid {grid} is out of range: give {lo} to {hi} grid points per axis.")
+
+
+FORCE_HELP = "move an existing output aside (kept as NAME.replaced-<time>) instead of refusing"
+
+
+def add_force(parser) -> None:
+    """The --force option of a command that writes outputs (acquisition/outputs.py)."""
+    parser.add_argument("--force", action="store_true", help=FORCE_HELP)
+
+
+def check_output_option(path, force: bool, option: str) -> None:
+    """Refuse, before any work, an output that exists and may not be replaced (one sentence, exit 2)."""
+    try:
+        check_output(path, force, option)
+    except OutputExistsError as exc:
+        raise UsageError(str(exc)) from exc
+
+
+def claim_output_option(path, force: bool, option: str) -> None:
+    """Free an output path for writing; with --force what was there is moved aside and the user told where."""
+    try:
+        replaced = claim_output(path, force, option)
+    except OutputExistsError as exc:
+        raise UsageError(str(exc)) from exc
+    if replaced is not None:
+        sys.stderr.write(f"cdpr: note: {replaced.sentence()}\n")

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition.cli.args import add_force, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
-from calib.certify import AXIS_NAMES, CertifyConfig, CertifyResult, certify_anchors
-from calib.certify._nwls import LOSSES
+from calib.certify import AXIS_NAMES, LOSSES, CertifyConfig, CertifyResult, certify_anchors
 from calib.lasertracker import (
     MeasurementFileError,
     read_measurements_csv,
@@ -55,8 +55,11 @@ def register(sub) -> None:
     _tolerance_options(sim)
     sim.add_argument("--anchor-offset", type=float, default=0.005,
                      help="largest offset of the true anchors from the nominal ones per axis, m (default 0.005)")
-    sim.add_argument("-o", "--output", required=True, help="MEASUREMENTS.csv to write")
-    sim.add_argument("--truth", help="also write the ground truth (true anchors, poses, outliers) as JSON")
+    sim.add_argument("-o", "--output", required=True,
+                     help="MEASUREMENTS.csv to write; an existing file is refused unless --force")
+    sim.add_argument("--truth", help="also write the ground truth (true anchors, poses, outliers) as JSON; an "
+                     "existing file is refused unless --force")
+    add_force(sim)
     sim.set_defaults(func=_simulate)
     parser.set_defaults(func=lambda args: parser.print_help(sys.stderr) or 2)
 
@@ -171,6 +174,9 @@ def format_result(result: CertifyResult) -> str:
 
 def _simulate(args) -> int:
     _check_options(args)
+    for option, path in (("-o", args.output), ("--truth", args.truth)):
+        if path:
+            check_output_option(path, args.force, option)
     robot = _robot(args.robot)
     if args.n < 1:
         raise UsageError(f"option -n = {args.n} must be at least 1.")
@@ -183,8 +189,10 @@ def _simulate(args) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
     try:
+        claim_output_option(args.output, args.force, "-o")
         write_measurements_csv(args.output, ds.poses, ds.lengths)
         if args.truth:
+            claim_output_option(args.truth, args.force, "--truth")
             Path(args.truth).write_text(json.dumps({
                 "robot": robot.name,
                 "true_anchors": np.asarray(ds.true_anchors).tolist(),

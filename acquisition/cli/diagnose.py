@@ -15,11 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.cli.args import parse_pose
+from acquisition.cli.args import add_force, check_output_option, claim_output_option, parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import RunFormatError, read_run
-from calib.effects import Effect, EffectLoadError, EffectModel, available_effects, make_effects
-from calib.effects.base import Projected
+from calib.effects import Effect, EffectLoadError, available_effects, make_effects
 
 
 def register(sub) -> None:
@@ -31,8 +30,11 @@ def register(sub) -> None:
         help="noise units: estimate (scatter inside the equilibrium windows, default), accuracy (that scatter "
         "floored at the sensors' accuracy class) or paper (eq. 18)",
     )
-    p.add_argument("--plots", type=Path, default=None, metavar="DIR", help="write PNG plots of the residuals here")
-    p.add_argument("--html", type=Path, default=None, metavar="FILE", help="write an HTML report (plots embedded)")
+    p.add_argument("--plots", type=Path, default=None, metavar="DIR",
+                   help="write PNG plots of the residuals into this new (or empty) folder; refused if it holds "
+                   "files, unless --force")
+    p.add_argument("--html", type=Path, default=None, metavar="FILE",
+                   help="write an HTML report (plots embedded); an existing file is refused unless --force")
     p.add_argument(
         "--effects-from", action="append", default=[], metavar="MODULE",
         help="also consider the effects of this Python file or importable module (repeatable)",
@@ -43,6 +45,7 @@ def register(sub) -> None:
         "--reference", default=None, metavar="x,y,z,r,p,y",
         help="a known initial pose (m, rad): eps_p after each added effect",
     )
+    add_force(p)
     p.set_defaults(func=_diagnose)
 
 
@@ -89,12 +92,16 @@ def _read(path: Path):
 
 
 def _diagnose(args) -> int:
-    from calib.diagnose import diagnose_run, format_diagnosis, html_report, plot_residuals
+    from acquisition.diagnose_report import format_diagnosis, html_report, parameter_units, plot_residuals
+    from calib.diagnose import diagnose_run
     from calib.selfcal import SelfCalFailure, SelfCalInputError
 
     if args.max_effects < 0:
         raise UsageError(f"--max-effects {args.max_effects} must be 0 or more.")
     reference = parse_pose(args.reference)
+    for option, path in (("--plots", args.plots), ("--html", args.html)):
+        if path is not None:
+            check_output_option(path, args.force, option)
     classes = effect_classes(args.effects_from)
     included = parse_effects(args.effects, classes)
     run = _read(args.run)
@@ -106,24 +113,28 @@ def _diagnose(args) -> int:
         raise UsageError(f"{args.run}: {exc}") from exc
     except SelfCalFailure as exc:
         raise OperationError(f"{args.run}: {exc}") from exc
+    units = parameter_units(cands + included, run.robot)
     pngs: list[Path] = []
     if args.plots is not None or args.html is not None:
         import tempfile
 
         folder = args.plots if args.plots is not None else Path(tempfile.mkdtemp(prefix="cdpr-diagnose-"))
+        if args.plots is not None:
+            claim_output_option(folder, args.force, "--plots")
         try:
             pngs = plot_residuals(diag, folder)
         except OSError as exc:
             raise OperationError(f"{folder}: cannot write the plots ({exc.strerror}).") from exc
     if args.html is not None:
+        claim_output_option(args.html, args.force, "--html")
         try:
-            args.html.write_text(html_report(diag, pngs, f"cdpr diagnose {args.run}"))
+            args.html.write_text(html_report(diag, pngs, f"cdpr diagnose {args.run}", units, args.run))
         except OSError as exc:
             raise OperationError(f"{args.html}: cannot write the HTML report ({exc.strerror}).") from exc
     if args.json:
         sys.stdout.write(json.dumps(diag.to_json()) + "\n")
     else:
-        sys.stdout.write(format_diagnosis(diag))
+        sys.stdout.write(format_diagnosis(diag, units, args.run))
     return 0
 
 
@@ -138,33 +149,26 @@ def add_solve_options(parser) -> None:
 
 
 def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: dict[str, Any]):
-    """Solve with the effects of ``args.effects`` added one by one. Returns the final Solution (its
-    ``effects`` filled) and the before/after table; writes the plot RUN/effects_chi2.png."""
-    from calib.diagnose import _restrict, plot_steps, pose_error
+    """Solve with the effects of ``args.effects`` added one by one: the fits of
+    :func:`calib.diagnose.effect_chain` (the diagnosis's own refits: same noise, device priors and start),
+    each returned as a Solution. Returns the final Solution (its ``effects`` filled) and the before/after
+    table; writes the plot RUN/effects_chi2.png."""
+    from acquisition.diagnose_report import plot_steps
+    from calib.diagnose import effect_chain, pose_error, run_rows
     from calib.selfcal import solve
-    from calib.selfcal._solve import _rows, _signals, noise_levels
 
     classes = effect_classes(getattr(args, "effects_from", []) or [])
     effects = parse_effects(args.effects, classes)
-    robot = run.robot
-    base = solve(robot, run, **solve_kwargs)
-    sig = _signals(robot, run)
-    meas, _, _, _, _ = _rows(sig, base.windows, base.method, int(solve_kwargs.get("stride", 1)),
-                             base.reference_sample)
-    sigma, _ = noise_levels(robot, solve_kwargs.get("noise", "paper"), sig, base.windows)
-    sols = [base]
-    for j in range(1, len(effects) + 1):
-        model0 = EffectModel(robot, effects[:j])
-        prev = sols[-1]
-        theta0 = np.r_[prev.theta, model0.absent_values()[prev.theta.shape[0] - 6 :]]
-        used = _restrict(robot, meas, sigma, effects[:j], theta0, prev.poses)
-        model = EffectModel(robot, used)
-        vals = [np.zeros(u.basis.shape[1]) if isinstance(u, Projected) else theta0[sl]
-                for u, sl in zip(used, model0.slices, strict=True)]
-        theta0 = np.r_[theta0[:6], np.concatenate(vals)]
-        sol = solve(robot, run, model=model, guess=(theta0, prev.poses), **solve_kwargs)
+    kw = {k: v for k, v in solve_kwargs.items() if k not in ("noise", "reference_pose")}
+    rows = run_rows(run, solve_kwargs.get("noise", "paper"), kw.get("method", "tlse"), int(kw.get("stride", 1)),
+                    kw.get("reference_sample"))
+    sols = []
+    for f in effect_chain(rows, effects):  # the converged fit as a Solution (the LM stops at once)
+        sol = solve(rows.robot, run, model=f.model, guess=(f.theta, f.poses), noise=rows.sigma,
+                    reference_pose=solve_kwargs.get("reference_pose"), **kw)
+        sol.noise_source = rows.source
         sol.effects = {k: {a: b for a, b in v.items() if math.isfinite(b)}
-                       for k, v in model.report(sol.theta).items()}
+                       for k, v in f.model.report(sol.theta).items()}
         sols.append(sol)
     steps = []
     for j, s in enumerate(sols):
@@ -188,7 +192,7 @@ def effects_table(sols, effects: list[Effect], reference: np.ndarray | None) -> 
     head += f" {'d zeta0 [mm]':>12}" + (f" {'eps_p [mm]':>10}" if reference is not None else "")
     lines = ["effects added one by one (rms/sigma per channel)", head]
     for j, s in enumerate(sols):
-        name = "rigid model" if j == 0 else "+ " + effects[j - 1].name
+        name = "base model (device errors)" if j == 0 else "+ " + effects[j - 1].name
         row = f"{name:<36} {s.chi2:>10.1f} {s.dof:>4} " + " ".join(
             f"{s.residuals.get(c, {}).get('rms_normalized', float('nan')):>7.2f}" for c in chans)
         row += f" {1000 * pose_error(s.initial_pose, sols[0].initial_pose):>12.2f}"

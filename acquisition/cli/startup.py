@@ -1,16 +1,18 @@
 """`cdpr startup`: the operator's startup routine on the simulated prototype or on the robot.
 
     cdpr startup --backend sim [--grid N] [--method equilibrium|kinematic] [--out RUN] [--sim-config FILE]
-                 [--truth FILE] [--seed S] [--rate HZ] [--realtime] [--json]
+                 [--truth FILE] [--seed S] [--rate HZ] [--realtime] [--json] [--force]
     cdpr startup --backend hw --config DEVICES.yaml [...]
 
 Pose planning, force-controlled acquisition into the run folder, solve, report (text on stdout or JSON with
 ``--json``; RUN/report.html; the new sensor offsets in RUN/offsets.yaml and, with ``--offsets FILE``, there
 too). A safe stop exits with status 1 and one sentence; the run folder keeps every sample and the event.
+An existing RUN is refused, or with ``--force`` moved aside (acquisition/outputs.py) before the robot moves.
 """
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import json
 import logging
@@ -19,12 +21,16 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition.cli import Interrupted
+from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.clock import RealClock, SimClock
 from acquisition.equilibrium import DetectorConfig
 from acquisition.report import ProgressBar, ReportRenderer, StartupSummary, read_offsets, render_text, write_offsets
 from acquisition.safety import SafetyLimits, SafetySupervisor
 from acquisition.startup import (
+    PLANS,
+    Pause,
     Plan,
     StartupConfig,
     StartupRoutine,
@@ -41,27 +47,45 @@ def register(sub) -> None:
     p.add_argument("--config", help="device configuration YAML (drivers/config.py), required with --backend hw")
     p.add_argument("--robot", default="irma4u", help="robot description: built-in name or YAML file")
     p.add_argument("--grid", type=int, default=2, help="calibration grid points per axis (default 2)")
-    p.add_argument("--method", choices=("equilibrium", "kinematic"), default="equilibrium")
-    p.add_argument("--out", help="run folder to write (default: run-<UTC time>)")
+    p.add_argument("--method", choices=("equilibrium", "kinematic"), default="equilibrium",
+                   help="equilibrium: static poses, tlse (default); kinematic: constant-speed path, lse")
+    p.add_argument("--plan", choices=PLANS, default=None,
+                   help="grid (default), optimal (the A-optimal --poses poses of the static workspace) or "
+                        "sequential (the default with --tolerance)")
+    p.add_argument("--poses", type=int, default=None,
+                   help="optimal plan: number of poses (default 8); sequential: at most this many (default 27)")
+    p.add_argument("--tolerance", type=_length,
+                   help="sequential acquisition: stop as soon as the 1-sigma of the initial position is below "
+                        "this (e.g. 3mm, 0.5cm, 0.002 = metres)")
+    p.add_argument("--step", type=float, default=0.1,
+                   help="optimal and sequential plans: spacing of the candidate positions, m (default 0.1)")
+    p.add_argument("--out", help="run folder to write (default: run-<UTC time>); an existing run or a folder "
+                   "holding files is refused unless --force")
     p.add_argument("--sim-config", help="simulation configuration YAML (hidden effects, faults)")
-    p.add_argument("--truth", help="write the simulator's true initial pose here (JSON)")
+    p.add_argument("--truth", help="write the simulator's true initial pose here (JSON); an existing file is "
+                   "refused unless --force")
     p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
     p.add_argument("--rate", type=float, default=200.0, help="control rate, Hz, 200..500 (default 200)")
     p.add_argument("--realtime", action="store_true", help="pace the simulated prototype in real time")
-    p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file")
+    p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file (updated in place: "
+                   "its previous content is kept in RUN/run.yaml as previous_offsets)")
     p.add_argument("--max-rate", type=float, default=40.0, help="tension rate limit of the trajectories, N/s")
     p.add_argument("--hold", type=float, default=2.0, help="logged seconds of each equilibrium window")
     p.add_argument("--speed", type=float, default=0.05, help="platform speed along the kinematic path, m/s")
     p.add_argument("--settle-timeout", type=float, default=40.0,
                    help="s to wait for the platform to come to rest at each setpoint before holding anyway")
+    p.add_argument("--pause", action="append", default=[], metavar="J:S[:home]",
+                   help="pause S seconds after setpoint J's window, at it or (home) under tau0 (repeatable)")
+    p.add_argument("--bus-log", choices=("blf", "asc"), default="blf",
+                   help="format of the raw CAN record RUN/bus.<fmt> (python-can's loggers; default blf)")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    add_force(p)
     p.set_defaults(func=run)
 
 
 def _config(args, robot) -> StartupConfig:
-    if args.grid < 2 or args.grid > 6:
-        raise UsageError(f"--grid {args.grid} is out of range: give 2 to 6 grid points per axis.")
+    check_grid(args.grid)
     if min(args.max_rate, args.hold, args.speed, args.settle_timeout) <= 0:
         raise UsageError(f"--max-rate {args.max_rate}, --hold {args.hold}, --speed {args.speed} and "
                          f"--settle-timeout {args.settle_timeout} must be positive.")
@@ -73,17 +97,109 @@ def _config(args, robot) -> StartupConfig:
         raise UsageError(f"invalid option: {exc}") from exc
 
 
-def run(args) -> int:
-    with ReportRenderer() as report:
-        if not args.no_html:
-            # forked first: it loads matplotlib while the robot is planned and connected. During the control
-            # loop the simulated plant needs the second core, and a renderer still loading then slows it down
-            report.start()
-        return _run(args, report)
+def _length(text: str) -> float:
+    """A length with an optional unit (mm, cm, m; default m) in metres."""
+    t = text.strip().lower()
+    for unit, scale in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
+        if t.endswith(unit):
+            t, f = t[: -len(unit)], scale
+            break
+    else:
+        f = 1.0
+    try:
+        v = float(t) * f
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a length (give e.g. 3mm, 0.5cm or 0.003)") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"'{text}' must be a positive length")
+    return v
 
 
-def _run(args, report: ReportRenderer) -> int:
+def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None, poses: int | None = None,
+              tolerance: float | None = None, step: float = 0.1) -> Plan:
+    """The plan `cdpr startup` runs: ``plan`` 'grid' (``grid`` points per axis), 'optimal' (``poses`` poses,
+    default 8) or 'sequential' (stop at ``tolerance`` m, at most ``poses`` poses, default 27); None: grid, or
+    sequential when a tolerance is given. The window-mean noise the optimal and sequential plans use is the
+    per-sample noise of :data:`calib.design.SAMPLE_NOISE` over the samples of one hold. Raises UsageError."""
+    from calib.design import TimeModel, window_mean_noise
     from calib.planning import PlanningError
+
+    plan = plan or ("sequential" if tolerance is not None else "grid")
+    if tolerance is not None and plan != "sequential":
+        raise UsageError(f"--tolerance applies to the sequential plan, not to --plan {plan}.")
+    if plan == "sequential" and tolerance is None:
+        raise UsageError("--plan sequential needs --tolerance (e.g. --tolerance 3mm).")
+    if not step > 0:
+        raise UsageError(f"--step must be positive, got {step}.")
+    if poses is not None and not 1 <= poses <= 100:
+        raise UsageError(f"--poses {poses} is out of range: give 1 to 100 poses.")
+    poses = poses or (27 if plan == "sequential" else 8)
+    noise = window_mean_noise(robot, max(1, round(cfg.hold_time / cfg.log_period)))
+    try:
+        return Plan.for_robot(robot, grid, cfg.method, cfg.kinematic_speed, cfg.kinematic_spacing, plan=plan,
+                              poses=poses, tolerance=tolerance, noise=noise, step=step,
+                              time_model=TimeModel(cfg.max_tension_rate, cfg.min_transition, cfg.expected_settle,
+                                                   cfg.hold_time))
+    except PlanningError as exc:
+        raise UsageError(str(exc)) from exc
+
+
+def _pause(text: str, k: int) -> Pause:
+    """``J:S`` or ``J:S:home`` -> a Pause after setpoint J (0..k-1) of S > 0 seconds."""
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] != "home"):
+            raise ValueError
+        pause = Pause(int(parts[0]), float(parts[1]), len(parts) == 3)
+    except ValueError:
+        raise UsageError(f"--pause {text!r} is not J:S or J:S:home (setpoint index, seconds).") from None
+    if not 0 <= pause.after < k or not 0 < pause.seconds <= 600:
+        raise UsageError(f"--pause {text!r}: the setpoint must be 0..{k - 1} and the seconds within (0, 600].")
+    return pause
+
+
+def run(args) -> int:
+    try:
+        with ReportRenderer() as report:
+            if not args.no_html:
+                # forked first: it loads matplotlib while the robot is planned and connected. During the control
+                # loop the simulated plant needs the second core, and a renderer still loading then slows it down
+                report.start()
+            return _print(args, _run(args, report))
+    except Interrupted as stop:  # a signal outside the acquisition, whose supervisor owns the stop
+        raise OperationError(f"stopped by {stop.args[0]} {_where(getattr(args, 'run_folder', None))}.") from stop
+
+
+def _where(out: Path | None) -> str:
+    """Where a stop outside the acquisition leaves the operator: before the run log, or after it."""
+    if out is not None and (out / "samples.csv").is_file():
+        return f"after the acquisition; the run log {out} is complete (cdpr solve {out})"
+    return "before the acquisition started; no run was written"
+
+
+def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | None = None, poses: int | None = None,
+                      seed: int = 0, sim_config: str | None = None, robot: str = "irma4u", step: float = 0.1) -> dict:
+    """One simulated startup in this process, as ``cdpr startup --backend sim --no-html --json`` runs it (the
+    entry point of Monte-Carlo studies): ``plan`` 'gridN' (N points per axis), 'optimal' or 'sequential'
+    (``tolerance`` m), candidates every ``step`` m; returns the ``--json`` summary plus ``truth``, the
+    simulator's initial pose (6,) at the solution's reference sample (also in OUT/truth.json). Raises
+    UsageError or OperationError."""
+    from acquisition.cli import build_parser
+
+    out = Path(out)
+    argv = ["startup", "--backend", "sim", "--no-html", "--out", str(out), "--seed", str(seed), "--robot", robot,
+            "--truth", str(out / "truth.json"), "--step", repr(float(step))]
+    argv += ["--plan", "grid", "--grid", plan[4:] or "2"] if plan.startswith("grid") else ["--plan", plan]
+    argv += [] if tolerance is None else ["--tolerance", repr(float(tolerance))]
+    argv += [] if poses is None else ["--poses", str(poses)]
+    argv += [] if sim_config is None else ["--sim-config", str(sim_config)]
+    args = build_parser().parse_args(argv)
+    with ReportRenderer() as report:
+        summary = _run(args, report)
+    return summary.to_dict() | {"truth": json.loads((out / "truth.json").read_text())["initial_pose"]}
+
+
+def _run(args, report: ReportRenderer) -> StartupSummary:
     from calib.robot import RobotDescriptionError, load_robot
 
     if not args.debug:  # the canopen library logs SDO aborts itself; the CLI says what failed in one sentence
@@ -93,10 +209,8 @@ def _run(args, report: ReportRenderer) -> int:
     except RobotDescriptionError as exc:
         raise UsageError(str(exc)) from exc
     cfg = _config(args, robot)
-    try:
-        plan = Plan.for_robot(robot, args.grid, args.method, cfg.kinematic_speed, cfg.kinematic_spacing)
-    except PlanningError as exc:
-        raise UsageError(str(exc)) from exc
+    plan = make_plan(robot, cfg, args.grid, args.plan, args.poses, args.tolerance, args.step)
+    plan.pauses = tuple(_pause(text, len(plan.setpoints)) for text in args.pause)
     meta = {}
     if args.offsets and Path(args.offsets).exists():  # the last calibration, for the record of this run
         try:
@@ -105,8 +219,9 @@ def _run(args, report: ReportRenderer) -> int:
             raise UsageError(str(exc)) from exc
     args.run_meta = meta
     out = Path(args.out or f"run-{_dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out} exists and is not a folder.")
+    check_output_option(out, args.force, "--out")
+    if args.truth:
+        check_output_option(args.truth, args.force, "--truth")
     if args.backend == "hw":
         if not args.config:
             raise UsageError("--backend hw needs --config FILE (the device configuration YAML).")
@@ -114,6 +229,8 @@ def _run(args, report: ReportRenderer) -> int:
             raise UsageError("--sim-config and --truth apply to --backend sim only.")
     elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
+    claim_output_option(out, args.force, "--out")
+    args.run_folder = out
     if args.backend == "hw":
         return _run_hw(args, robot, plan, cfg, out, report)
     return _run_sim(args, robot, plan, cfg, out, report)
@@ -123,7 +240,7 @@ def _progress(args) -> ProgressBar:
     return ProgressBar(1.0, stream=sys.stderr)
 
 
-def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
+def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> StartupSummary:
     from sim_backend.backend import SimBackend
     from sim_backend.config import SimConfigError, load_sim_config
 
@@ -137,7 +254,7 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
     try:
         # the simulated MTi sends at the log rate: its angles serve only the log (ahrs_rate_for)
         with SimBackend(robot, sim_config, args.seed, period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
-            rig = _connect(sim.devices, robot, clock, True, period, cfg)
+            rig = _connect(sim.devices, robot, clock, True, period, cfg, out, args.bus_log)
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
                                      supervisor=supervisor, meta=args.run_meta)
             try:
@@ -151,16 +268,17 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
                 sample = int(summary.solution["reference_sample"])
                 tick = int(result.ticks[sample])
                 truth = sim.truth(sync_count=tick)
+                claim_output_option(args.truth, args.force, "--truth")
                 Path(args.truth).write_text(json.dumps({
                     "initial_pose": [float(v) for v in truth.pose], "reference_sample": sample,
                     "sync_count": tick, "sim_time": float(truth.time)}) + "\n")
                 summary.files["truth"] = str(args.truth)
     finally:
         supervisor.restore_signals()
-    return _print(args, summary)
+    return summary
 
 
-def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
+def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> StartupSummary:
     from drivers.config import DeviceConfigError, load_device_config
 
     try:
@@ -172,7 +290,7 @@ def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
     clock = RealClock(period, lockstep=False)
     supervisor = _supervisor(robot, cfg)
     try:
-        rig = _connect(devices, robot, clock, False, period, cfg)
+        rig = _connect(devices, robot, clock, False, period, cfg, out, args.bus_log)
         routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args),
                                  supervisor=supervisor, meta=args.run_meta)
         try:
@@ -182,7 +300,7 @@ def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> int:
             rig.close()
     finally:
         supervisor.restore_signals()
-    return _print(args, _solve_and_report(args, robot, cfg, result, out, report))
+    return _solve_and_report(args, robot, cfg, result, out, report)
 
 
 def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
@@ -192,18 +310,37 @@ def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
     return sup
 
 
-def _connect(devices, robot, clock, lockstep: bool, period: float, cfg):
+def _connect(devices, robot, clock, lockstep: bool, period: float, cfg, out: Path, bus_log: str):
+    """The rig, its raw bus record (RUN/bus.<bus_log>, RUN/serial.rec) started first and closed last."""
+    from acquisition.busrecord import BusRecorder, record_settings
     from drivers.config import DeviceConfigError
     from drivers.interfaces import DeviceError
 
     log_every = int(round(cfg.log_period * cfg.rate))
     every = feedback_every(cfg.rate, log_every, devices.can.sync_overflow)
     try:
-        return connect(devices, robot, clock, lockstep=lockstep, period=period, every=every)
+        recorder = BusRecorder(out, record_settings(devices, every, cfg.rate, lockstep), bus_log)
+    except OSError as exc:
+        raise OperationError(f"{out}: cannot write the raw bus record ({exc.strerror}).") from exc
+    try:
+        rig = connect(devices, robot, clock, lockstep=lockstep, period=period, every=every, recorder=recorder)
     except DeviceConfigError as exc:
+        recorder.discard()
         raise UsageError(str(exc)) from exc
     except DeviceError as exc:
+        recorder.discard()
         raise OperationError(f"device check failed: {str(exc).rstrip('.')}.") from exc
+    except BaseException:
+        recorder.discard()
+        raise
+    close_devices = rig.closer
+
+    def close() -> None:
+        close_devices()
+        recorder.stop()
+
+    rig.closer = close
+    return rig
 
 
 def _acquire(routine: StartupRoutine):
@@ -240,6 +377,7 @@ def _solve_and_report(args, robot, cfg, result, out: Path, report: ReportRendere
         solution=data, windows=result.windows, events=list(run.events),
         timing={"acquisition_s": result.robot_time, "wall_s": result.wall_time, "solve_s": solve_s,
                 "control_p99_ms": 1000 * result.control["compute_p99_s"]},
+        message=sequential_outcome(result.sequential),
     )
     summary.files["offsets"] = str(write_offsets(out / "offsets.yaml", data, robot.name, str(out)))
     if args.offsets:
@@ -247,6 +385,19 @@ def _solve_and_report(args, robot, cfg, result, out: Path, report: ReportRendere
     if not args.no_html:
         summary.files["report"] = str(report.write(out / "report.html", summary, run.t, run.tau, run.tau_ref))
     return summary
+
+
+def sequential_outcome(seq: dict | None) -> str:
+    """One sentence on why a sequential startup stopped ('' for a fixed plan)."""
+    if not seq:
+        return ""
+    w, tol = seq["windows"], 1000 * seq["tolerance_m"]
+    sigma = 1000 * w[-1]["position_sigma_m"] if w else float("inf")
+    if seq["stop"] == "tolerance":
+        return (f"sequential: 1-sigma of the initial position {sigma:.2f} mm < tolerance {tol:g} mm after "
+                f"{len(w)} poses.")
+    return (f"sequential: the plan is exhausted after {len(w)} poses with a 1-sigma of the initial position of "
+            f"{sigma:.2f} mm, above the tolerance {tol:g} mm.")
 
 
 def _print(args, summary: StartupSummary) -> int:

@@ -26,7 +26,7 @@ from calib.certify._pulley import pulley_length_bound
 from calib.certify._solver import solve_cable
 from calib.robot import Robot
 
-__all__ = ["AnchorEnclosure", "CertifyConfig", "CertifyResult", "certify_anchors", "n_allowed_failures"]
+__all__ = ["LOSSES", "AnchorEnclosure", "CertifyConfig", "CertifyResult", "certify_anchors", "n_allowed_failures"]
 
 AXIS_NAMES = ("x", "y", "z")
 

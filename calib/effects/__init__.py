@@ -19,7 +19,7 @@ from collections.abc import Iterable, Sequence
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from calib.effects.base import Context, Effect, EffectModel, ParamSpec, Physical, Projected
+from calib.effects.base import Context, Effect, EffectModel, Implausible, ParamSpec, Physical, Projected
 from calib.effects.builtin import BUILTIN
 
 ENTRY_POINT_GROUP = "cdpr.effects"
@@ -31,6 +31,7 @@ __all__ = [
     "Effect",
     "EffectModel",
     "EffectLoadError",
+    "Implausible",
     "ParamSpec",
     "Physical",
     "Projected",

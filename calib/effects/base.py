@@ -38,8 +38,10 @@ from calib.statics import tension_model
 @dataclass(frozen=True)
 class ParamSpec:
     """One effect parameter: name, unit, the value meaning the effect is absent, bounds, a typical size
-    (used for finite-difference steps and for reporting) and, optionally, the standard deviation of a
-    Gaussian prior centred on ``absent`` (what a datasheet says of a device's constant error; None: free)."""
+    (used for finite-difference steps and for reporting), optionally the standard deviation of a
+    Gaussian prior centred on ``absent`` (what a datasheet says of a device's constant error; None: free),
+    and the physically plausible range (lo, hi) of the value: a fit that leaves it is no explanation (the
+    diagnosis never recommends it); each built-in effect says in a comment where its range comes from."""
 
     name: str
     unit: str
@@ -48,6 +50,25 @@ class ParamSpec:
     upper: float = np.inf
     scale: float = 1.0
     prior: float | None = None
+    plausible: tuple[float, float] = (-np.inf, np.inf)
+
+
+@dataclass
+class Implausible:
+    """A fitted value outside its plausible range: ``effect.param`` = value (unit), range (lo, hi)."""
+
+    param: str
+    value: float
+    unit: str
+    lo: float
+    hi: float
+
+    def __str__(self) -> str:
+        if self.unit == "rad":
+            return (f"{self.param} = {np.degrees(self.value):.3g} deg outside [{np.degrees(self.lo):.3g}, "
+                    f"{np.degrees(self.hi):.3g}] deg")
+        unit = "" if self.unit == "1" else f" {self.unit}"
+        return f"{self.param} = {self.value:.4g}{unit} outside [{self.lo:.4g}, {self.hi:.4g}]{unit}"
 
 
 @dataclass
@@ -106,21 +127,20 @@ class Effect:
         self, robot: Robot, values: np.ndarray, poses: np.ndarray, recompute
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Robot stage: dL/dq, dsigma/dq, dtau/dq (k, n, q) at the poses. ``recompute(values)`` returns the
-        (L, sigma, tau) arrays with this effect's values replaced (everything else fixed). Default: central
-        differences."""
+        (L, sigma, tau) arrays with this effect's values replaced (everything else fixed). Default: forward
+        differences of relative step ``fd_steps`` (q + 1 evaluations; the truncation error, of the order of
+        the step, is far below the rounding error of a step of 1e-6 of a parameter's typical size)."""
         specs = self.params(robot)
         cols = [[], [], []]
+        base = recompute(values)
         for j, s in enumerate(specs):
             h = self.fd_steps * s.scale
-            vp, vm = values.copy(), values.copy()
+            vp = values.copy()
             vp[j] += h
-            vm[j] -= h
-            plus, minus = recompute(vp), recompute(vm)
+            plus = recompute(vp)
             for c in range(3):
-                d = (plus[c] - minus[c]) / (2 * h)
-                if c == 1:
-                    d = np.angle(np.exp(1j * (plus[c] - minus[c]))) / (2 * h)
-                cols[c].append(d)
+                diff = plus[c] - base[c]
+                cols[c].append((np.angle(np.exp(1j * diff)) if c == 1 else diff) / h)
         return tuple(np.stack(c, axis=-1) for c in cols)
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
@@ -135,6 +155,12 @@ class Effect:
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
         """Reported parameters, e.g. ``{"EA": 15020.0}`` (default: the parameters by name)."""
         return {s.name: float(v) for s, v in zip(self.params(robot), values, strict=True)}
+
+    def implausible(self, robot: Robot, values: np.ndarray) -> list[Implausible]:
+        """The parameters whose value lies outside its plausible range (``ParamSpec.plausible``)."""
+        return [Implausible(f"{self.name}.{s.name}", float(v), s.unit, *s.plausible)
+                for s, v in zip(self.params(robot), values, strict=True)
+                if not s.plausible[0] <= v <= s.plausible[1]]
 
 
 def physical(robot: Robot, poses: np.ndarray, p: int) -> Physical:
@@ -343,6 +369,9 @@ class Projected(Effect):
 
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
         return self.inner.report(robot, self.full_values(robot, values))
+
+    def implausible(self, robot: Robot, values: np.ndarray) -> list[Implausible]:
+        return self.inner.implausible(robot, self.full_values(robot, values))
 
     def covariance(self, cov: np.ndarray) -> np.ndarray:
         """Covariance of the inner (full) parameters from the covariance of the projected ones."""

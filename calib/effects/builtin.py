@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from calib.effects.base import Context, Effect, ParamSpec
+from calib.effects.base import Context, Effect, Implausible, ParamSpec
 from calib.kinematics import euler_axes, inverse_kinematics, rotation, rotation_to_euler
 from calib.robot import Robot
 from calib.selfcal.model import ChannelPrediction
@@ -37,7 +37,10 @@ class CableElasticity(Effect):
     description = "axial cable compliance 1/EA: encoders see L / (1 + tau / EA)"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
-        return [ParamSpec("compliance", "1/N", 0.0, 0.0, 1e-2, 1e-5)]
+        # plausible: EA >= 5 kN. A 2 mm steel rope has EA ~ 300 kN, a 2-4 mm UHMWPE (Dyneema) rope 20-200 kN
+        # (E ~ 60-100 GPa on ~50 % of the section); creep and the rope's bedding on the drum soften it by a
+        # factor of a few at most. A fit softer than 5 kN means something else stretches the lengths.
+        return [ParamSpec("compliance", "1/N", 0.0, 0.0, 1e-2, 1e-5, plausible=(0.0, 2e-4))]
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         if "length" not in preds:
@@ -78,7 +81,10 @@ class LengthScale(Effect):
     description = "per-winch transmission ratio error k_i"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
-        return [ParamSpec(f"k_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01) for i in range(robot.n)]
+        # plausible: |k_i| <= 3 %. The length per motor revolution comes from the controller (drum radius
+        # and gear ratio); the rope winding on the drum shifts the effective radius by up to half a rope
+        # diameter (1-2 mm of a ~25 mm radius drum: 2-4 % at most in the worst layer, less with one layer).
+        return [ParamSpec(f"k_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01, plausible=(-0.03, 0.03)) for i in range(robot.n)]
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         if "length" not in preds:
@@ -98,7 +104,11 @@ class TensionGain(Effect):
     description = "per-channel load-cell gain error g_i"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
-        return [ParamSpec(f"g_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01) for i in range(robot.n)]
+        # plausible: |g_i| <= 3 %. A load cell's rated-output tolerance is 0.1-1 % (uncalibrated S-beam cells,
+        # typical datasheets), the amplifier's gain error <= 0.5 %, and a rope leaving the cell's pulley a
+        # few degrees off its axis changes the force on the cell by (1 - cos) ~ 0.1-1 %.
+        return [ParamSpec(f"g_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01, plausible=(-0.03, 0.03))
+                for i in range(robot.n)]
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         if "tension" not in preds:
@@ -117,7 +127,12 @@ class TensionOffset(Effect):
     description = "per-channel load-cell offset o_i, N"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
-        return [ParamSpec(f"o_{i + 1}", "N", 0.0, -100.0, 100.0, 1.0) for i in range(robot.n)]
+        # plausible: |o_i| <= 2 % of the cell's full scale (robot sensors.load_cell_full_scale: 19.6 N for
+        # 100 kg). Zero balance of a load cell is specified within +-1 % of rated output (typical S-beam
+        # datasheets), the amplifier's zero within a fraction of that, and the tare of the hardware hanging
+        # on the cell (sheave, shackle) is at most a few newtons.
+        fs = 0.02 * float(robot.sensors.load_cell_full_scale)
+        return [ParamSpec(f"o_{i + 1}", "N", 0.0, -100.0, 100.0, 1.0, plausible=(-fs, fs)) for i in range(robot.n)]
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         if "tension" not in preds:
@@ -135,7 +150,11 @@ class AhrsMounting(Effect):
     description = "roll and pitch tilt of the AHRS on the platform, rad"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
-        return [ParamSpec("roll", "rad", 0.0, -0.5, 0.5, 0.01), ParamSpec("pitch", "rad", 0.0, -0.5, 0.5, 0.01)]
+        # plausible: a tilt of at most 3 deg: the AHRS sits on a machined bracket screwed to the platform;
+        # a bracket bent or shimmed by more than a few degrees would be seen by eye.
+        tilt = (-math.radians(3.0), math.radians(3.0))
+        return [ParamSpec("roll", "rad", 0.0, -0.5, 0.5, 0.01, plausible=tilt),
+                ParamSpec("pitch", "rad", 0.0, -0.5, 0.5, 0.01, plausible=tilt)]
 
     @staticmethod
     def _read(conv: str, angles: np.ndarray, a: float, b: float, sensor: str | None = None):
@@ -182,7 +201,12 @@ class AhrsYawDrift(Effect):
     description = "constant drift rate of the AHRS yaw, rad/s"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
-        return [ParamSpec("rate", "rad/s", 0.0, -0.01, 0.01, 1e-4)]
+        # plausible: |rate| <= 30 deg/h. The MTi-630's gyro in-run bias stability is 8 deg/h (datasheet);
+        # its turn-on bias (up to 0.5 deg/s, Xsens "Bias repeatability of gyroscopes") is estimated by the
+        # filter, from gravity for roll and pitch but for an unreferenced heading only as well as the still
+        # periods allow: we admit a few times the in-run stability.
+        rate = math.radians(30.0) / 3600.0
+        return [ParamSpec("rate", "rad/s", 0.0, -0.01, 0.01, 1e-4, plausible=(-rate, rate))]
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         if "orientation" not in preds or ctx.times is None:
@@ -208,9 +232,12 @@ class PulleyRadius(Effect):
         self.per_pulley = per_pulley
 
     def params(self, robot: Robot) -> list[ParamSpec]:
+        # plausible: |dr| <= 5 mm. The effective radius is the groove's radius plus half the rope diameter;
+        # groove depth, rope diameter (2-4 mm) and its flattening under load change it by a few mm at most.
+        ok = (-0.005, 0.005)
         if self.per_pulley:
-            return [ParamSpec(f"dr_{i + 1}", "m", 0.0, -0.02, 0.05, 0.001) for i in range(robot.n)]
-        return [ParamSpec("dr", "m", 0.0, -0.02, 0.05, 0.001)]
+            return [ParamSpec(f"dr_{i + 1}", "m", 0.0, -0.02, 0.05, 0.001, plausible=ok) for i in range(robot.n)]
+        return [ParamSpec("dr", "m", 0.0, -0.02, 0.05, 0.001, plausible=ok)]
 
     def modify(self, robot: Robot, values: np.ndarray) -> Robot:
         has = robot.r > 0
@@ -253,11 +280,32 @@ class PulleyPosition(Effect):
     stage = "robot"
     description = "error of the pulleys' entry points D_i (deformation of the pulley set), m"
 
+    def __init__(self):
+        self._bases: dict[bytes, np.ndarray] = {}  # pulley_gauge_basis by pulley points (an SVD per call)
+
+    def basis(self, robot: Robot) -> np.ndarray:
+        key = robot.d.tobytes()
+        if key not in self._bases:
+            if len(self._bases) > 8:
+                self._bases.clear()
+            self._bases[key] = pulley_gauge_basis(robot)
+        return self._bases[key]
+
     def params(self, robot: Robot) -> list[ParamSpec]:
         return [ParamSpec(f"mode_{j + 1}", "m", 0.0, -0.2, 0.2, 0.001) for j in range(3 * robot.n - 4)]
 
+    # plausible: every pulley within 3 cm of its nominal point, per coordinate. The frame's pulley points
+    # are measured with a tape or a laser meter to about 1 cm; the frame's deflection under ~200 N of
+    # tension and the swivel's play add millimetres.
+    PLAUSIBLE = 0.03
+
+    def implausible(self, robot: Robot, values: np.ndarray) -> list[Implausible]:
+        lim = self.PLAUSIBLE
+        return [Implausible(f"{self.name}.{k}", v, "m", -lim, lim)
+                for k, v in self.report(robot, values).items() if abs(v) > lim]
+
     def modify(self, robot: Robot, values: np.ndarray) -> Robot:
-        return robot.replace(d=robot.d + (pulley_gauge_basis(robot) @ values).reshape(robot.n, 3))
+        return robot.replace(d=robot.d + (self.basis(robot) @ values).reshape(robot.n, 3))
 
     def physical_columns(self, robot, values, poses, recompute):
         _, _, dtau = super().physical_columns(robot, values, poses, recompute)
@@ -268,11 +316,11 @@ class PulleyPosition(Effect):
         for i in range(n):  # q = a - d: dL = t . dq, dsigma = w . dq / (q . u)
             dL[:, i, 3 * i : 3 * i + 3] = -kin.t[:, i]
             ds[:, i, 3 * i : 3 * i + 3] = -kin.w[:, i] / kin.rho_u[:, i, None]
-        B = pulley_gauge_basis(robot)
+        B = self.basis(robot)
         return dL @ B, ds @ B, dtau
 
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
-        off = (pulley_gauge_basis(robot) @ values).reshape(robot.n, 3)
+        off = (self.basis(robot) @ values).reshape(robot.n, 3)
         return {f"d{ax}_{i + 1}": float(off[i, j]) for i in range(robot.n) for j, ax in enumerate("xyz")}
 
 
@@ -284,7 +332,11 @@ class ComOffset(Effect):
     description = "centre of mass offset in the platform frame, m"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
-        return [ParamSpec(f"d{ax}", "m", 0.0, -0.2, 0.2, 0.01) for ax in "xyz"]
+        # plausible: 2 cm across, 5 cm along the platform's axis. The centre of mass comes from the CAD model
+        # of a ~0.3 m platform; unmodelled parts (AHRS, wiring, bolts: a few hundred grams of 13 kg at
+        # <= 0.2 m) move it by millimetres, a misplaced battery or ballast by a centimetre or two.
+        return [ParamSpec(f"d{ax}", "m", 0.0, -0.2, 0.2, 0.01, plausible=lim)
+                for ax, lim in (("x", (-0.02, 0.02)), ("y", (-0.02, 0.02)), ("z", (-0.05, 0.05)))]
 
     def modify(self, robot: Robot, values: np.ndarray) -> Robot:
         return robot.replace(com=robot.com + values)
@@ -309,7 +361,10 @@ class MassScale(Effect):
     description = "relative error of the platform mass"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
-        return [ParamSpec("s", "1", 0.0, -0.5, 0.5, 0.01)]
+        # plausible: |s| <= 3 %. The platform is weighed (12.992 kg for IRMA4U, Table I); the rope hanging
+        # between pulleys and platform (~0.1 kg) and parts mounted after weighing (AHRS, wiring) add a few
+        # hundred grams at most.
+        return [ParamSpec("s", "1", 0.0, -0.5, 0.5, 0.01, plausible=(-0.03, 0.03))]
 
     def modify(self, robot: Robot, values: np.ndarray) -> Robot:
         return robot.replace(mass=robot.mass * (1.0 + float(values[0])))

@@ -14,7 +14,8 @@ sensors' specifications), ``estimate`` (the scatter inside the equilibrium windo
 Structure. The unknowns are global parameters ``theta`` (zeta_0, the pose at the reference sample, first;
 then any effect parameters) and one pose per measurement row; the Jacobian is block-arrow and
 :mod:`calib.selfcal.lm` solves it by Levenberg-Marquardt with a Schur complement on the normal equations,
-O(k) per iteration. The windows come from :func:`calib.selfcal.windows.find_windows`.
+O(k) per iteration. The windows come from :func:`calib.selfcal.windows.search_windows` (matched to the
+planned setpoints; ``Solution.window_search`` says which were planned, found and used).
 
 Extension hook (physical effects, issue 7). Every channel's prediction is computed in one place,
 :meth:`calib.selfcal.model.MeasurementModel.predict(poses, theta, channels)`, returning per channel the
@@ -34,7 +35,18 @@ from typing import Any
 import numpy as np
 
 from calib.robot import NoiseLevels, Robot
-from calib.selfcal._solve import METHODS, NOISE, noise_levels, paper_noise, sensor_noise, solve_run
+from calib.selfcal._solve import (
+    METHODS,
+    NOISE,
+    Prepared,
+    measurement_rows,
+    noise_levels,
+    paper_noise,
+    prepare,
+    run_signals,
+    sensor_noise,
+    solve_run,
+)
 from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import (
@@ -42,9 +54,18 @@ from calib.selfcal.result import (
     SelfCalFailure,
     SelfCalInputError,
     Solution,
+    TooFewWindows,
     compare_pose,
 )
-from calib.selfcal.windows import Window, WindowOptions, find_windows
+from calib.selfcal.windows import (
+    MissingSetpoint,
+    Stillness,
+    Window,
+    WindowOptions,
+    WindowSearch,
+    find_windows,
+    search_windows,
+)
 
 __all__ = [
     "solve",
@@ -58,12 +79,21 @@ __all__ = [
     "WindowOptions",
     "SelfCalInputError",
     "SelfCalFailure",
+    "TooFewWindows",
     "METHODS",
     "NOISE",
     "CHANNELS",
     "find_windows",
+    "search_windows",
+    "prepare",
+    "Prepared",
+    "WindowSearch",
+    "MissingSetpoint",
+    "Stillness",
     "compare_pose",
     "noise_levels",
+    "measurement_rows",
+    "run_signals",
     "paper_noise",
     "sensor_noise",
 ]

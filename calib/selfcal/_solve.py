@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -13,8 +14,8 @@ from calib.robot import NoiseLevels, Robot
 from calib.selfcal.lm import levenberg_marquardt, solve_poses
 from calib.selfcal.model import CHANNELS, MeasurementModel
 from calib.selfcal.problem import Measurements, Problem
-from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, compare_pose
-from calib.selfcal.windows import Window, WindowOptions, find_windows
+from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, compare_pose
+from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_windows
 
 METHODS = ("tlse", "lse", "hybrid")
 NOISE = ("paper", "estimate", "sensors")
@@ -65,7 +66,7 @@ def estimated_noise(robot: Robot, sig: dict[str, np.ndarray], windows: list[Wind
     return out
 
 
-def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
+def run_signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
     """The run's arrays, checked: present, right shapes, finite."""
     n = robot.n
     sig: dict[str, np.ndarray] = {}
@@ -79,6 +80,8 @@ def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
             raise SelfCalInputError(f"run: signal '{name}' has shape {a.shape}, expected {shape}.")
         sig[name] = a
     N = sig["t"].shape[0]
+    if N < 3:
+        raise SelfCalInputError(f"the run holds {N} samples; a solve needs at least 3.")
     for name, a in sig.items():
         if a.shape[0] != N:
             raise SelfCalInputError(f"run: signal '{name}' has {a.shape[0]} samples, 't' has {N}.")
@@ -86,8 +89,6 @@ def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise SelfCalInputError(f"run: signal '{name}' is not a finite number at sample {i} (value {a[i]}).")
-    if N < 3:
-        raise SelfCalInputError(f"run: {N} samples, at least 3 are needed.")
     ref = getattr(run, "tau_ref", None)
     sig["tau_ref"] = None if ref is None else np.asarray(ref, dtype=float)
     tr = sig["tau_ref"]
@@ -96,7 +97,7 @@ def _signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
     return sig
 
 
-def _rows(
+def measurement_rows(
     sig: dict[str, np.ndarray], windows: list[Window], method: str, stride: int, ref_sample: int | None
 ) -> tuple[Measurements, int, Window | None, dict[str, np.ndarray], list[int]]:
     """Measurement rows for a method; returns the rows, the reference sample, its window, the reference
@@ -184,15 +185,12 @@ def _guess(
             return None
         return np.asarray(ideal[w.setpoint], float)
 
+    home = default_guess(robot, 1)[0]
     z0 = ideal_of(ref_win)
     if z0 is None and not np.all(np.isfinite(ref_tau)):
-        z0 = default_guess(robot, 1)[0]
-    if z0 is None:
-        ds = direct_statics(robot, ref_tau[None], default_guess(robot, 1))
-        z0 = ds.poses[0] if ds.converged[0] else default_guess(robot, 1)[0]
-    theta0 = problem.model.initial_params(z0)
+        z0 = home
     k = meas.k
-    Z = np.tile(z0, (k, 1))
+    Z = np.zeros((k, 6))
     fixed = np.zeros(k, bool)
     need_ds = []
     for i, j in enumerate(win_of):
@@ -203,11 +201,19 @@ def _guess(
             Z[i], fixed[i] = zi, True
         else:
             need_ds.append(i)
-    if need_ds:
-        ds = direct_statics(robot, meas.tau[need_ds], np.tile(z0, (len(need_ds), 1)))
-        ok = ds.converged
-        Z[np.array(need_ds)[ok]] = ds.poses[ok]
-        fixed[np.array(need_ds)[ok]] = True
+    # one direct-statics solve for zeta_0 (when no ideal pose gives it) and the windows, all from home
+    tau_ds = ([] if z0 is not None else [ref_tau]) + [meas.tau[i] for i in need_ds]
+    if tau_ds:
+        ds = direct_statics(robot, np.array(tau_ds), np.tile(home if z0 is None else z0, (len(tau_ds), 1)))
+        poses, ok = ds.poses, ds.converged
+        if z0 is None:
+            z0 = poses[0] if ok[0] else home
+            poses, ok = poses[1:], ok[1:]
+        rows = np.array(need_ds, dtype=int)
+        Z[rows[ok]] = poses[ok]
+        fixed[rows[ok]] = True
+    Z[~fixed] = z0
+    theta0 = problem.model.initial_params(z0)
     # kinematic rows (and windows where direct statics failed): pose estimation from the readings
     free = ~fixed
     if free.any():
@@ -314,7 +320,23 @@ def noise_levels(
     raise SelfCalInputError(f"noise '{noise}' is not one of {', '.join(NOISE)}.")
 
 
-def solve_run(
+@dataclass
+class Prepared:
+    """A run made ready for the solve: the problem, its start (theta0 (p,), poses0 (k, 6)), the windows and
+    what the solution reports of them, and the time marks (perf_counter s) of each step."""
+
+    problem: Problem
+    theta0: np.ndarray
+    poses0: np.ndarray
+    windows: list[Window]
+    search: WindowSearch | None
+    ref: dict[str, np.ndarray] | None
+    ref_sample: int
+    noise_source: str
+    marks: tuple[float, float, float]  # start, rows done, guess done
+
+
+def prepare(
     robot: Robot,
     run: Any,
     method: str = "tlse",
@@ -325,34 +347,36 @@ def solve_run(
     window_options: WindowOptions | None = None,
     model: MeasurementModel | None = None,
     guess: tuple[np.ndarray, np.ndarray] | None = None,
-    reference_pose: np.ndarray | None = None,
-    max_iter: int = 200,
-) -> Solution:
-    """See :func:`calib.selfcal.solve`."""
+) -> Prepared:
+    """Windows, measurement rows, noise and the initial guess of :func:`solve_run`, without the LM solve (the
+    problem a benchmark can hand to another solver)."""
     if method not in METHODS:
         raise SelfCalInputError(f"method '{method}' is not one of {', '.join(METHODS)}.")
     if int(stride) < 1:
         raise SelfCalInputError(f"stride {stride} must be a positive integer.")
     model = model or MeasurementModel(robot)
     t_start = time.perf_counter()
+    search: WindowSearch | None = None
     if isinstance(run, Measurements):
         meas, sig, wins, ref_sample, ref_win, win_of = run, None, list(windows or []), -1, None, [-1] * run.k
         ref = None
     else:
-        sig = _signals(robot, run)
+        sig = run_signals(robot, run)
         if windows is None:
-            wins = find_windows(
+            search = search_windows(
                 robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
                 sig["tau_ref"], getattr(run, "setpoints", None), window_options,
             )
+            wins = list(search.used)
         else:
             wins = list(windows)
         if method in ("tlse", "hybrid") and len(wins) < 2:
-            raise SelfCalFailure(
-                f"{len(wins)} equilibrium window(s) found in the run; method '{method}' needs at least 2 "
-                "(try --method lse)."
+            failed = "" if search is None else "".join(" " + m.reason for m in search.missing)
+            raise TooFewWindows(
+                f"{len(wins)} equilibrium window(s) found in the run; method '{method}' needs at least 2.{failed}",
+                len(wins),
             )
-        meas, ref_sample, ref_win, ref, win_of = _rows(sig, wins, method, int(stride), reference_sample)
+        meas, ref_sample, ref_win, ref, win_of = measurement_rows(sig, wins, method, int(stride), reference_sample)
     t_rows = time.perf_counter()
     sigma, source = noise_levels(robot, noise, sig, wins)
     problem = Problem(model, meas, sigma)
@@ -368,7 +392,29 @@ def solve_run(
             Z0 = estimate_poses(problem, theta0, np.tile(theta0[:6], (meas.k, 1)), np.ones(meas.k, bool))
         else:
             Z0 = np.asarray(guess[1], float).reshape(-1, 6)
-    t_guess = time.perf_counter()
+    return Prepared(problem, theta0, Z0, wins, search, ref, ref_sample, source,
+                    (t_start, t_rows, time.perf_counter()))
+
+
+def solve_run(
+    robot: Robot,
+    run: Any,
+    method: str = "tlse",
+    noise: str | NoiseLevels | dict = "paper",
+    stride: int = 1,
+    reference_sample: int | None = None,
+    windows: list[Window] | None = None,
+    window_options: WindowOptions | None = None,
+    model: MeasurementModel | None = None,
+    guess: tuple[np.ndarray, np.ndarray] | None = None,
+    reference_pose: np.ndarray | None = None,
+    max_iter: int = 200,
+) -> Solution:
+    """See :func:`calib.selfcal.solve`."""
+    pre = prepare(robot, run, method, noise, stride, reference_sample, windows, window_options, model, guess)
+    problem, theta0, Z0, wins, search, ref = pre.problem, pre.theta0, pre.poses0, pre.windows, pre.search, pre.ref
+    model, meas, ref_sample, source = problem.model, problem.meas, pre.ref_sample, pre.noise_source
+    t_start, t_rows, t_guess = pre.marks
     res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
     t_end = time.perf_counter()
     if not np.isfinite(res.cost) or not res.converged:
@@ -419,4 +465,5 @@ def solve_run(
         },
         effects=effects,
         reference=comparison,
+        window_search=search,
     )

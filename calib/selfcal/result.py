@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from calib.kinematics import rotation
-from calib.selfcal.windows import Window
+from calib.selfcal.windows import Window, WindowSearch
 
 
 class SelfCalInputError(ValueError):
@@ -18,6 +18,14 @@ class SelfCalInputError(ValueError):
 
 class SelfCalFailure(RuntimeError):
     """A valid problem whose solve failed (no equilibrium found, no convergence)."""
+
+
+class TooFewWindows(SelfCalFailure):
+    """Fewer equilibrium windows than the method needs; ``found`` is how many the run holds."""
+
+    def __init__(self, message: str, found: int):
+        super().__init__(message)
+        self.found = found
 
 
 @dataclass(frozen=True)
@@ -60,6 +68,8 @@ class Solution:
     stands for (a window's middle); ``windows`` the equilibrium windows found (all of them, reference
     included); ``theta``/``param_names``/``covariance``: the global parameters and their covariance
     ((J^T W J)^-1, not rescaled by chi2/dof). ``residuals``: per channel ``rms`` (SI) and ``rms_normalized``.
+    ``window_search``: the windows planned, found and used and the planned setpoints without one (None when
+    the windows were given).
     """
 
     method: str
@@ -85,6 +95,7 @@ class Solution:
     timing: dict[str, float]
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
     reference: ReferenceComparison | None = None
+    window_search: WindowSearch | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The `cdpr solve --json` object of spec/cli.md (plus a few extra keys)."""
@@ -109,6 +120,17 @@ class Solution:
             "converged": bool(self.converged),
             "iterations": int(self.iterations),
         }
+        ws = self.window_search
+        if ws is not None:
+            out["window_search"] = {
+                "planned": ws.planned,
+                "found": [{"first": w.first, "last": w.last, "setpoint": w.setpoint, "quasi": w.quasi,
+                           "used": w in ws.used} for w in ws.found],
+                "used": len(ws.used),
+                "missing": [{"setpoint": m.setpoint, "reason": m.reason} for m in ws.missing],
+                "thresholds": {c: [float(v) for v in x] for c, x in ws.thresholds.items()},
+                "ripple_tol": float(ws.ripple_tol),
+            }
         if self.reference is not None:
             out["reference"] = {
                 "eps_p": self.reference.eps_p,

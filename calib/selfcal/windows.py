@@ -1,39 +1,56 @@
-"""Equilibrium windows found from the signals alone, their averages and the noise their scatter shows.
+"""Equilibrium windows found from the signals, judged against the run's own noise and matched to the plan.
 
-A sample is still when, over a short centred span, every cable length, swivel angle, roll and pitch stays
-within a small range and the tension ripple (standard deviation over the span) stays within the load cells'
-uncertainty or, if larger, a few times the noise floor the run shows itself (robust scale of the
-sample-to-sample differences). Runs of still samples lasting at least ``min_duration_s`` are windows.
-The pretension rest before the sequence is dropped; an unusually long gap between windows gets its
-stillest stretch as a ``quasi`` window (the platform passed an equilibrium swinging slowly: the
-acceleration it leaves in the statics is small next to the tension noise); see :func:`find_windows`.
+Stillness (:class:`Stillness`). Over a short centred span, every cable length, swivel angle, roll and pitch
+stays within a range and the tension ripple (standard deviation over the span) stays within a tolerance.
+Each channel's range is the larger of a fixed floor (the prototype's: 2 mm, 0.1 deg, 0.3 deg) and what the
+run itself shows when nothing moves: ``noise_factor`` times the channel's sample noise (robust scale of its
+second differences, which a slow motion leaves near zero) plus ``drift_factor`` times its slow drift (the
+median change of the span mean from one span to the next over the samples the noise alone calls still: a
+sway inside the windows; a run that never rests has no drift to call its motion).
+The ripple tolerance is the paper's: the load cells' uncertainty or, if larger, ``ripple_factor`` times the
+noise floor of the tensions. Runs of still samples lasting at least ``min_duration_s`` are windows.
+
+Windows and the plan (:func:`search_windows`). Consecutive windows at the same equilibrium (mean tensions
+and lengths the same within the tolerances, nothing else visited in between) are one window. With planned
+setpoints (run.yaml ``procedure.setpoints`` or an imported run's reference steps) each setpoint gets at most
+one window, in plan order (an order-keeping alignment on the relative distance of the window's mean tension
+or reference to the setpoint); a setpoint left without one gets the stillest stretch near its tensions as a
+``quasi`` window, or is named with its reason. Still stretches matching no setpoint (the rest before the
+sequence, the return to the pretension, a pause) are listed and not used unless ``use_unmatched``.
+Without a plan the pretension rest is dropped and an unusually long gap between windows gets its stillest
+stretch as a quasi window (the platform passed an equilibrium swinging slowly: the acceleration it leaves in
+the statics is small next to the tension noise).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from calib.robot import Robot
+
+CHANNELS = ("length", "swivel", "tilt")
 
 
 @dataclass(frozen=True)
 class WindowOptions:
-    """Stillness thresholds (SI units) and durations (s)."""
+    """Stillness floors (SI units), noise multiples, durations (s) and plan matching."""
 
     span_s: float = 0.5
     min_duration_s: float = 1.0
-    length_tol: float = 0.002
+    length_tol: float = 0.002  # m, floor of the cable-length range over a span
     swivel_tol: float = math.radians(0.1)
     tilt_tol: float = math.radians(0.3)
+    noise_factor: float = 6.0  # range over a span allowed per unit of sample noise
+    drift_factor: float = 2.0  # and per unit of slow drift over a span
     ripple_factor: float = 3.0
     setpoint_tol: float = 0.15  # relative distance |mean tau - setpoint| / |setpoint| to call it a match
     pretension_band: float = 5.0  # N: tau_ref departing this much from its first value ends the pretension
     gap_factor: float = 2.0
     quasi_max: float = 10.0
+    use_unmatched: bool = False  # with a plan, also use the still stretches that match no setpoint
 
 
 @dataclass(frozen=True)
@@ -59,10 +76,33 @@ class Window:
         return (self.first + self.last) // 2
 
 
+@dataclass(frozen=True)
+class MissingSetpoint:
+    """A planned setpoint without a window and why, one sentence."""
+
+    setpoint: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class WindowSearch:
+    """What :func:`search_windows` found: ``found`` every window (time order, labelled), ``used`` those that
+    become poses, ``planned`` the number of planned setpoints (0: no plan), ``missing`` the planned setpoints
+    without a window, ``thresholds`` the stillness ranges per channel (SI) and ``ripple_tol`` (N)."""
+
+    found: list[Window]
+    used: list[Window]
+    planned: int
+    missing: list[MissingSetpoint]
+    thresholds: dict[str, np.ndarray] = field(default_factory=dict)
+    ripple_tol: float = 0.0
+
+
 def _centred(stat: np.ndarray, w: int, size: int) -> np.ndarray:
-    """Pad a sliding statistic (size - w + 1,) to (size,) so that entry i describes the span around i."""
+    """Pad a sliding statistic (size - w + 1, ...) to (size, ...) so that entry i describes the span around i."""
     lo = w // 2
-    return np.pad(stat, (lo, size - stat.shape[0] - lo), mode="edge")
+    pad = [(lo, size - stat.shape[0] - lo)] + [(0, 0)] * (stat.ndim - 1)
+    return np.pad(stat, pad, mode="edge")
 
 
 def noise_floor(x: np.ndarray) -> np.ndarray:
@@ -72,36 +112,266 @@ def noise_floor(x: np.ndarray) -> np.ndarray:
     return 1.4826 * mad / math.sqrt(2.0)
 
 
-def motion_score(
-    robot: Robot, dt: float, tau: np.ndarray, dl: np.ndarray, dsigma: np.ndarray, tilt: np.ndarray,
-    options: WindowOptions,
-) -> np.ndarray:
-    """Per sample (N,), the largest ratio of a channel's activity over the span to its threshold (<= 1: still)."""
-    size = dl.shape[0]
-    w = max(3, int(round(options.span_s / dt)))
-    if size < w:
-        return np.full(size, np.inf)
+def sample_noise(x: np.ndarray) -> np.ndarray:
+    """Robust white-noise standard deviation per column of x (N, c) from second differences (MAD): a smooth
+    motion leaves them near zero, white noise of sigma gives them sigma sqrt(6)."""
+    if x.shape[0] < 3:
+        return np.zeros(x.shape[1:])
+    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    return 1.4826 * np.median(np.abs(d2), axis=0) / math.sqrt(6.0)
 
-    def ptp(x):
-        return _centred(np.ptp(sliding_window_view(x, w, axis=0), axis=-1).max(axis=1), w, size)
 
-    ripple_tol = max(robot.sensors.load_cell_uncertainty, options.ripple_factor * float(noise_floor(tau).max()))
-    ripple = _centred(sliding_window_view(tau, w, axis=0).std(axis=-1).max(axis=1), w, size)
-    return np.max(
-        np.stack([
-            ptp(dl) / options.length_tol,
-            ptp(dsigma) / options.swivel_tol,
-            ptp(tilt) / options.tilt_tol,
-            ripple / ripple_tol,
-        ]),
-        axis=0,
-    )
+def slow_drift(x: np.ndarray, w: int, rest: np.ndarray) -> np.ndarray:
+    """Per column of x (N, c), the median change of the w-sample mean from one span to the next over the
+    samples ``rest`` (N,) judged at rest: how much a platform at rest still wanders over a span (sway, drift);
+    zero when fewer than a tenth of the samples rest."""
+    N = x.shape[0]
+    if N < 2 * w or rest.sum() < max(2 * w, N // 10):
+        return np.zeros(x.shape[1:])
+    c = np.cumsum(np.r_[np.zeros((1,) + x.shape[1:]), x], axis=0)
+    m = (c[w:] - c[:-w]) / w  # mean of x[i : i + w]
+    change = np.abs(m[w:] - m[:-w])  # entry i: around sample i + w
+    keep = rest[w : w + change.shape[0]]
+    return np.median(change[keep], axis=0) if keep.any() else np.zeros(x.shape[1:])
+
+
+@dataclass(frozen=True)
+class Activity:
+    """What the signals do over each centred span of ``span`` samples: the range (max - min) per channel and
+    column, and the largest standard deviation of the tensions (N); (N, ...) per sample."""
+
+    span: int
+    ranges: dict[str, np.ndarray]
+    ripple: np.ndarray
+
+    @classmethod
+    def of(cls, tau: np.ndarray, channels: dict[str, np.ndarray], w: int) -> Activity:
+        size = tau.shape[0]
+        if size < w:
+            return cls(w, {c: np.full(x.shape, np.inf) for c, x in channels.items()}, np.full(size, np.inf))
+        m = size - w + 1
+        ranges = {}
+        for c, x in channels.items():  # running max and min by w - 1 shifted comparisons
+            hi, lo = x[:m].copy(), x[:m].copy()
+            for j in range(1, w):
+                np.maximum(hi, x[j : j + m], out=hi)
+                np.minimum(lo, x[j : j + m], out=lo)
+            ranges[c] = _centred(hi - lo, w, size)
+        y = tau - tau.mean(axis=0)
+        c1 = np.cumsum(np.r_[np.zeros((1, y.shape[1])), y], axis=0)
+        c2 = np.cumsum(np.r_[np.zeros((1, y.shape[1])), y * y], axis=0)
+        mean = (c1[w:] - c1[:-w]) / w
+        var = np.clip((c2[w:] - c2[:-w]) / w - mean * mean, 0.0, None)
+        return cls(w, ranges, _centred(np.sqrt(var.max(axis=1)), w, size))
+
+
+@dataclass(frozen=True)
+class Stillness:
+    """The stillness test of one run: span (samples), range per channel (SI, per column) and ripple tolerance
+    (N). ``parts`` gives per sample the largest ratio of a channel's range over the span to its limit and the
+    ripple over its tolerance; still where both are <= 1."""
+
+    span: int
+    thresholds: dict[str, np.ndarray]
+    ripple_tol: float
+
+    @classmethod
+    def of_run(
+        cls, robot: Robot, tau: np.ndarray, channels: dict[str, np.ndarray], act: Activity, options: WindowOptions,
+    ) -> Stillness:
+        """Thresholds from the run's own noise, then its drift over the samples that noise alone calls still,
+        floored at the options' tolerances."""
+        w = act.span
+        floors = {"length": options.length_tol, "swivel": options.swivel_tol, "tilt": options.tilt_tol}
+        ripple_tol = max(robot.sensors.load_cell_uncertainty, options.ripple_factor * float(noise_floor(tau).max()))
+        spread = {c: options.noise_factor * sample_noise(x) for c, x in channels.items()}
+        noise = {c: np.maximum(floors[c], s) for c, s in spread.items()}
+        kin, ripple = cls(w, noise, ripple_tol).parts(act)
+        rest = (kin <= 1.0) & (ripple <= 1.0)
+        thr = {c: np.maximum(noise[c], spread[c] + options.drift_factor * slow_drift(x, w, rest))
+               for c, x in channels.items()}
+        return cls(w, thr, ripple_tol)
+
+    def parts(self, act: Activity) -> tuple[np.ndarray, np.ndarray]:
+        """Per sample (N,): the kinematic score (ranges over their limits) and the ripple over its tolerance."""
+        kin = np.zeros(act.ripple.shape[0])
+        for c, r in act.ranges.items():
+            np.maximum(kin, (r / self.thresholds[c]).max(axis=1), out=kin)
+        return kin, act.ripple / self.ripple_tol
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
     return list(zip(starts.tolist(), stops.tolist(), strict=True))
+
+
+def _grow(seg: np.ndarray, i0: int, w: int) -> tuple[int, int]:
+    """The stretch around seg's minimum i0 where the score stays within 1.5 times it (at least w samples)."""
+    ok = seg <= max(1.0, 1.5 * seg[i0])
+    x = y = i0
+    while x > 0 and ok[x - 1]:
+        x -= 1
+    while y < len(seg) - 1 and ok[y + 1]:
+        y += 1
+    if y - x + 1 < w:
+        x, y = max(0, i0 - w // 2), min(len(seg) - 1, i0 + w // 2)
+    return x, y
+
+
+def _merge_same(wins: list[Window], tau: np.ndarray, dl: np.ndarray, still: Stillness) -> list[Window]:
+    """One window for consecutive windows at the same equilibrium: mean tensions within three ripple
+    tolerances, mean lengths within the length range, and the tensions in between within 10 % of them."""
+    out: list[Window] = []
+    for win in wins:
+        if out:
+            prev = out[-1]
+            a, b = tau[prev.slice].mean(0), tau[win.slice].mean(0)
+            gap = tau[prev.last + 1 : win.first]
+            same = (np.max(np.abs(a - b)) <= 3.0 * still.ripple_tol
+                    and np.all(np.abs(dl[prev.slice].mean(0) - dl[win.slice].mean(0)) <= still.thresholds["length"])
+                    and (gap.size == 0 or np.max(np.linalg.norm(gap - a, axis=1)) <= 0.1 * np.linalg.norm(a)))
+            if same:
+                out[-1] = Window(prev.first, win.last, quasi=prev.quasi and win.quasi)
+                continue
+        out.append(win)
+    return out
+
+
+def _align(dist: np.ndarray, tol: float) -> list[int]:
+    """Order-keeping assignment of windows (rows) to setpoints (columns): the most matches within ``tol``,
+    then the smallest total distance; per window the setpoint index or -1."""
+    m, k = dist.shape
+    gain = np.where(dist <= tol, 1.0 + 1e-3 * (1.0 - dist / tol), -np.inf)
+    best = np.zeros((m + 1, k + 1))
+    for i in range(1, m + 1):
+        for j in range(1, k + 1):
+            best[i, j] = max(best[i - 1, j], best[i, j - 1], best[i - 1, j - 1] + gain[i - 1, j - 1])
+    label = [-1] * m
+    i, j = m, k
+    while i > 0 and j > 0:
+        if best[i, j] == best[i - 1, j]:
+            i -= 1
+        elif best[i, j] == best[i, j - 1]:
+            j -= 1
+        else:
+            label[i - 1] = j - 1
+            i, j = i - 1, j - 1
+    return label
+
+
+def _gap_quasi(wins: list[Window], score: np.ndarray, w: int, opt: WindowOptions) -> list[Window]:
+    """Without a plan: the stillest stretch of each unusually long gap between windows."""
+    if len(wins) < 3:
+        return []
+    gaps = np.array([b.first - a.last for a, b in zip(wins[:-1], wins[1:], strict=True)])
+    limit = opt.gap_factor * float(np.median(gaps))
+    extra = []
+    for (a, b), gap in zip(zip(wins[:-1], wins[1:], strict=True), gaps, strict=True):
+        lo, hi = a.last + w, b.first - w
+        if gap <= limit or hi - lo + 1 < w:
+            continue
+        seg = score[lo : hi + 1]
+        i0 = int(np.argmin(seg))
+        if seg[i0] <= opt.quasi_max:
+            x, y = _grow(seg, i0, w)
+            extra.append(Window(lo + x, lo + y, quasi=True))
+    return extra
+
+
+def _relative(sp: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """Relative distances (..., k) of values (..., n) to setpoints (k, n)."""
+    return np.linalg.norm(value[..., None, :] - sp, axis=-1) / np.linalg.norm(sp, axis=1)
+
+
+def _fill_missing(
+    sp: np.ndarray, wins: list[Window], tau: np.ndarray, kin: np.ndarray, ripple: np.ndarray, still: Stillness,
+    dt: float, min_len: int, opt: WindowOptions,
+) -> tuple[list[Window], list[MissingSetpoint]]:
+    """For each planned setpoint without a window: the stillest stretch near its tensions, between the
+    windows of its neighbours in the plan, as a quasi window; else the reason, one sentence."""
+    N, w = tau.shape[0], still.span
+    by_sp = {win.setpoint: win for win in wins if win.setpoint >= 0}
+    score = np.maximum(kin, ripple)
+    extra, missing = [], []
+    for j in range(sp.shape[0]):
+        if j in by_sp:
+            continue
+        before = [win.last for s, win in by_sp.items() if s < j]
+        after = [win.first for s, win in by_sp.items() if s > j]
+        lo, hi = (max(before) + 1 if before else 0), (min(after) - 1 if after else N - 1)
+        near = np.zeros(N, bool)
+        near[lo : hi + 1] = _relative(sp[j : j + 1], tau[lo : hi + 1])[:, 0] <= opt.setpoint_tol
+        idx = np.flatnonzero(near)
+        if idx.size == 0:
+            why = ("the log ends before its tensions were reached" if hi == N - 1 and not after else
+                   f"the tensions never came within {100 * opt.setpoint_tol:.0f} % of it")
+            missing.append(MissingSetpoint(j, f"setpoint {j}: {why}."))
+            continue
+        seg = np.where(near, score, np.inf)[lo : hi + 1]
+        i0 = int(np.argmin(seg))
+        if seg[i0] <= opt.quasi_max:
+            x, y = _grow(seg, i0, w)
+            extra.append(Window(lo + x, lo + y, j, quasi=True))
+            by_sp[j] = extra[-1]  # the next setpoints' search starts after it
+            continue
+        at_end = idx[-1] >= N - 1 - w and (N - idx[0]) < min_len
+        if at_end:
+            why = f"the log ends {(N - idx[0]) * dt:.1f} s after its tensions were reached"
+        elif float(np.min(kin[idx])) <= 1.0:
+            r = float(np.min(ripple[idx])) * still.ripple_tol
+            why = f"the tension ripple stayed at {r:.2f} N or more, above the {still.ripple_tol:.2f} N tolerance"
+        else:
+            why = (f"the platform never came to rest (its stillest stretch moved "
+                   f"{float(np.min(kin[idx])):.1f} x the stillness thresholds)")
+        missing.append(MissingSetpoint(j, f"setpoint {j}: {why}."))
+    return extra, missing
+
+
+def search_windows(
+    robot: Robot,
+    t: np.ndarray,
+    tau: np.ndarray,
+    dl: np.ndarray,
+    dsigma: np.ndarray,
+    roll: np.ndarray,
+    pitch: np.ndarray,
+    tau_ref: np.ndarray | None = None,
+    setpoints: np.ndarray | None = None,
+    options: WindowOptions | None = None,
+) -> WindowSearch:
+    """Equilibrium windows of a run (arrays (N,) or (N, n), SI units), see the module docstring."""
+    opt = options or WindowOptions()
+    N = dl.shape[0]
+    dt = float(np.median(np.diff(t))) if N > 1 else 1.0
+    ch = {"length": dl, "swivel": dsigma, "tilt": np.stack([roll, pitch], axis=1)}
+    w = max(3, int(round(opt.span_s / dt)))
+    act = Activity.of(tau, ch, w)
+    still = Stillness.of_run(robot, tau, ch, act, opt)
+    kin, ripple = still.parts(act)
+    score = np.maximum(kin, ripple)
+    min_len = max(2, int(math.ceil(opt.min_duration_s / dt)))
+    wins = [Window(a, b) for a, b in _runs(score <= 1.0) if b - a + 1 >= min_len]
+    wins = _merge_same(wins, tau, dl, still)
+    sp = None if setpoints is None or not len(setpoints) else np.asarray(setpoints, dtype=float)
+    if sp is None:
+        if tau_ref is not None and N:
+            away = np.flatnonzero(np.max(np.abs(tau_ref - tau_ref[0]), axis=1) > opt.pretension_band)
+            if away.size:
+                wins = [win for win in wins if win.last >= away[0] + w] or wins
+        wins = sorted(wins + _gap_quasi(wins, score, w, opt), key=lambda c: c.first)
+        return WindowSearch(wins, list(wins), 0, [], still.thresholds, still.ripple_tol)
+    dist = np.full((len(wins), sp.shape[0]), np.inf)
+    for i, win in enumerate(wins):
+        dist[i] = _relative(sp, tau[win.slice].mean(axis=0))
+        if tau_ref is not None:
+            dist[i] = np.minimum(dist[i], _relative(sp, tau_ref[win.slice].mean(axis=0)))
+    labels = _align(dist, opt.setpoint_tol) if wins else []
+    wins = [Window(win.first, win.last, j, win.quasi) for win, j in zip(wins, labels, strict=True)]
+    extra, missing = _fill_missing(sp, wins, tau, kin, ripple, still, dt, min_len, opt)
+    found = sorted(wins + extra, key=lambda c: c.first)
+    used = [win for win in found if win.setpoint >= 0 or opt.use_unmatched]
+    return WindowSearch(found, used, sp.shape[0], missing, still.thresholds, still.ripple_tol)
 
 
 def find_windows(
@@ -116,58 +386,5 @@ def find_windows(
     setpoints: np.ndarray | None = None,
     options: WindowOptions | None = None,
 ) -> list[Window]:
-    """Equilibrium windows of a run, in time order (arrays (N,) or (N, n), SI units).
-
-    1. still windows: motion score <= 1 for at least ``min_duration_s``;
-    2. the pretension rest (before ``tau_ref`` first departs from its initial value by more than
-       ``pretension_band``) is not a planned equilibrium and is dropped;
-    3. a gap between windows longer than ``gap_factor`` times the median gap hides an equilibrium the
-       platform passed without settling: its stillest stretch (score <= ``quasi_max``) is a quasi window;
-    4. with ``setpoints`` (k, n), each window is labelled with the setpoint its mean tension is closest to.
-    """
-    opt = options or WindowOptions()
-    N = dl.shape[0]
-    dt = float(np.median(np.diff(t))) if N > 1 else 1.0
-    tilt = np.stack([roll, pitch], axis=1)
-    score = motion_score(robot, dt, tau, dl, dsigma, tilt, opt)
-    w = max(3, int(round(opt.span_s / dt)))
-    min_len = max(2, int(math.ceil(opt.min_duration_s / dt)))
-    wins = [Window(a, b) for a, b in _runs(score <= 1.0) if b - a + 1 >= min_len]
-    if tau_ref is not None and N:
-        away = np.flatnonzero(np.max(np.abs(tau_ref - tau_ref[0]), axis=1) > opt.pretension_band)
-        if away.size:
-            kept = [win for win in wins if win.last >= away[0] + w]
-            wins = kept or wins
-    if len(wins) >= 3:
-        gaps = np.array([b.first - a.last for a, b in zip(wins[:-1], wins[1:], strict=True)])
-        limit = opt.gap_factor * float(np.median(gaps))
-        extra = []
-        for (a, b), gap in zip(zip(wins[:-1], wins[1:], strict=True), gaps, strict=True):
-            if gap <= limit:
-                continue
-            lo, hi = a.last + w, b.first - w
-            if hi - lo + 1 < w:
-                continue
-            seg = score[lo : hi + 1]
-            i0 = int(np.argmin(seg))
-            if seg[i0] > opt.quasi_max:
-                continue
-            ok = seg <= max(1.0, 1.5 * seg[i0])
-            x = y = i0
-            while x > 0 and ok[x - 1]:
-                x -= 1
-            while y < len(seg) - 1 and ok[y + 1]:
-                y += 1
-            if y - x + 1 < w:
-                x, y = max(0, i0 - w // 2), min(len(seg) - 1, i0 + w // 2)
-            extra.append(Window(lo + x, lo + y, quasi=True))
-        wins = sorted(wins + extra, key=lambda c: c.first)
-    if setpoints is not None and len(setpoints):
-        sp = np.asarray(setpoints, dtype=float)
-        labelled = []
-        for win in wins:
-            dist = np.linalg.norm(sp - tau[win.slice].mean(axis=0), axis=1) / np.linalg.norm(sp, axis=1)
-            j = int(np.argmin(dist))
-            labelled.append(Window(win.first, win.last, j if dist[j] <= opt.setpoint_tol else -1, win.quasi))
-        wins = labelled
-    return wins
+    """The equilibrium windows a solve uses, in time order (:func:`search_windows`)."""
+    return search_windows(robot, t, tau, dl, dsigma, roll, pitch, tau_ref, setpoints, options).used

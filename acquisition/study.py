@@ -1,0 +1,582 @@
+"""Monte-Carlo study of a startup plan (``cdpr study``): many simulated startups, their errors against the
+simulator's truth, the distribution per plan.
+
+Each run is ``cdpr startup --backend sim`` with its own seed (sensor noise, power-on pose, and whatever else
+the simulation configuration draws from the seed), run as an independent Dask task. The task starts the
+startup in a fresh Python process (``python -m acquisition.study``, :func:`run_startup`): the routine installs its
+SIGINT/SIGTERM handlers, which Python allows only in a main thread, and a Dask task runs in a worker's
+thread. The process runs the simulated plant in itself rather than in a child of its own: a study keeps
+every core busy with runs, where a plant process per run only waits for a core, and its lockstep spends CPU
+waiting (measured: 6 runs of grid2 on 2 workers, two loaded cores: 29-36 s of CPU per run with the plant's
+process, 7-10 s without, 349 s against 130 s for the study; the same errors to the last digit, as
+``sim_backend.backend`` promises). The run folder lives in that process's temporary directory and is
+deleted after; the task returns the run's result (:func:`run_result`), which the client writes to the study
+folder as soon as it arrives (:class:`StudyFolder`), so an interrupted study resumes where it stopped.
+
+Statistics (:func:`plan_statistics`): the initial-position error |p_est - p_true| (mm), its median,
+quartiles, 90th percentile and RMS, against the printed 1-sigma (RMS of sqrt(sx^2 + sy^2 + sz^2), the
+predicted RMS of the error), the coverage of the printed 1-sigma and 2-sigma per axis (a calibrated sigma
+covers 68.3 % and 95.4 %), and the robot time of the startup (s).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import html
+import io
+import json
+import math
+import os
+import resource
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from acquisition.report import ProgressBar, _svg
+
+PLANS = ("grid2", "grid3", "optimal", "sequential")
+FORMAT = "cdpr-study/1"
+RUN_FORMAT = "cdpr-study-run/1"
+CONFIG_FILE = "config.json"
+RUN_TIMEOUT = 1800.0  # s of wall time one simulated startup may take before the run counts as failed
+COVERAGE_EXPECTED = (0.6827, 0.9545)  # a Gaussian's probability within 1 and 2 sigma
+
+
+class StudyError(ValueError):
+    """An unusable study request or folder; the message is one sentence."""
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """What every run of a study shares (what must match to resume a study folder).
+
+    sim_config: the simulation configuration as a YAML mapping (``--sim-config`` with ``--effect`` merged);
+    tolerance: the sequential plan's stop rule as ``cdpr startup --tolerance`` takes it (e.g. "3mm")."""
+
+    robot: str = "irma4u"
+    sim_config: dict[str, Any] = field(default_factory=dict)
+    tolerance: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": FORMAT, "robot": self.robot, "sim_config": self.sim_config, "tolerance": self.tolerance}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> StudyConfig:
+        return cls(data["robot"], data["sim_config"], data["tolerance"])
+
+
+@dataclass(frozen=True)
+class RunTask:
+    """One simulated startup of a study: the plan, the simulator's seed and the shared configuration."""
+
+    plan: str
+    seed: int
+    config: StudyConfig
+
+    @property
+    def name(self) -> str:
+        return f"{self.plan}-s{self.seed:05d}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"plan": self.plan, "seed": self.seed, "config": self.config.to_dict()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> RunTask:
+        return cls(data["plan"], int(data["seed"]), StudyConfig.from_dict(data["config"]))
+
+
+def plan_args(plan: str, tolerance: str | None = None) -> list[str]:
+    """The ``cdpr startup`` options that select ``plan``."""
+    if plan in ("grid2", "grid3"):
+        return ["--grid", plan[-1]]
+    if plan == "optimal":
+        return ["--plan", "optimal"]
+    if plan == "sequential":
+        if tolerance is None:
+            raise StudyError("--plan sequential needs --tolerance (the 1-sigma to stop at, e.g. 3mm).")
+        return ["--tolerance", tolerance]
+    raise StudyError(f"--plan {plan!r} is not one of {', '.join(PLANS)}.")
+
+
+def startup_args(task: RunTask, out: str, truth: str, sim_config: str | None) -> list[str]:
+    """The ``cdpr startup`` command line of one run (``cdpr`` left out)."""
+    args = ["startup", "--backend", "sim", "--robot", task.config.robot, "--seed", str(task.seed), "--out", out,
+            "--truth", truth, "--json", "--no-html", *plan_args(task.plan, task.config.tolerance)]
+    return args + (["--sim-config", sim_config] if sim_config else [])
+
+
+def study_sim_config(path: str | None, effects: Sequence[str], n: int) -> dict[str, Any]:
+    """The simulation configuration of a study: the file's mapping (none: the nominal prototype) with each
+    named hidden effect set as in its example (``sim_backend/examples/NAME.yaml``); validated for n cables."""
+    from sim_backend.config import EFFECTS, SimConfigError, example_path, sim_config_from_dict
+
+    data: dict[str, Any] = {}
+    origin = "<nominal>"
+    if path is not None:
+        p = Path(path)
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except OSError as exc:
+            raise StudyError(f"{p}: cannot read the simulation configuration ({exc.strerror}).") from exc
+        except yaml.YAMLError as exc:
+            raise StudyError(f"{p}: not valid YAML ({str(exc).splitlines()[0]}).") from exc
+        if not isinstance(data, dict):
+            raise StudyError(f"{p}: the simulation configuration must be a mapping, got {type(data).__name__}.")
+        origin = str(p)
+    for name in effects:
+        if name not in EFFECTS:
+            raise StudyError(f"--effect {name!r} is not a hidden effect of the simulator "
+                             f"(known: {', '.join(EFFECTS)}).")
+        example = yaml.safe_load(example_path(name).read_text())
+        data = {**data, "effects": {**(data.get("effects") or {}), name: example["effects"][name]}}
+    try:
+        sim_config_from_dict(data, n, origin)
+    except SimConfigError as exc:
+        raise StudyError(str(exc)) from exc
+    return data
+
+
+# ---- one run (on a Dask worker) --------------------------------------------------------------------------
+
+
+def run_startup(task: RunTask) -> dict[str, Any]:
+    """The Dask task of a study: one simulated startup in a fresh process (``python -m acquisition.study``:
+    the task as JSON on its stdin, the result of :func:`run_in_this_process` on its stdout), with the run's
+    wall time and the CPU time of its process (s, ``wall_s``, ``cpu_s``).
+
+    The process has a session of its own: the operator's Ctrl-C stops the study (the client), not the runs,
+    whose safe stops would otherwise be recorded as results; a run cut off from its worker finishes and
+    deletes its temporary folder itself."""
+    t0, cpu0 = time.perf_counter(), _children_cpu()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "acquisition.study"], input=json.dumps(task.to_dict()),
+                              capture_output=True, text=True, timeout=RUN_TIMEOUT, start_new_session=True)
+    except subprocess.TimeoutExpired:
+        res = failed_result(task, "failed", f"the startup did not finish within {RUN_TIMEOUT:g} s.")
+    else:
+        if proc.returncode == 0:
+            res = json.loads(proc.stdout)
+        else:
+            last = (proc.stderr.strip().splitlines() or ["no message"])[-1]
+            res = failed_result(task, "failed", f"the run's process ended with status {proc.returncode}: {last}")
+    res.update(wall_s=round(time.perf_counter() - t0, 3), cpu_s=round(_children_cpu() - cpu0, 3))
+    return res
+
+
+def _children_cpu() -> float:
+    """CPU seconds (user + system) of this process's finished children and theirs."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def run_in_this_process(task: RunTask) -> dict[str, Any]:
+    """One run: ``cdpr startup --backend sim`` in a temporary folder (deleted after) with the simulated plant
+    in this process (see the module docstring; it changes how this process simulates: for the process that
+    :func:`run_startup` starts). Returns :func:`run_result` or :func:`failed_result`; a usage error of the
+    startup (exit status 2) comes back with status ``usage`` and its sentence: it would fail every run, so
+    the study stops on it instead of recording it."""
+    import sim_backend.backend
+    from acquisition.cli import main
+
+    sim_backend.backend.child_process_possible = lambda: False
+    with tempfile.TemporaryDirectory(prefix=f"cdpr-study-{task.name}-") as tmp:
+        sim_file = None
+        if task.config.sim_config:
+            sim_file = os.path.join(tmp, "sim-config.yaml")
+            Path(sim_file).write_text(yaml.safe_dump(task.config.sim_config))
+        truth = os.path.join(tmp, "truth.json")
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(startup_args(task, os.path.join(tmp, "run"), truth, sim_file))
+            except SystemExit as exc:  # argparse's own errors
+                code = exc.code if isinstance(exc.code, int) else 2
+        if code == 0:
+            return run_result(task, json.loads(out.getvalue()), json.loads(Path(truth).read_text()))
+    sentence = (err.getvalue().strip().splitlines() or [f"exit status {code}"])[-1].removeprefix("cdpr: ")
+    status = "usage" if code == 2 else "safe_stop" if sentence.startswith("safe stop") else "failed"
+    return failed_result(task, status, sentence)
+
+
+def run_result(task: RunTask, summary: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
+    """The result of a finished run: the initial-position error (m) of the solve against the simulator's true
+    initial pose at the same sample, the printed 1-sigma (m), the robot time (s) and the windows held.
+
+    summary: what ``cdpr startup --json`` printed; truth: the ``--truth`` file."""
+    sol = summary["solution"]
+    err = np.asarray(sol["initial_pose"][:3], float) - np.asarray(truth["initial_pose"][:3], float)
+    sigma = np.asarray(sol["initial_pose_sigma"][:3], float)
+    return {
+        "format": RUN_FORMAT, "plan": task.plan, "seed": task.seed, "status": "ok", "message": "",
+        "position_error_m": err.tolist(), "position_sigma_m": sigma.tolist(),
+        "error_m": float(np.linalg.norm(err)), "sigma_m": float(np.linalg.norm(sigma)),
+        "robot_time_s": float(summary["timing"]["acquisition_s"]),
+        "windows": summary["windows"], "setpoints": int(summary["setpoints"]), "host": socket.gethostname(),
+    }
+
+
+def failed_result(task: RunTask, status: str, message: str) -> dict[str, Any]:
+    """The result of a run that ended without a solution: ``safe_stop``, ``failed`` or ``usage``."""
+    return {"format": RUN_FORMAT, "plan": task.plan, "seed": task.seed, "status": status, "message": message,
+            "position_error_m": None, "position_sigma_m": None, "error_m": None, "sigma_m": None,
+            "robot_time_s": None, "windows": [], "setpoints": None, "host": socket.gethostname()}
+
+
+# ---- the study folder ------------------------------------------------------------------------------------
+
+
+class StudyFolder:
+    """The study's folder: its configuration (config.json) and one JSON file per finished run.
+
+    A folder holding the results of another configuration is refused unless ``force``, which removes them;
+    the same configuration resumes (its finished runs are kept and not run again)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    def result_path(self, plan: str, seed: int) -> Path:
+        return self.path / f"run-{plan}-s{seed:05d}.json"
+
+    def prepare(self, config: StudyConfig, force: bool = False) -> None:
+        """Create the folder, or check that it holds this configuration (``force``: replace what it holds)."""
+        p = self.path
+        if p.exists() and not p.is_dir():
+            raise StudyError(f"--out {p} exists and is not a folder.")
+        cfg_file = p / CONFIG_FILE
+        want = config.to_dict()
+        if cfg_file.exists():
+            try:
+                have = json.loads(cfg_file.read_text())
+            except (OSError, ValueError) as exc:
+                raise StudyError(f"{cfg_file}: not a study configuration ({exc}).") from exc
+            if have == want:
+                return
+            if not force:
+                key = next((k for k in want if have.get(k) != want[k]), "format")
+                raise StudyError(f"{p} holds the results of another study ({key} {have.get(key)!r} there, "
+                                 f"{want[key]!r} now): give another --out, or --force to replace them.")
+            for f in p.glob("run-*.json"):
+                f.unlink()
+        elif p.is_dir() and any(p.iterdir()) and not force:
+            raise StudyError(f"--out {p} exists and is not a study folder: give another --out, or --force to "
+                             f"write the study there.")
+        p.mkdir(parents=True, exist_ok=True)
+        _write_json(cfg_file, want)
+
+    def done(self, plan: str, seed: int) -> bool:
+        return self.result_path(plan, seed).exists()
+
+    def write(self, result: dict[str, Any]) -> Path:
+        """Save one run's result (atomically: a study cut at any moment leaves whole files only)."""
+        return _write_json(self.result_path(result["plan"], int(result["seed"])), result)
+
+    def results(self, plans: Sequence[str], seeds: Sequence[int]) -> list[dict[str, Any]]:
+        """The saved results of these plans and seeds (those that exist)."""
+        out = []
+        for plan in plans:
+            for seed in seeds:
+                f = self.result_path(plan, seed)
+                if f.exists():
+                    out.append(json.loads(f.read_text()))
+        return out
+
+
+def _write_json(path: Path, data: Any) -> Path:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data) + "\n")
+    tmp.replace(path)
+    return path
+
+
+# ---- running on Dask -------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str | None = None, workers: int | None = None, timeout: float = 10.0) -> Iterator[Any]:
+    """A ``distributed.Client`` on the scheduler at ``scheduler``, or on a local cluster of ``workers``
+    single-threaded worker processes (default: one per core this process may use)."""
+    import logging
+
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:
+        raise StudyError("cdpr study needs dask and distributed: pip install 'cdpr[study]'.") from exc
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout=timeout)
+        except ValueError as exc:  # not an address
+            raise StudyError(f"--scheduler {scheduler!r} is not a Dask scheduler address ({exc}).") from exc
+        except (OSError, TimeoutError) as exc:
+            raise StudyError(f"cannot reach the Dask scheduler at {scheduler} within {timeout:g} s.") from exc
+        with client:
+            yield client
+        return
+    n = workers or len(os.sched_getaffinity(0))
+    # dashboard_address ":0": its HTTP server (which runs even without a dashboard) on a free port, not 8787
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        yield client
+
+
+class StudyProgress(ProgressBar):
+    """The progress line of a study: runs done of the total, failures, and the wall time left."""
+
+    def __init__(self, total: int, stream=None, enabled: bool | None = None):
+        super().__init__(total, stream=stream, enabled=enabled)
+        self.t0 = time.monotonic()
+        self.first = 0  # runs done before this session (resumed)
+        self.failed = 0
+
+    def line(self, elapsed: float, phase: str, setpoint: int, count: int) -> str:
+        done = int(elapsed)
+        frac = min(done / self.total, 1.0)
+        full = int(round(frac * self.width))
+        ran = done - self.first
+        left = (time.monotonic() - self.t0) / ran * (self.total - done) if ran else math.nan
+        eta = f"~{left:5.0f} s left" if math.isfinite(left) else "~    ? s left"
+        return f"[{'#' * full}{'.' * (self.width - full)}] {done}/{int(self.total)} runs  {self.failed} failed  {eta}"
+
+    def advance(self, done: int, failed: int, force: bool = False) -> None:
+        self.failed = failed
+        self.update(done, "runs", -1, int(self.total), force=force)
+
+
+@dataclass
+class StudyCounts:
+    """What :func:`run_study` did: runs saved now, of which without a solution, and runs the cluster lost (a
+    worker died: not a result, so not saved; the next call runs them again), with the first reason."""
+
+    ran: int = 0
+    failed: int = 0
+    lost: int = 0
+    lost_reason: str = ""
+
+
+def run_study(client, folder: StudyFolder, tasks: Sequence[RunTask], progress: StudyProgress | None = None
+              ) -> StudyCounts:
+    """Submit the tasks (runs not yet in ``folder``) and save each result as it arrives. A usage error of a
+    run stops the study with its sentence (:class:`StudyError`)."""
+    from distributed import as_completed
+
+    futures = [client.submit(run_startup, t, key=f"cdpr-study-{t.name}-{os.getpid()}-{time.time_ns()}", pure=False)
+               for t in tasks]
+    counts = StudyCounts()
+    done0 = progress.first if progress is not None else 0
+    try:
+        for fut in as_completed(futures):
+            try:
+                res = fut.result()
+            except Exception as exc:  # the task did not come back (a worker died): run it again next time
+                counts.lost += 1
+                counts.lost_reason = counts.lost_reason or f"{type(exc).__name__}: {str(exc).rstrip('.')}"
+                continue
+            if res["status"] == "usage":
+                raise StudyError(f"cdpr startup refused the {res['plan']} plan: {res['message'].rstrip('.')}.")
+            folder.write(res)
+            counts.ran += 1
+            counts.failed += res["status"] != "ok"
+            if progress is not None:
+                progress.advance(done0 + counts.ran, counts.failed)
+    finally:
+        client.cancel(futures)
+        if progress is not None:
+            progress.advance(done0 + counts.ran, counts.failed, force=True)
+            progress.close()
+    return counts
+
+
+# ---- statistics and reports ------------------------------------------------------------------------------
+
+
+def _quantiles(x: np.ndarray) -> dict[str, float] | None:
+    if not len(x):
+        return None
+    q1, med, q3, p90 = np.percentile(x, [25, 50, 75, 90])
+    return {"median": float(med), "q1": float(q1), "q3": float(q3), "p90": float(p90),
+            "rms": float(np.sqrt(np.mean(x**2)))}
+
+
+def plan_statistics(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Statistics of one plan's runs: counts, position error (mm), printed sigma (mm), robot time (s),
+    coverage of the printed 1-sigma and 2-sigma per axis."""
+    ok = [r for r in results if r["status"] == "ok"]
+    err = np.array([r["position_error_m"] for r in ok], float).reshape(-1, 3) * 1000.0
+    sig = np.array([r["position_sigma_m"] for r in ok], float).reshape(-1, 3) * 1000.0
+    norm = np.linalg.norm(err, axis=1)
+    pred = np.linalg.norm(sig, axis=1)
+    stats: dict[str, Any] = {
+        "runs": len(results), "ok": len(ok),
+        "safe_stops": sum(r["status"] == "safe_stop" for r in results),
+        "failed": sum(r["status"] == "failed" for r in results),
+        "error_mm": _quantiles(norm), "sigma_mm": _quantiles(pred),
+        "robot_time_s": _quantiles(np.array([r["robot_time_s"] for r in ok], float)),
+        "rms_error_over_sigma": None, "coverage_1sigma": None, "coverage_2sigma": None,
+    }
+    if len(ok):
+        stats["rms_error_over_sigma"] = float(np.sqrt(np.mean(norm**2) / np.mean(pred**2)))
+        ratio = np.abs(err) / sig
+        stats["coverage_1sigma"] = float(np.mean(ratio <= 1.0))
+        stats["coverage_2sigma"] = float(np.mean(ratio <= 2.0))
+    return stats
+
+
+def study_statistics(results: Sequence[dict[str, Any]], plans: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """:func:`plan_statistics` of each plan."""
+    return {p: plan_statistics([r for r in results if r["plan"] == p]) for p in plans}
+
+
+def _fmt(q: dict[str, float] | None, key: str, digits: int) -> str:
+    return "-" if q is None else f"{q[key]:.{digits}f}"
+
+
+def render_table(stats: dict[str, dict[str, Any]]) -> str:
+    """The console table of :func:`study_statistics`."""
+    head = (f"{'plan':<11}{'ok/runs':>9} | {'position error (mm)':^34} | {'printed':>7} {'rms/':>5} | "
+            f"{'coverage':^11} | {'robot time (s)':^27}")
+    sub = (f"{'':<11}{'':>9} | {'median':>6} {'q1':>6} {'q3':>6} {'p90':>6} {'rms':>6} | {'rms 1σ':>7} {'1σ':>5} | "
+           f"{'1σ':>5} {'2σ':>5} | {'median':>6} {'q1':>6} {'q3':>6} {'p90':>6}")
+    lines = [head, sub]
+    for plan, s in stats.items():
+        e, t = s["error_mm"], s["robot_time_s"]
+        r = s["rms_error_over_sigma"]
+        c1, c2 = s["coverage_1sigma"], s["coverage_2sigma"]
+        lines.append(
+            f"{plan:<11}{s['ok']:>4}/{s['runs']:<4} | " + " ".join(_fmt(e, k, 2).rjust(6) for k in
+                                                                 ("median", "q1", "q3", "p90", "rms"))
+            + f" | {_fmt(s['sigma_mm'], 'rms', 2):>7} {'-' if r is None else f'{r:.2f}':>5} | "
+            + f"{'-' if c1 is None else f'{100 * c1:.0f}%':>5} {'-' if c2 is None else f'{100 * c2:.0f}%':>5} | "
+            + " ".join(_fmt(t, k, 1).rjust(6) for k in ("median", "q1", "q3", "p90")))
+    lines.append(f"coverage: share of |error| within the printed 1σ and 2σ per axis (calibrated: "
+                 f"{100 * COVERAGE_EXPECTED[0]:.0f}% and {100 * COVERAGE_EXPECTED[1]:.0f}%); rms/1σ: RMS error over "
+                 f"the RMS printed 1σ of the position (calibrated: 1)")
+    return "\n".join(lines) + "\n"
+
+
+def _ok(results: Sequence[dict[str, Any]], plan: str) -> list[dict[str, Any]]:
+    return [r for r in results if r["plan"] == plan and r["status"] == "ok"]
+
+
+def plot_errors(results: Sequence[dict[str, Any]], plans: Sequence[str]):
+    """Figure: the distribution of the initial-position error (mm) per plan, medians dashed."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 3.5))
+    fig.subplots_adjust(left=0.1, right=0.97, bottom=0.15, top=0.9)
+    ax = fig.add_subplot()
+    errors = {plan: np.array([r["error_m"] for r in _ok(results, plan)]) * 1000.0 for plan in plans}
+    every = np.concatenate([np.zeros(0), *errors.values()])
+    bins = np.histogram_bin_edges(every, bins=max(5, min(40, len(every) // (4 * len(plans)))))
+    for plan, e in errors.items():
+        if len(e):
+            line = ax.hist(e, bins=bins, histtype="step", lw=1.2, label=plan)[2][0]
+            ax.axvline(float(np.median(e)), ls="--", lw=0.8, color=line.get_edgecolor())
+    ax.set_xlabel("initial-position error |p - p_true| (mm)")
+    ax.set_ylabel("runs")
+    ax.set_title("initial-position error per plan (medians dashed)", loc="left", fontsize=10)
+    ax.legend(fontsize=8, frameon=False)
+    return fig
+
+
+def plot_robot_time(results: Sequence[dict[str, Any]], plans: Sequence[str]):
+    """Figure: the robot time (s) of the startups per plan (box: quartiles, whiskers: 10th-90th percentile)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 3.5))
+    fig.subplots_adjust(left=0.1, right=0.97, bottom=0.1, top=0.9)
+    ax = fig.add_subplot()
+    data = [[r["robot_time_s"] for r in _ok(results, p)] for p in plans]
+    keep = [(p, d) for p, d in zip(plans, data, strict=True) if d]
+    if keep:
+        ax.boxplot([d for _, d in keep], whis=(10, 90))
+        ax.set_xticks(range(1, len(keep) + 1), [p for p, _ in keep])
+    ax.set_ylabel("robot time of the startup (s)")
+    ax.set_title("robot time per plan", loc="left", fontsize=10)
+    return fig
+
+
+def plot_error_vs_sigma(results: Sequence[dict[str, Any]], plans: Sequence[str]):
+    """Figure: each run's position error against its printed 1-sigma (both the norm over x, y, z, mm; log
+    axes, a printed sigma may be off by orders of magnitude); a calibrated sigma puts the RMS of the errors on
+    the diagonal."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5, 4.5))
+    fig.subplots_adjust(left=0.13, right=0.97, bottom=0.12, top=0.92)
+    ax = fig.add_subplot()
+    span = [math.inf, 0.0]
+    for plan in plans:
+        ok = _ok(results, plan)
+        s = np.array([r["sigma_m"] for r in ok]) * 1000.0
+        e = np.array([r["error_m"] for r in ok]) * 1000.0
+        if len(e):
+            ax.scatter(s, e, s=10, alpha=0.7, label=plan)
+            both = np.concatenate([s, e])
+            both = both[both > 0]
+            span = [min(span[0], float(both.min(initial=math.inf))), max(span[1], float(both.max(initial=0.0)))]
+    if span[1] > 0:
+        ax.plot(span, span, color="k", lw=0.8, ls=":", label="error = 1σ")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+    ax.set_xlabel("printed 1σ of the position (mm)")
+    ax.set_ylabel("position error (mm)")
+    ax.set_title("error against the printed 1σ", loc="left", fontsize=10)
+    ax.legend(fontsize=8, frameon=False)
+    return fig
+
+
+def render_study_html(stats: dict[str, dict[str, Any]], results: Sequence[dict[str, Any]],
+                      config: StudyConfig, seeds: Sequence[int]) -> str:
+    """The study's self-contained HTML page: the table and three figures (SVG embedded)."""
+    esc = html.escape
+    plans = list(stats)
+    rows = []
+    for plan, s in stats.items():
+        e, t = s["error_mm"], s["robot_time_s"]
+        cells = [plan, f"{s['ok']}/{s['runs']}", *(_fmt(e, k, 2) for k in ("median", "q1", "q3", "p90", "rms")),
+                 _fmt(s["sigma_mm"], "rms", 2),
+                 "-" if s["rms_error_over_sigma"] is None else f"{s['rms_error_over_sigma']:.2f}",
+                 *("-" if s[k] is None else f"{100 * s[k]:.0f}%" for k in ("coverage_1sigma", "coverage_2sigma")),
+                 *(_fmt(t, k, 1) for k in ("median", "q1", "q3", "p90"))]
+        rows.append("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in cells) + "</tr>")
+    failures = [r for r in results if r["status"] != "ok"]
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>cdpr study</title>",
+        "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}td,th{padding:2px 8px;text-align:right}"
+        "table{border-collapse:collapse}tr:nth-child(even){background:#f4f4f4}pre{background:#f8f8f8}</style>",
+        "</head><body><h1>Monte-Carlo study of the startup</h1>",
+        f"<p>robot {esc(config.robot)}, seeds {min(seeds)}..{max(seeds)}, plans {esc(', '.join(plans))}"
+        + (f", tolerance {esc(config.tolerance)}" if config.tolerance else "") + "</p>",
+        "<table><tr><th>plan</th><th>ok/runs</th><th colspan='5'>position error (mm): median, q1, q3, p90, RMS</th>"
+        "<th>RMS printed 1&sigma; (mm)</th><th>RMS error / 1&sigma;</th>"
+        "<th>within 1&sigma;</th><th>within 2&sigma;</th>"
+        "<th colspan='4'>robot time (s): median, q1, q3, p90</th></tr>",
+        *rows, "</table>",
+        "<p>Within 1&sigma;/2&sigma;: the share of the per-axis errors inside the printed bounds (68% and 95% when "
+        "the printed 1&sigma; is right).</p>",
+        f"<img alt='error distribution' src='{_svg(plot_errors(results, plans))}'>",
+        f"<img alt='robot time' src='{_svg(plot_robot_time(results, plans))}'>",
+        f"<img alt='error against sigma' src='{_svg(plot_error_vs_sigma(results, plans))}'>",
+        "<h2>Simulation configuration</h2>",
+        f"<pre>{esc(yaml.safe_dump(config.sim_config) if config.sim_config else 'nominal')}</pre>",
+    ]
+    if failures:
+        parts.append("<h2>Runs without a solution</h2><ul>")
+        parts += [f"<li>{esc(r['plan'])} seed {r['seed']}: {esc(r['status'])}: {esc(r['message'])}</li>"
+                  for r in failures]
+        parts.append("</ul>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+if __name__ == "__main__":  # one run of a study: the process run_startup starts
+    sys.stdout.write(json.dumps(run_in_this_process(RunTask.from_dict(json.load(sys.stdin)))) + "\n")

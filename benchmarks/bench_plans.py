@@ -1,0 +1,66 @@
+"""The A-optimal 8-pose plan against the 2x2x2 grid (issue 19, done-when 2; not collected by pytest).
+
+    python benchmarks/bench_plans.py [--poses 8] [--runs 40]
+
+Prints, for both plans, the predicted 1-sigma of the initial position (sqrt of the trace of its covariance,
+window-mean noise of calib.design plus the devices' constant errors) and the robot time, then checks the
+prediction by Monte Carlo: ``--runs`` simulated sets of window means at the plan's poses
+(sim_backend.equilibrium_rows: the same noise, the load cells' and the AHRS's constant errors drawn per run),
+each solved with the planning model; the RMS position error should match the predicted 1-sigma.
+Target: optimal / grid predicted 1-sigma <= 0.7. Exit status 1 when missed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from calib.design import TimeModel, assess, optimal_plan, planning_model, window_mean_noise
+from calib.planning import plan_poses
+from calib.robot import load_robot
+from calib.selfcal import solve
+from sim_backend.config import load_sim_config
+from sim_backend.equilibrium_rows import simulated_rows
+
+TARGET = 0.7
+
+
+def monte_carlo(robot, plan, noise, runs: int) -> np.ndarray:
+    """Position errors (runs,) m of the planning model's solve on simulated window means at the plan."""
+    config = load_sim_config(None, robot.n)
+    model = planning_model(robot)
+    err = []
+    for seed in range(runs):
+        rows = simulated_rows(robot, config, seed=seed, noise=noise, plan=plan)
+        sol = solve(robot, rows.meas, noise=noise, model=model, guess=(rows.guess_zeta0, rows.guess_poses))
+        err.append(np.linalg.norm(sol.initial_pose[:3] - rows.zeta0[:3]))
+    return np.array(err)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--poses", type=int, default=8)
+    ap.add_argument("--runs", type=int, default=40)
+    args = ap.parse_args()
+    robot = load_robot("irma4u")
+    noise, times = window_mean_noise(robot), TimeModel()
+    plans = {"grid 2x2x2": plan_poses(robot, 2), f"optimal {args.poses}": optimal_plan(robot, args.poses, noise)}
+    sig = {}
+    print(f"{'plan':<12} {'poses':>5} {'predicted 1-sigma':>18} {'MC rms error':>13} {'robot time':>11}")
+    for name, plan in plans.items():
+        a = assess(robot, plan, noise, times)
+        err = monte_carlo(robot, plan, noise, args.runs)
+        sig[name] = a.position_sigma
+        print(f"{name:<12} {len(plan.poses):>5} {1000 * a.position_sigma:>15.3f} mm "
+              f"{1000 * np.sqrt(np.mean(err**2)):>10.3f} mm {a.robot_time:>9.0f} s")
+    grid, opt = sig.values()
+    ratio = opt / grid
+    ok = ratio <= TARGET
+    print(f"optimal / grid predicted 1-sigma: {ratio:.3f} (target <= {TARGET}) {'ok' if ok else 'MISSED'}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

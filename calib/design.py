@@ -1,0 +1,415 @@
+"""Calibration poses chosen for information (issue 19): optimal plans, sequential choice, separating effects.
+
+Information. The tau-l-sigma-epsilon problem (:mod:`calib.selfcal.problem`) has the global parameters theta
+(zeta_0 first) and one pose per equilibrium row; its Jacobian is block-arrow. Eliminating a row's pose by
+the Schur complement leaves that row's contribution to the information about theta,
+
+    M_i = G_i^T G_i - G_i^T J_i (J_i^T J_i)^-1 J_i^T G_i       (p, p)
+
+(J_i, G_i: the row's weighted Jacobian with respect to its pose and to theta), and the rows add up: the
+information of a plan is M_0 + sum_i M_i, M_0 that of the reference window (absolute tensions, roll and
+pitch) and the priors of the devices' constant errors (:func:`planning_model`). Its inverse is the
+predicted covariance of theta; the position 1-sigma reported everywhere is
+``sqrt(trace)`` of its position block (m), the root-mean-square length of the position error, which is
+what the A-optimal design minimises.
+
+Noise. The rows are means of equilibrium windows: :func:`window_mean_noise` divides the per-sample sigma of
+each channel by the square root of the samples in a window (the default per-sample sigma, SAMPLE_NOISE, is
+the sensors' scatter in a still window); every function takes the noise as an argument.
+
+Robot time (:class:`TimeModel`): each transition is a rest-to-rest quintic at the tension rate limit
+(15/8 max|delta tau| / rate, at least ``min_transition``), each pose waits ``settle`` s to come to rest and
+holds ``hold`` s; the plan's time is the closed tour from the home tensions tau0 back to tau0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.effects import EffectModel
+from calib.effects.builtin import DeviceAccuracy
+from calib.equilibrium import inverse_geometrico_static
+from calib.planning import PlanningError, PosePlan, home, order_setpoints
+from calib.robot import Robot
+from calib.selfcal import MeasurementModel, Measurements, Problem
+from calib.workspace import default_volume
+
+QUINTIC_PEAK_RATE = 15.0 / 8.0  # peak of the rest-to-rest quintic's rate over the mean rate
+# per-sample sigma of the IRMA4U's sensors in a still window (issue 19: load cells ~1 N, encoders ~0.2 mm,
+# AHRS ~0.02 deg; swivel encoders their 0.03 deg accuracy): N, m, rad
+SAMPLE_NOISE = {
+    "tension": 1.0,
+    "length": 2e-4,
+    "swivel": math.radians(0.03),
+    "orientation": np.radians([0.02, 0.02, 0.02]),
+}
+
+
+@dataclass(frozen=True)
+class TimeModel:
+    """Robot time of a plan, s: transitions at the tension rate limit plus settling and holding per pose."""
+
+    max_tension_rate: float = 40.0  # N/s
+    min_transition: float = 1.0  # s
+    settle: float = 8.0  # s to come to rest at a setpoint (the startup's expected settling)
+    hold: float = 2.0  # s logged per window
+
+    def transition(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Durations (s) of the moves from tensions a to b (..., n) N, broadcast."""
+        span = np.abs(np.asarray(b, float) - np.asarray(a, float)).max(axis=-1)
+        return np.maximum(QUINTIC_PEAK_RATE * span / self.max_tension_rate, self.min_transition)
+
+    def tour(self, tau0: np.ndarray, setpoints: np.ndarray) -> float:
+        """Robot time (s) of visiting the setpoints (k, n) in order from tau0 and back, with the home window."""
+        sp = np.vstack([tau0, setpoints, tau0])
+        return float(self.transition(sp[:-1], sp[1:]).sum() + (len(setpoints) + 1) * (self.settle + self.hold))
+
+
+def window_mean_noise(robot: Robot, samples: int = 20, per_sample: dict | None = None) -> dict[str, np.ndarray]:
+    """Sigma of one window mean per channel (N, m, rad): the per-sample sigma (default SAMPLE_NOISE) over
+    sqrt(samples in a window)."""
+    base = SAMPLE_NOISE if per_sample is None else per_sample
+    n = robot.n
+    return {c: np.broadcast_to(np.asarray(v, float), (3 if c == "orientation" else n,)) / math.sqrt(samples)
+            for c, v in base.items()}
+
+
+def planning_model(robot: Robot) -> MeasurementModel:
+    """The model the plans are judged with: the rigid model plus the devices' constant errors within their
+    datasheet accuracy (load-cell and AHRS biases, Gaussian priors), which window means do not average out."""
+    return EffectModel(robot, [DeviceAccuracy()])
+
+
+def information(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, noise: dict[str, np.ndarray],
+                model: MeasurementModel | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Information about theta of the reference window, M_0 (p, p), and of one equilibrium row at each pose,
+    M (k, p, p), the row's own pose eliminated (module doc); theta is the model's start at zeta0 (default
+    model: :func:`planning_model`)."""
+    model = model or planning_model(robot)
+    z = np.atleast_2d(np.asarray(poses, float))
+    k, n = z.shape[0], robot.n
+    meas = Measurements(np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, 3)),
+                        np.zeros(n), np.zeros(2))
+    ev = Problem(model, meas, noise).evaluate(model.initial_params(np.asarray(zeta0, float)), z)
+    _, _, J, G = ev.groups[0]
+    Jt = J.transpose(0, 2, 1)
+    W = Jt @ G
+    M = G.transpose(0, 2, 1) @ G - W.transpose(0, 2, 1) @ np.linalg.solve(Jt @ J, W)
+    return ev.g0.T @ ev.g0, 0.5 * (M + M.transpose(0, 2, 1))
+
+
+def position_sigma(info: np.ndarray) -> np.ndarray:
+    """sqrt(trace) of the position block of the inverse of information matrices (..., p, p), m; inf where
+    the information is singular."""
+    info = np.asarray(info, float)
+    ridge = 1e-12 * np.trace(info, axis1=-2, axis2=-1)[..., None, None] * np.eye(info.shape[-1])
+    cov = np.linalg.inv(info + ridge)
+    tr = np.trace(cov[..., :3, :3], axis1=-2, axis2=-1)
+    ok = np.linalg.matrix_rank(info) == info.shape[-1]
+    return np.where(ok & (tr > 0), np.sqrt(np.abs(tr)), np.inf)
+
+
+@dataclass(frozen=True)
+class CandidateSet:
+    """Statically reachable equilibria: poses (m, 6), tension setpoints (m, n) N, and each one's information
+    (m, p, p); the reference window's information ``info0`` (p, p) at the home pose under ``tau0``."""
+
+    poses: np.ndarray
+    setpoints: np.ndarray
+    info: np.ndarray
+    info0: np.ndarray
+    tau0: np.ndarray
+    home_pose: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.poses.shape[0])
+
+
+def candidate_volume(robot: Robot, margin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Where candidates are sought: the installation volume (:func:`calib.workspace.default_volume`) kept
+    ``margin`` m away from the pulleys' horizontal extent, from the plane below them and from the floor (m)."""
+    lo, hi = default_volume(robot)
+    return lo + margin, hi - margin
+
+
+def candidates(robot: Robot, noise: dict[str, np.ndarray], step: float = 0.1, lower: np.ndarray | None = None,
+               upper: np.ndarray | None = None) -> CandidateSet:
+    """The equilibria of the static workspace (tension bounds, stability) on a grid of spacing ``step`` (m)
+    inside [lower, upper] (default :func:`candidate_volume`), with their information."""
+    vlo, vhi = candidate_volume(robot)
+    lo = vlo if lower is None else np.asarray(lower, float)
+    hi = vhi if upper is None else np.asarray(upper, float)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise PlanningError(f"robot '{robot.name}' has no workspace bounds (field 'workspace').")
+    if not step > 0:
+        raise PlanningError(f"the candidate grid step must be positive, got {step!r} m.")
+    axes = [np.arange(a, b + step / 2, step) for a, b in zip(lo, hi, strict=True)]
+    pos = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], 1)
+    with np.errstate(invalid="ignore"):  # positions the cables cannot reach: not feasible, dropped
+        sp = inverse_geometrico_static(robot, pos)
+    ok = sp.feasible
+    if not ok.any():
+        raise PlanningError(f"robot '{robot.name}': the static workspace inside {np.round(lo, 3).tolist()} .. "
+                            f"{np.round(hi, 3).tolist()} m is empty (no stable equilibrium within the tension bounds).")
+    tau0, home_pose = home(robot)
+    info0, info = information(robot, sp.poses[ok], home_pose, noise)
+    return CandidateSet(sp.poses[ok], sp.tensions[ok], info, info0, tau0, home_pose)
+
+
+def _best_addition(base: np.ndarray, info: np.ndarray, allowed: np.ndarray) -> tuple[int, float]:
+    """The candidate whose information added to ``base`` gives the smallest position sigma."""
+    s = position_sigma(base[None] + info)
+    s[~allowed] = np.inf
+    j = int(np.argmin(s))
+    return j, float(s[j])
+
+
+def select_a_optimal(cands: CandidateSet, k: int, max_rounds: int = 20) -> tuple[np.ndarray, float]:
+    """K distinct candidates minimising the predicted position sigma: greedy, then Fedorov exchanges (each
+    chosen pose swapped for the best other candidate) until no swap helps. Returns indices (k,), sigma (m)."""
+    if not 1 <= k <= cands.size:
+        raise PlanningError(f"cannot choose {k} poses among {cands.size} reachable candidates.")
+    chosen: list[int] = []
+    total = cands.info0.copy()
+    free = np.ones(cands.size, bool)
+    for _ in range(k):
+        j, _ = _best_addition(total, cands.info, free)
+        chosen.append(j)
+        free[j] = False
+        total = total + cands.info[j]
+    best = float(position_sigma(total))
+    for _ in range(max_rounds):
+        improved = False
+        for slot in range(k):
+            rest = total - cands.info[chosen[slot]]
+            j, s = _best_addition(rest, cands.info, free)
+            if s < best * (1 - 1e-9):
+                free[chosen[slot]], free[j] = True, False
+                chosen[slot], total, best, improved = j, rest + cands.info[j], s, True
+        if not improved:
+            break
+    return np.array(chosen), best
+
+
+@dataclass(frozen=True)
+class PlanAssessment:
+    """Predicted 1-sigma of zeta_0 (6,) (m, rad), position sigma (sqrt trace, m) and robot time (s) of a plan."""
+
+    sigma: np.ndarray
+    position_sigma: float
+    robot_time: float
+
+    def to_dict(self) -> dict:
+        return {"position_sigma_m": self.position_sigma, "sigma": self.sigma.tolist(), "robot_time_s": self.robot_time}
+
+
+def assess(robot: Robot, plan: PosePlan, noise: dict[str, np.ndarray], time_model: TimeModel) -> PlanAssessment:
+    """The predicted uncertainty of the initial pose and the robot time of a plan."""
+    info0, info = information(robot, plan.poses, plan.home_pose, noise)
+    total = info0 + info.sum(axis=0)
+    cov = np.linalg.inv(total)
+    return PlanAssessment(np.sqrt(np.clip(np.diag(cov)[:6], 0, None)), float(position_sigma(total)),
+                          time_model.tour(plan.tau0, plan.setpoints))
+
+
+def optimal_plan(robot: Robot, k: int, noise: dict[str, np.ndarray], step: float = 0.1,
+                 cands: CandidateSet | None = None) -> PosePlan:
+    """K reachable equilibria minimising the predicted position sigma of zeta_0 (A-optimal), in the
+    visiting order of the cheapest tour from tau0 (the transition time, as :func:`calib.planning.plan_poses`)."""
+    cands = cands or candidates(robot, noise, step)
+    idx, _ = select_a_optimal(cands, k)
+    order, cost = order_setpoints(cands.tau0, cands.setpoints[idx])
+    sel = idx[order]
+    sp = inverse_geometrico_static(robot, cands.poses[sel, :3])
+    return PosePlan(cands.poses[sel], cands.setpoints[sel], cands.tau0, cands.home_pose,
+                    np.full((k, 3), -1), cost, sp.min_stiffness)
+
+
+@dataclass
+class SequentialDesign:
+    """The next pose of a sequential startup: among the reachable candidates not yet visited, the one with
+    the largest expected information gain per second of robot time from the current setpoint.
+
+    The gain of a candidate is the increase of the position precision 1/sigma^2 (1/m^2) it brings, sigma the
+    predicted position sigma of the rows acquired so far with and without it (before any row, the precision
+    is zero); the cost is the transition from where the platform is plus settling and holding. (On the
+    IRMA4U this reaches a tolerance with fewer poses than the gain log(sigma_now / sigma_with_it).)
+    ``update`` replaces the accumulated information with that of the current solution (its poses and
+    zeta_0), so the choice follows what was actually measured.
+    """
+
+    cands: CandidateSet
+    time_model: TimeModel
+    visited: np.ndarray = field(init=False)
+    total: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.visited = np.zeros(self.cands.size, bool)
+        self.total = self.cands.info0.copy()
+
+    def update(self, estimate: OnlineEstimate) -> None:
+        """Take the information of the solve after the last window (the inverse of its covariance)."""
+        self.total = np.linalg.inv(estimate.covariance)
+
+    def next(self, current: np.ndarray) -> int | None:
+        """Index of the next candidate from tensions ``current`` (n,) N, or None when all are visited."""
+        free = ~self.visited
+        if not free.any():
+            return None
+        now = float(position_sigma(self.total))
+        after = position_sigma(self.total[None] + self.cands.info)
+        gain = 1.0 / after**2 - (1.0 / now**2 if np.isfinite(now) else 0.0)
+        cost = self.time_model.transition(current[None], self.cands.setpoints) + self.time_model.settle + \
+            self.time_model.hold
+        rate = np.where(free, gain / cost, -np.inf)
+        j = int(np.argmax(rate))
+        self.visited[j] = True
+        return j
+
+
+@dataclass(frozen=True)
+class WindowMean:
+    """Mean readings of one equilibrium window: tensions (n,) N, length and swivel deltas (n,) m and rad,
+    roll, pitch and yaw delta (3,) rad (deltas since the sensors were zeroed)."""
+
+    tau: np.ndarray
+    dl: np.ndarray
+    dsigma: np.ndarray
+    orientation: np.ndarray
+
+
+@dataclass(frozen=True)
+class OnlineEstimate:
+    """The solve after a window: theta, row poses (k, 6), theta covariance, position sigma (m), iterations."""
+
+    theta: np.ndarray
+    poses: np.ndarray
+    covariance: np.ndarray
+    position_sigma: float
+    iterations: int
+
+
+class OnlineSolve:
+    """The tau-l-sigma-epsilon solve of the windows acquired so far, warm-started from the previous solution
+    (a few LM iterations per window); the first window, under tau0, is the reference (zeta_0)."""
+
+    def __init__(self, robot: Robot, noise: dict[str, np.ndarray], reference: WindowMean, zeta0_guess: np.ndarray):
+        self.robot = robot
+        self.noise = noise
+        self.ref = reference
+        self.rows: list[WindowMean] = []
+        self.model = planning_model(robot)
+        self.theta = self.model.initial_params(np.asarray(zeta0_guess, float))
+        self.poses = np.zeros((0, 6))
+
+    def add(self, window: WindowMean, pose_guess: np.ndarray) -> OnlineEstimate:
+        """Add a window (its pose guessed at ``pose_guess``, e.g. the planned ideal pose) and solve again."""
+        from calib.selfcal import solve
+
+        self.rows.append(window)
+        ref = self.ref
+        ori = np.array([w.orientation for w in self.rows])
+        ori[:, 2] -= ref.orientation[2]
+        meas = Measurements(
+            np.array([w.tau for w in self.rows]), np.array([w.dl for w in self.rows]) - ref.dl,
+            np.array([w.dsigma for w in self.rows]) - ref.dsigma, ori, ref.tau, ref.orientation[:2],
+        )
+        poses0 = np.vstack([self.poses, np.asarray(pose_guess, float)[None]])
+        sol = solve(self.robot, meas, method="tlse", noise=self.noise, guess=(self.theta, poses0), model=self.model)
+        self.theta, self.poses = sol.theta, sol.poses
+        cov = sol.covariance
+        return OnlineEstimate(sol.theta, sol.poses, cov, float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
+                              sol.iterations)
+
+
+def sequential_acquisition(design: SequentialDesign, online: OnlineSolve, tolerance: float, max_poses: int,
+                           history: list[tuple[int, OnlineEstimate]], min_poses: int = 2):
+    """The sequential startup's choice and stop rule, as a generator: it yields the index of the next candidate
+    (from the home tensions, then from the last one visited) and is sent the :class:`WindowMean` acquired
+    there; after each window it solves again, appends (candidate, estimate) to ``history`` and stops when the
+    position 1-sigma is below ``tolerance`` m (after at least ``min_poses`` windows: the run's solve needs
+    two). Its return value (``StopIteration.value``) is why it stopped: 'tolerance' or 'exhausted'."""
+    current = design.cands.tau0
+    for j in range(max_poses):
+        c = design.next(current)
+        if c is None:
+            break
+        window = yield c
+        est = online.add(window, design.cands.poses[c])
+        design.update(est)
+        history.append((c, est))
+        current = design.cands.setpoints[c]
+        if est.position_sigma < tolerance and j + 1 >= min_poses:
+            return "tolerance"
+    return "exhausted"
+
+
+def drive(steps, acquire) -> str:
+    """Run a :func:`sequential_acquisition` generator with ``acquire(candidate) -> WindowMean``; returns why
+    it stopped."""
+    try:
+        c = next(steps)
+        while True:
+            c = steps.send(acquire(c))
+    except StopIteration as stop:
+        return stop.value
+
+
+@dataclass(frozen=True)
+class Separation:
+    """Poses that tell two effects apart: poses (m, 6), setpoints (m, n) N, and each one's expected
+    difference of the two fitted models' predictions, squared and in units of the noise, after the pose
+    itself is refitted (chi2 units: what one such window adds to the difference of the two fits' chi2)."""
+
+    effects: tuple[str, str]
+    poses: np.ndarray
+    setpoints: np.ndarray
+    score: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"effects": list(self.effects), "poses": self.poses.tolist(), "setpoints": self.setpoints.tolist(),
+                "expected_delta_chi2": self.score.tolist()}
+
+
+def separating_poses(robot: Robot, meas: Measurements, noise: dict[str, np.ndarray], theta0: np.ndarray,
+                     poses0: np.ndarray, effects: tuple, cands: CandidateSet, count: int = 3,
+                     spacing: float = 0.2) -> Separation:
+    """The ``count`` candidate equilibria (at least ``spacing`` m apart) where two effects, each fitted to
+    the rows ``meas`` (with the devices' constant errors, :func:`calib.diagnose.fit`), predict the most
+    different readings relative to the noise once the row's pose is refitted: at each candidate setpoint the
+    platform of each fitted model rests at that model's equilibrium (direct statics of its true robot)."""
+    from calib.diagnose import fit
+    from calib.equilibrium import direct_statics
+    from calib.selfcal import CHANNELS
+
+    w = np.concatenate([1.0 / np.broadcast_to(noise[c], (3 if c == "orientation" else robot.n,)) for c in CHANNELS])
+    vals, jacs, ok = [], [], np.ones(cands.size, bool)
+    for e in effects:
+        f = fit(robot, meas, noise, [DeviceAccuracy(), e], theta0, poses0)
+        with np.errstate(invalid="ignore"):
+            ds = direct_statics(f.model.true_robot(f.theta), cands.setpoints, cands.poses)
+            pr = f.model.predict(ds.poses, f.theta, CHANNELS)
+        vals.append(w * np.concatenate([pr[c].value for c in CHANNELS], 1))
+        jacs.append(w[:, None] * np.concatenate([pr[c].d_pose for c in CHANNELS], 1))
+        ok &= ds.converged
+    d = vals[0] - vals[1]
+    J = 0.5 * (jacs[0] + jacs[1])  # the row's pose is refitted
+    Jt = J.transpose(0, 2, 1)
+    x = np.linalg.pinv(Jt @ J, rcond=1e-10) @ (Jt @ d[..., None])
+    resid = d - (J @ x)[..., 0]
+    score = np.where(ok, np.sum(resid**2, 1), -np.inf)
+    score = np.where(np.isfinite(score), score, -np.inf)
+    chosen: list[int] = []
+    for j in np.argsort(-score):
+        if len(chosen) == count or not np.isfinite(score[j]):
+            break
+        if all(np.linalg.norm(cands.poses[j, :3] - cands.poses[i, :3]) >= spacing for i in chosen):
+            chosen.append(int(j))
+    if not chosen:
+        raise PlanningError("no candidate pose has an equilibrium under both fitted models.")
+    idx = np.array(chosen)
+    return Separation((effects[0].name, effects[1].name), cands.poses[idx], cands.setpoints[idx], score[idx])

@@ -1,0 +1,253 @@
+"""The damage policy (docs/run-format.md) on damaged input, property-based: the run reader and both IRMA
+importers, on files truncated anywhere, with lines inserted, duplicated, reordered, fields cut or made
+non-numeric. Never a traceback (a damaged file is read, with one warning, or refused with one sentence),
+never a silently different result: a run read without a warning is the undamaged one, or (a file cut
+exactly at a line end, which cannot be told from a shorter file) its first samples."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from acquisition.importers import IrmaImportError, irma_run
+from acquisition.runlog import DamagedInputWarning, RunFormatError, new_run, read_run, write_run
+
+SETTINGS = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+# ---- damage, applied to the lines of a text file ----------------------------------------------------------
+
+JUNK = st.text(alphabet="0123456789.,-+eEnaNIf x#\t", max_size=30)
+damage_op = st.one_of(
+    st.tuples(st.just("insert"), st.floats(0, 1), JUNK),
+    st.tuples(st.just("duplicate"), st.floats(0, 1), st.floats(0, 1)),
+    st.tuples(st.just("swap"), st.floats(0, 1), st.floats(0, 1)),
+    st.tuples(st.just("cut_fields"), st.floats(0, 1), st.integers(1, 3)),
+    st.tuples(st.just("non_numeric"), st.floats(0, 1), st.sampled_from(["abc", "", "1.2.3", "nan", "inf", "--"])),
+)
+damages = st.tuples(st.lists(damage_op, min_size=1, max_size=4), st.none() | st.floats(0, 1))
+
+
+def _at(lines: list[str], x: float, first: int) -> int:
+    return first + min(int(x * (len(lines) - first)), len(lines) - first - 1)
+
+
+def damage_text(text: str, ops, cut: float | None, first: int = 0) -> tuple[bytes, bool]:
+    """The damaged file, and whether it was cut exactly at a line end (a shorter file, not a damaged one).
+    Lines before ``first`` (a header) are left alone by the line operations."""
+    lines = text.splitlines()
+    for kind, x, arg in ops:
+        k = _at(lines, x, first)
+        if kind == "insert":
+            lines.insert(k, arg)
+        elif kind == "duplicate":
+            lines.insert(_at(lines, arg, first), lines[k])
+        elif kind == "swap":
+            j = _at(lines, arg, first)
+            lines[k], lines[j] = lines[j], lines[k]
+        elif kind == "cut_fields":
+            cells = lines[k].split(",")
+            lines[k] = ",".join(cells[: max(1, len(cells) - arg)])
+        else:
+            cells = lines[k].split(",")
+            cells[min(len(cells) - 1, 2)] = arg
+            lines[k] = ",".join(cells)
+    data = ("\n".join(lines) + "\n").encode()
+    if cut is None:
+        return data, False
+    n = int(cut * len(data))
+    return data[:n], n > 0 and data[n - 1 : n] == b"\n"
+
+
+def read_quietly(fn, *args):
+    """(result or the error, the warnings): a result with its warnings, or an error of the policy's kind."""
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        try:
+            out = fn(*args)
+        except (RunFormatError, IrmaImportError) as exc:
+            text = str(exc)
+            assert text.endswith(".") and "\n" not in text and str(args[0]) in text, text
+            return exc, rec
+    damaged = [w for w in rec if issubclass(w.category, DamagedInputWarning)]
+    assert len(damaged) <= 1 and len(damaged) == len([w for w in rec if issubclass(w.category, UserWarning)])
+    if damaged:
+        assert str(damaged[0].message).endswith(f"; {len(out)} samples kept.")
+    return out, damaged
+
+
+def assert_same_or_prefix(got, want, names, cut_at_line_end: bool):
+    """A run read without a warning: the undamaged run or, cut at a line end, its first samples."""
+    k = len(got)
+    assert k == len(want) or (cut_at_line_end and k < len(want)), (k, len(want))
+    for name in names:
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name)[:k], err_msg=name)
+
+
+# ---- the run reader -------------------------------------------------------------------------------------
+
+
+def _run():
+    rng = np.random.default_rng(7)
+    N = 25
+    return new_run("irma4u", "equilibrium", 0.1, "test", t=0.1 * np.arange(N), tau=rng.uniform(50, 150, (N, 4)),
+                   tau_ref=rng.uniform(50, 150, (N, 4)), dl=rng.normal(0, 0.1, (N, 4)),
+                   dsigma=rng.normal(0, 0.1, (N, 4)), roll=rng.normal(0, 0.05, N), pitch=rng.normal(0, 0.05, N),
+                   dyaw=rng.normal(0, 0.05, N), phase=["hold"] * N, setpoint=np.arange(N) % 3)
+
+
+@pytest.fixture(scope="module")
+def good_run(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("good") / "run"
+    write_run(folder, _run())
+    return folder
+
+
+RUN_COLUMNS = ("t", "tau", "tau_ref", "dl", "dsigma", "roll", "pitch", "dyaw", "setpoint")
+
+
+@SETTINGS
+@given(damage=damages)
+def test_run_reader_on_damaged_samples(good_run, tmp_path_factory, damage):
+    folder = tmp_path_factory.mktemp("bad")
+    (folder / "run.yaml").write_bytes((good_run / "run.yaml").read_bytes())
+    data, at_line_end = damage_text((good_run / "samples.csv").read_text(), *damage, first=1)
+    (folder / "samples.csv").write_bytes(data)
+    want = read_run(good_run)
+    got, warned = read_quietly(read_run, folder)
+    if isinstance(got, Exception):
+        return
+    assert np.all(np.diff(got.t) > 0)
+    index = np.searchsorted(want.t, got.t)
+    assert np.all(index < len(want)) and np.array_equal(want.t[np.minimum(index, len(want) - 1)], got.t)
+    for name in RUN_COLUMNS:  # every sample kept is a sample of the run, unchanged
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name)[index], err_msg=name)
+    if not warned:
+        assert_same_or_prefix(got, want, RUN_COLUMNS, at_line_end)
+
+
+# ---- the raw IRMA log -----------------------------------------------------------------------------------
+
+
+def _targets(k: int) -> float:
+    """Target tension of experiment cycle k (N): pretension, a hold at 120 N, a ramp, a hold at 140 N."""
+    return 100.0 if k < 3 else 120.0 if k < 16 else 120.0 + 5 * (k - 15) if k < 19 else 140.0
+
+
+def _log_text() -> str:
+    lines = []
+    times = [round(0.1 * k, 3) for k in range(5)] + [round(5.0 + 0.1 * k, 3) for k in range(34)]
+    for j, t in enumerate(times):
+        k = j - 5
+        target = 100.0 if k < 0 else _targets(k)
+        for i in range(4):
+            length = 2.27 + 0.001 * j + 0.01 * i
+            lines.append(f"3,{t},{i},10,{1000 * j + i},0,{5 + i},{length:.6f},0.0,{target + 0.1 * i:.3f},"
+                         f"{target:.3f},0,4,{0.5 + 0.001 * j:.6f}")
+        lines.append(f"5,{t},{0.1 * j:.3f},{-0.2 * j:.3f},{1.0 + 0.01 * j:.3f}")
+        lines.append(f"6,{t},1,2,3")
+    return "\n".join(lines) + "\n"
+
+
+LOG_COLUMNS = ("t", "tau", "tau_ref", "dl", "dsigma", "roll", "pitch", "dyaw")
+
+
+@SETTINGS
+@given(damage=damages)
+def test_raw_log_importer_on_damaged_lines(tmp_path_factory, damage):
+    folder = tmp_path_factory.mktemp("log")
+    good, bad = folder / "good.log", folder / "bad.log"
+    good.write_text(_log_text())
+    data, at_line_end = damage_text(good.read_text(), *damage)
+    bad.write_bytes(data)
+    want = irma_run(good)
+    got, warned = read_quietly(irma_run, bad)
+    if isinstance(got, Exception):
+        return
+    assert np.all(np.diff(got.t) > 0)
+    if not warned:
+        assert got.meta["time_origin"] == want.meta["time_origin"]
+        assert_same_or_prefix(got, want, LOG_COLUMNS, at_line_end)
+
+
+def test_the_synthetic_log_imports_cleanly(tmp_path):
+    f = tmp_path / "good.log"
+    f.write_text(_log_text())
+    run, warned = read_quietly(irma_run, f)
+    assert not warned and len(run) == 34 and len(run.setpoints) == 2
+
+
+# ---- the authors' parsed .mat ---------------------------------------------------------------------------
+
+FIELDS = ("t", "epsilon", "cable_length", "swivel", "tensions", "target_tensions")
+
+
+def _parsed() -> dict[str, np.ndarray]:
+    N = 34
+    k = np.arange(N)
+    target = np.array([_targets(j) for j in k])
+    return {"t": 5.0 + 0.1 * k, "epsilon": np.vstack([0.01 * k, -0.02 * k, 0.001 * k]),
+            "cable_length": 2.27 + 0.001 * k + 0.01 * np.arange(4)[:, None],
+            "swivel": 0.5 + 0.001 * np.ones((4, N)) * k,
+            "tensions": target + 0.1 * np.arange(4)[:, None], "target_tensions": np.tile(target, (4, 1))}
+
+
+parsed_op = st.one_of(
+    st.tuples(st.just("cut_field"), st.sampled_from(FIELDS), st.integers(1, 10)),
+    st.tuples(st.just("non_finite"), st.sampled_from(FIELDS), st.floats(0, 1)),
+    st.tuples(st.just("duplicate"), st.floats(0, 1), st.floats(0, 1)),
+    st.tuples(st.just("swap"), st.floats(0, 1), st.floats(0, 1)),
+    st.tuples(st.just("text_field"), st.sampled_from(FIELDS), st.just(0)),
+)
+
+
+def damage_parsed(st_: dict[str, np.ndarray], ops) -> dict:
+    out = {name: np.atleast_2d(a).copy() for name, a in st_.items()}
+    for kind, a, b in sorted(ops, key=lambda op: op[0] == "text_field"):  # a text field last: it has no samples
+        N = min(v.shape[1] for v in out.values())
+        if kind == "cut_field":
+            out[a] = out[a][:, : max(0, out[a].shape[1] - b)]
+        elif kind == "non_finite":
+            out[a][0, min(int(b * N), N - 1)] = np.nan
+        elif kind in ("duplicate", "swap"):
+            i, j = min(int(a * N), N - 1), min(int(b * N), N - 1)
+            for name, v in out.items():
+                v = v[:, :N]
+                if kind == "duplicate":
+                    out[name] = np.insert(v, j, v[:, i], axis=1)
+                else:
+                    v[:, [i, j]] = v[:, [j, i]]
+                    out[name] = v
+        else:
+            out[a] = np.array(["damaged"])
+            break
+    return out
+
+
+@SETTINGS
+@given(ops=st.lists(parsed_op, min_size=1, max_size=3), cut=st.none() | st.floats(0, 1))
+def test_parsed_mat_importer_on_damaged_samples(tmp_path_factory, ops, cut):
+    folder = tmp_path_factory.mktemp("mat")
+    good, bad = folder / "good_parsed.mat", folder / "bad_parsed.mat"
+    scipy.io.savemat(good, {"st": _parsed()})
+    scipy.io.savemat(bad, {"st": damage_parsed(_parsed(), ops)})
+    if cut is not None:  # a file cut anywhere, past its MATLAB header
+        data = bad.read_bytes()
+        bad.write_bytes(data[: 128 + int(cut * (len(data) - 128))])
+    want = irma_run(good)
+    got, warned = read_quietly(irma_run, bad)
+    if isinstance(got, Exception):
+        return
+    t_want = want.t + want.meta["time_origin"]
+    t_got = got.t + got.meta["time_origin"]
+    index = np.searchsorted(t_want, t_got)
+    assert np.all(np.diff(t_got) > 0) and np.all(index < len(want))
+    for name in LOG_COLUMNS[1:]:  # every sample kept is a sample of the recording, unchanged
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name)[index], err_msg=name)
+    if not warned:
+        assert len(got) == len(want)

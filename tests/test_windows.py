@@ -1,0 +1,153 @@
+"""Equilibrium windows against the run's own noise and the plan (calib.selfcal.windows), and the online
+detector that shares their noise estimate; synthetic signals, no simulator (fast)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
+from calib.robot import load_robot
+from calib.selfcal import WindowOptions, search_windows
+
+DT = 0.1
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot("irma4u")
+
+
+def _quintic(a, b, m):
+    u = np.linspace(0.0, 1.0, m)[:, None]
+    return a + (b - a) * u**3 * (10 - 15 * u + 6 * u**2)
+
+
+def _run(rng, setpoints, rest=12.0, move=4.0, noise=1.0, sway=0.0, blocks=None, tail=True):
+    """A synthetic run: rest under tau0, then per block (setpoint j or the pretension tau0 for a pause) a
+    quintic move of ``move`` s and a rest of ``rest`` s; poses follow the tensions (lengths, swivels, tilt
+    proportional to the tension change). ``noise`` scales the noisy-sensor sigmas (0.3 N, 0.2 mm,
+    1.5e-3 rad, 0.45 deg); ``sway`` m of a slow 8 s sway on every kinematic channel."""
+    tau0 = np.full(4, 100.0)
+    blocks = list(range(len(setpoints))) if blocks is None else blocks
+    target = [tau0] + [tau0 if j < 0 else setpoints[j] for j in blocks] + ([tau0] if tail else [])
+    m, r = int(move / DT), int(rest / DT)
+    ref = [np.tile(tau0, (r, 1))]
+    for a, b in zip(target[:-1], target[1:], strict=True):
+        ref += [_quintic(a, b, m), np.tile(b, (r, 1))]
+    ref = np.vstack(ref)
+    N = ref.shape[0]
+    # the platform lags the reference by a damped swing that dies out within a few seconds of each rest
+    tau = ref.copy()
+    dtau = ref - tau0
+    t = np.arange(N) * DT
+    swing = np.zeros(N)
+    moving = np.r_[0.0, np.abs(np.diff(ref, axis=0)).max(axis=1)] > 1e-9
+    last = -1e9
+    for i in range(N):
+        if moving[i]:
+            last = t[i]
+        swing[i] = math.exp(-(t[i] - last) / 0.8) * math.sin(2 * math.pi * 0.7 * (t[i] - last)) if last > -1e9 else 0
+    sw = sway * (np.sin(2 * math.pi * t / 8.0) + 0.5 * np.sin(2 * math.pi * t / 6.4 + 1.0))
+    dl = 2e-3 * dtau + 0.004 * swing[:, None] + sw[:, None]
+    dsig = 1e-3 * dtau + 0.01 * swing[:, None] + 5 * sw[:, None]
+    tilt = np.radians(0.02) * dtau[:, :2] + np.radians(1.0) * swing[:, None] + 2 * sw[:, None]
+    tau = tau + 3.0 * swing[:, None]
+    s = noise
+    tau = tau + 0.3 * s * rng.standard_normal(tau.shape)
+    dl = dl + 2e-4 * s * rng.standard_normal(dl.shape)
+    dsig = dsig + 1.5e-3 * s * rng.standard_normal(dsig.shape)
+    tilt = tilt + math.radians(0.45) * s * rng.standard_normal(tilt.shape)
+    return t, tau, ref, dl, dsig, tilt[:, 0], tilt[:, 1]
+
+
+def _setpoints(rng, k):
+    return 100.0 + rng.uniform(-40.0, 60.0, (k, 4))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_noisy_sensors_and_sway_every_setpoint_gets_its_window(robot, seed):
+    rng = np.random.default_rng(seed)
+    sp = _setpoints(rng, 12)
+    t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, sway=0.002)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp)
+    assert ws.planned == 12 and ws.missing == []
+    assert [w.setpoint for w in ws.used] == list(range(12))
+    assert [w.setpoint for w in ws.found] == [-1, *range(12), -1]  # the rests under tau0 are listed only
+    # the fixed tolerances of the prototype (no noise term) find almost no still window in the same run
+    fixed = WindowOptions(noise_factor=0.0, drift_factor=0.0)
+    assert sum(not w.quasi for w in search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp, fixed).used) <= 4
+
+
+def test_prototype_noise_keeps_the_fixed_tolerances(robot):
+    rng = np.random.default_rng(3)
+    sp = _setpoints(rng, 6)
+    t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, noise=0.05)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp)
+    assert [w.setpoint for w in ws.used] == list(range(6))
+    opt = WindowOptions()
+    np.testing.assert_allclose(ws.thresholds["length"], opt.length_tol)
+    np.testing.assert_allclose(ws.thresholds["tilt"], opt.tilt_tol)
+
+
+def test_pauses_are_listed_and_a_long_hold_is_one_window(robot):
+    rng = np.random.default_rng(4)
+    sp = _setpoints(rng, 5)
+    # setpoint 1 held twice as long (a pause at it), then a pause back under tau0 between 2 and 3
+    blocks = [0, 1, 1, 2, -1, 3, 4]
+    t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, blocks=blocks, sway=0.002)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp)
+    assert [w.setpoint for w in ws.used] == list(range(5))
+    assert [w.setpoint for w in ws.found] == [-1, 0, 1, 2, -1, 3, 4, -1]
+    one = next(w for w in ws.used if w.setpoint == 1)
+    assert one.size * DT > 20.0  # both rests at setpoint 1 (and the still move between them) in one window
+    pause = ws.found[4]
+    np.testing.assert_allclose(ref[pause.slice].mean(axis=0), 100.0, atol=0.01)  # the pause under tau0
+
+
+def test_a_setpoint_without_a_window_is_named_with_its_reason(robot):
+    rng = np.random.default_rng(5)
+    sp = _setpoints(rng, 4)
+    t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, tail=False)
+    cut = len(t) - int(15.0 / DT)  # the log ends 1 s into the move to the last setpoint
+    ws = search_windows(robot, t[:cut], tau[:cut], dl[:cut], dsig[:cut], roll[:cut], pitch[:cut], ref[:cut], sp)
+    assert [w.setpoint for w in ws.used] == [0, 1, 2]
+    assert [m.setpoint for m in ws.missing] == [3]
+    assert ws.missing[0].reason == "setpoint 3: the log ends before its tensions were reached."
+    # the platform kept swinging at setpoint 2: no still stretch, the reason says how far from still
+    full = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp).used
+    swinging = dl.copy()
+    span = slice(full[1].last + 1, full[3].first)
+    swinging[span] += 0.2 * np.sin(2 * np.pi * 0.7 * t[span])[:, None]
+    ws = search_windows(robot, t, tau, swinging, dsig, roll, pitch, ref, sp)
+    miss = {m.setpoint: m.reason for m in ws.missing}
+    assert list(miss) == [2] and "never came to rest" in miss[2]
+
+
+def test_online_detector_learns_the_noise_it_sees():
+    """With 0.3 N load cells the fixed 0.196 N tension threshold never settles; the detector's noise
+    estimate (the offline one's second-difference scale) lets it settle on the same still platform."""
+    rng = np.random.default_rng(6)
+    cfg = DetectorConfig(window=1.5, thresholds=(("tau", 0.196), ("dl", 2e-4)), timeout=20.0)
+    det = EquilibriumDetector(DT, cfg)
+    det.start(0.0)
+    settled = None
+    for k in range(1, 300):
+        st = det.push(k * DT, tau=100.0 + 0.3 * rng.standard_normal(4), dl=2e-5 * rng.standard_normal(4))
+        if st.settled or st.timed_out:
+            settled = st.settled
+            break
+    assert settled is True
+    for j in range(k + 1, k + 300):  # 30 s more: the estimate of the per-sample noise converges to 0.3 N
+        det.push(j * DT, tau=100.0 + 0.3 * rng.standard_normal(4), dl=2e-5 * rng.standard_normal(4))
+    np.testing.assert_allclose(det.limits["tau"], cfg.noise_factor * 0.3, rtol=0.2)
+    fixed = EquilibriumDetector(DT, DetectorConfig(window=1.5, thresholds=cfg.thresholds, timeout=20.0,
+                                                   noise_factor=0.0))
+    fixed.start(0.0)
+    for k in range(1, 300):
+        st = fixed.push(k * DT, tau=100.0 + 0.3 * rng.standard_normal(4), dl=2e-5 * rng.standard_normal(4))
+        if st.settled or st.timed_out:
+            break
+    assert st.timed_out
