@@ -15,6 +15,7 @@ with the same robust scale of second differences (:func:`calib.selfcal.windows.s
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,8 +60,8 @@ class EquilibriumDetector:
         self._count = 0
         self._t0 = 0.0
         self.timeout = self.config.timeout
-        self._past: dict[str, list[np.ndarray]] = {name: [] for name, _ in self.config.thresholds}
-        self._keep = max(10, int(round(self.config.history / self.sample_period)))
+        keep = max(10, int(round(self.config.history / self.sample_period)))
+        self._past: dict[str, deque[np.ndarray]] = {name: deque(maxlen=keep) for name, _ in self.config.thresholds}
         self._refresh = max(1, int(round(1.0 / self.sample_period)))
         self.limits: dict[str, np.ndarray | float] = dict(self.config.thresholds)
 
@@ -88,10 +89,7 @@ class EquilibriumDetector:
             if buf is None:
                 buf = self._buffers[name] = np.empty((self.size, v.size))
             buf[slot] = v
-            past = self._past[name]
-            past.append(v.copy())
-            if len(past) > self._keep:
-                del past[: len(past) - self._keep]
+            self._past[name].append(v.copy())
         self._count += 1
         if self._count % self._refresh == 0:
             self._update_limits()
