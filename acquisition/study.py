@@ -110,7 +110,8 @@ def plan_args(plan: str, tolerance: str | None = None) -> list[str]:
 def startup_args(task: RunTask, out: str, truth: str, sim_config: str | None) -> list[str]:
     """The ``cdpr startup`` command line of one run (``cdpr`` left out)."""
     args = ["startup", "--backend", "sim", "--robot", task.config.robot, "--seed", str(task.seed), "--out", out,
-            "--truth", truth, "--json", "--no-html", *plan_args(task.plan, task.config.tolerance)]
+            "--truth", truth, "--json", "--no-html", "--sim-plant", "inline",
+            *plan_args(task.plan, task.config.tolerance)]
     return args + (["--sim-config", sim_config] if sim_config else [])
 
 
@@ -180,14 +181,11 @@ def _children_cpu() -> float:
 
 def run_in_this_process(task: RunTask) -> dict[str, Any]:
     """One run: ``cdpr startup --backend sim`` in a temporary folder (deleted after) with the simulated plant
-    in this process (see the module docstring; it changes how this process simulates: for the process that
-    :func:`run_startup` starts). Returns :func:`run_result` or :func:`failed_result`; a usage error of the
-    startup (exit status 2) comes back with status ``usage`` and its sentence: it would fail every run, so
-    the study stops on it instead of recording it."""
-    import sim_backend.backend
+    in this process (``--sim-plant inline``, see the module docstring). Returns :func:`run_result` or
+    :func:`failed_result`; a usage error of the startup (exit status 2) comes back with status ``usage`` and
+    its sentence: it would fail every run, so the study stops on it instead of recording it."""
     from acquisition.cli import main
 
-    sim_backend.backend.child_process_possible = lambda: False
     with tempfile.TemporaryDirectory(prefix=f"cdpr-study-{task.name}-") as tmp:
         sim_file = None
         if task.config.sim_config:

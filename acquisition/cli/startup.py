@@ -40,6 +40,8 @@ from acquisition.startup import (
     feedback_every,
 )
 
+SIM_PLANT = {"auto": None, "child": True, "inline": False}  # --sim-plant -> SimBackend(plant_process=...)
+
 
 def register(sub) -> None:
     p = sub.add_parser("startup", help="run the startup self-calibration routine (simulated or real robot)")
@@ -65,6 +67,9 @@ def register(sub) -> None:
     p.add_argument("--truth", help="write the simulator's true initial pose here (JSON); an existing file is "
                    "refused unless --force")
     p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
+    p.add_argument("--sim-plant", choices=tuple(SIM_PLANT), default="auto",
+                   help="where the simulated prototype's physics runs: a child process on the second core "
+                        "(child), this process (inline), or child when the machine has two cores (auto, default)")
     p.add_argument("--rate", type=float, default=200.0, help="control rate, Hz, 200..500 (default 200)")
     p.add_argument("--realtime", action="store_true", help="pace the simulated prototype in real time")
     p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file (updated in place: "
@@ -253,7 +258,8 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> Start
     supervisor = _supervisor(robot, cfg)
     try:
         # the simulated MTi sends at the log rate: its angles serve only the log (ahrs_rate_for)
-        with SimBackend(robot, sim_config, args.seed, period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
+        with SimBackend(robot, sim_config, args.seed, period, ahrs_rate=ahrs_rate_for(cfg.log_period),
+                        plant_process=SIM_PLANT[args.sim_plant]) as sim:
             rig = _connect(sim.devices, robot, clock, True, period, cfg, out, args.bus_log)
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
                                      supervisor=supervisor, meta=args.run_meta)
