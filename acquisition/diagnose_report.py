@@ -211,9 +211,7 @@ def format_diagnosis(diag: Diagnosis, units: dict[str, str] | None = None, run: 
         lines.append(f"  {c:<12} {d['rms_normalized']:>9.2f}  {d['max_normalized']:>9.2f}  {d['chi2']:>8.1f}  {cab}")
     dev = diag.fit.params().get("device_accuracy")
     if dev:
-        lines.append("devices' constant errors, fitted within their datasheet accuracy: " + ", ".join(
-            f"{k}={v:.3g} N" if not k.endswith(("roll", "pitch")) else f"{k}={math.degrees(v):.3g} deg"
-            for k, v in dev.items()))
+        lines.append(device_errors_line(diag.fit.model.robot, dev))
     lines.append("pose             sample  rms/sigma  max/sigma  worst")
     for r in diag.rows:
         sample = str(r["sample"]) if r["sample"] >= 0 else "-"
@@ -271,3 +269,21 @@ def html_report(diag: Diagnosis, pngs: Sequence[str | Path], title: str = "cdpr 
         f"<h1>{html.escape(title)}</h1><p><b>Verdict:</b> {html.escape(diag.verdict)}</p>{rec}"
         f"<pre>{html.escape(format_diagnosis(diag, units, run))}</pre>{''.join(imgs)}</body></html>\n"
     )
+
+
+def device_errors_line(robot, dev: dict[str, float]) -> str:
+    """The devices' fitted constant errors against their datasheet bounds (load cells N, AHRS deg); an error
+    outside its bound is named with how many times the bound it is: the base model does not hold there."""
+    sn = robot.sensors
+    parts, outside = [], []
+    for k, v in dev.items():
+        angle = k.endswith(("roll", "pitch"))
+        bound = sn.ahrs_roll_pitch_accuracy if angle else sn.load_cell_uncertainty
+        val, b, unit = (math.degrees(v), math.degrees(bound), "deg") if angle else (v, bound, "N")
+        parts.append(f"{k}={val:.3g} {unit}")
+        if abs(v) > bound:
+            outside.append(f"{k} = {val:.3g} {unit} is {abs(v) / bound:.0f}x its datasheet bound +-{b:.3g} {unit}")
+    if not outside:
+        return "devices' constant errors, fitted within their datasheet accuracy: " + ", ".join(parts)
+    return ("devices' constant errors, fitted: " + ", ".join(parts) + "; outside the datasheet: "
+            + "; ".join(outside) + " (the rigid model pushes its misfit there)")

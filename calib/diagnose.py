@@ -48,6 +48,7 @@ from calib.prediction import LEVEL, Prediction, leave_one_pose_out
 from calib.robot import Robot
 from calib.selfcal.lm import levenberg_marquardt
 from calib.selfcal.model import CHANNELS
+from calib.selfcal.noise import window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 
 OVERLAP = 0.95  # share of an explained direction another candidate must reproduce to be a confusion
@@ -788,32 +789,11 @@ def pose_error(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def window_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> dict[str, np.ndarray]:
-    """Per channel, the standard deviation of one sample inside the still equilibrium windows (pooled over
-    cables; roll and pitch pooled, yaw apart), floored only at the sensors' resolution (quantisation step
-    / sqrt 12), not at their accuracy class: a constant error within the accuracy class (a load-cell
-    offset, an AHRS tilt) is exactly what the diagnosis must be able to reveal."""
-    s = robot.sensors
-    n = robot.n
-    lpr = np.abs(np.asarray(s.length_per_motor_rev, float)) if s.length_per_motor_rev else np.full(n, 0.03)
-    q = math.sqrt(12.0)
-    floor = {
-        "tension": np.full(n, 0.01 / q),
-        "length": np.broadcast_to(lpr / 2.0**s.motor_encoder_bits / q, (n,)),
-        "swivel": np.full(n, 2 * math.pi / s.swivel_counts_per_rev / q),
-        "orientation": np.full(3, 1e-5),
-    }
-    still = [w for w in windows if not w.quasi] or list(windows)
-    dof = max(sum(w.size - 1 for w in still), 1)
-    out = {}
-    for c, x in (("tension", sig["tau"]), ("length", sig["dl"]), ("swivel", sig["dsigma"])):
-        dev = np.concatenate([x[w.slice] - x[w.slice].mean(0) for w in still])
-        out[c] = np.maximum(math.sqrt(float(np.sum(dev**2)) / (dof * n)), floor[c])
-    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
-    dev = np.concatenate([ori[w.slice] - ori[w.slice].mean(0) for w in still])
-    rp = math.sqrt(float(np.sum(dev[:, :2] ** 2)) / (2 * dof))
-    yaw = math.sqrt(float(np.sum(dev[:, 2] ** 2)) / dof)
-    out["orientation"] = np.maximum(np.array([rp, rp, yaw]), floor["orientation"])
-    return out
+    """Per channel, the standard deviation of a window mean (:func:`calib.selfcal.window_mean_noise`: the
+    run's own noise with its correlation in time, floored at the sensors' resolution, not at their accuracy
+    class: a constant error within the accuracy class (a load-cell offset, an AHRS tilt) is carried by
+    DeviceAccuracy in every fit, and what exceeds it is what the diagnosis must be able to reveal)."""
+    return window_mean_noise(robot, sig, windows).sigma
 
 
 @dataclass
@@ -831,9 +811,9 @@ class RunRows:
 def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: int = 1,
              reference_sample: int | None = None) -> RunRows:
     """The rows, noise and start of a run: the windows, rows and initial guess are those of
-    ``calib.selfcal.solve(method)``; noise ``estimate`` is :func:`window_noise`, ``accuracy`` the window
-    scatter floored at the sensors' accuracy class, ``paper`` (eq. 18) and ``sensors`` as in solve."""
-    from calib.selfcal import measurement_rows, noise_levels, run_signals, solve
+    ``calib.selfcal.solve(method)``; noise ``estimate`` is :func:`window_noise`, ``accuracy`` that noise
+    floored at the sensors' accuracy class, ``paper`` (eq. 18) and ``sensors`` as in solve."""
+    from calib.selfcal import measurement_rows, noise_levels, run_signals, sensor_noise, solve
 
     robot = run.robot
     sol = solve(robot, run, method=method, noise="estimate" if noise == "accuracy" else noise, stride=stride,
@@ -842,8 +822,10 @@ def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: in
     meas = measurement_rows(sig, sol.windows, method, stride, sol.reference_sample)[0]
     if noise == "estimate":
         sigma, source = window_noise(robot, sig, sol.windows), "estimate"
-    elif noise == "accuracy":  # the window scatter floored at the sensors' accuracy
-        sigma, source = noise_levels(robot, "estimate", sig, sol.windows)[0], "accuracy"
+    elif noise == "accuracy":  # the noise of a window mean floored at the sensors' accuracy
+        acc = sensor_noise(robot)
+        sigma = {c: np.maximum(v, acc[c]) for c, v in window_noise(robot, sig, sol.windows).items()}
+        source = "accuracy"
     else:
         sigma, source = noise_levels(robot, noise, sig, sol.windows)
     return RunRows(robot, meas, sigma, source, sol)

@@ -216,22 +216,29 @@ def real_diagnosis(real_run):
     return diagnose_run(read_run(run), reference_pose=zeta_real)
 
 
-def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(real_diagnosis):
+def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(real_run, real_diagnosis):
     """Done-when 3 of issue 17: on sc_8_final every recommended effect lies within its plausible range and
-    following the recommendation does not move zeta_0 farther from the authors' zeta_0_real than the base
-    fit. Measured (parsed and raw log alike): nothing recommended, eps_p 8.8 mm; the tensions read ~10 %
-    above the model, which only implausible effects take (offsets of 33 N, gains of 10-15 %, a 10 % heavier
-    platform), and com_offset, which would move zeta_0 to 25 mm from zeta_0_real, predicts 3 of 7 left-out
-    poses worse (signed-rank p = 0.15)."""
+    following the recommendation does not move zeta_0 farther from the authors' zeta_0_real than the plain
+    solve (`cdpr solve RUN`, 8.65 mm parsed, 9.97 mm raw log). Measured with the noise of window means
+    (parsed and raw log alike): nothing recommended; the tensions read ~10 % above the model, which only
+    implausible effects take (a 10-12 % heavier platform, gains of 6-19 %), and the devices' fitted constant
+    errors leave their datasheet bounds (the rigid model pushes its misfit there)."""
+    from acquisition.runlog import read_run
+    from calib.selfcal import solve
+
+    run, zeta_real = real_run
+    plain = solve(read_run(run).robot, read_run(run), reference_pose=zeta_real).reference.eps_p
+    assert 0.008 < plain < 0.0105
     diag = real_diagnosis
     by = {c.effect: c for c in diag.ranking}
     assert len(by) == 10 and diag.p_value < 1e-6
     for name in diag.selected:
         assert by[name].plausible and by[name].cv_gain > 0
-    assert diag.steps[-1]["eps_p"] <= diag.steps[0]["eps_p"] + 1e-9
+    followed = diag.steps[-1]["eps_p"] if diag.selected else plain
+    assert followed <= plain + 1e-9
     # the verdict names what only an implausibly large effect would explain
-    assert not by["tension_offset"].plausible and by["tension_offset"].params["o_1"] > 19.62
     assert not by["mass_scale"].plausible and by["mass_scale"].params["s"] > 0.05
+    assert not by["tension_gain"].plausible and min(by["tension_gain"].params.values()) > 0.03
     assert not diag.selected or "implausibly large" in diag.verdict
     assert "reference pose" in [r["label"] for r in diag.rows]
 
@@ -373,9 +380,10 @@ def test_full_simulated_run_with_a_tilted_ahrs_is_diagnosed_and_refitted(full_si
     assert abs(np.degrees(p["roll"]) - 1.0) < 0.2 and abs(np.degrees(p["pitch"]) + 0.5) < 0.2
     e_clean, e_rigid = pose_error(clean.fit.theta, truth0), pose_error(diag.fit.theta, truth1)
     e_refit = pose_error(diag.final.theta, truth1)
-    # measured at seeds 0, 1, 2: nominal 0.048, 0.113, 0.160 mm; tilted, rigid 3.14, 3.41, 3.18 mm; refit
-    # 0.173, 0.109, 0.217 mm: RMS 1.5x the nominal runs' (seed 0 alone 3.6x: its nominal run is lucky)
-    assert e_rigid > 2e-3 and e_refit < 0.1 * e_rigid and e_refit < 0.5e-3, (e_clean, e_rigid, e_refit)
+    # with the noise of window means (issue 17) the rigid base fit, whose device priors take part of the tilt,
+    # is already close: nominal 0.19 mm, tilted rigid 0.36 mm, refit 0.16 mm (with the per-sample scatter as
+    # noise it was 3.1-3.4 mm before the refit)
+    assert e_refit < 0.5e-3 and e_refit < e_rigid, (e_clean, e_rigid, e_refit)
 
 
 def test_solve_with_effects_is_the_diagnosis_refit_on_a_full_simulated_run(full_sim_runs, capsys):

@@ -163,9 +163,10 @@ def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: di
     rows = run_rows(run, solve_kwargs.get("noise", "paper"), kw.get("method", "tlse"), int(kw.get("stride", 1)),
                     kw.get("reference_sample"))
     sols = []
-    for f in effect_chain(rows, effects):  # the converged fit as a Solution (the LM stops at once)
+    for f in effect_chain(rows, effects):  # each fit as a Solution, not iterated further: the same numbers
         sol = solve(rows.robot, run, model=f.model, guess=(f.theta, f.poses), noise=rows.sigma,
-                    reference_pose=solve_kwargs.get("reference_pose"), **kw)
+                    reference_pose=solve_kwargs.get("reference_pose"), max_iter=0, **kw)
+        sol.converged, sol.iterations = f.converged, f.iterations
         sol.noise_source = rows.source
         sol.effects = {k: {a: b for a, b in v.items() if math.isfinite(b)}
                        for k, v in f.model.report(sol.theta).items()}

@@ -277,11 +277,22 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> Start
                 claim_output_option(args.truth, args.force, "--truth")
                 Path(args.truth).write_text(json.dumps({
                     "initial_pose": [float(v) for v in truth.pose], "reference_sample": sample,
-                    "sync_count": tick, "sim_time": float(truth.time)}) + "\n")
+                    "sync_count": tick, "sim_time": float(truth.time),
+                    "window_mean_pose": _window_mean_truth(sim, result.ticks, summary.solution, sample)}) + "\n")
                 summary.files["truth"] = str(args.truth)
     finally:
         supervisor.restore_signals()
     return summary
+
+
+def _window_mean_truth(sim, ticks, solution: dict, sample: int) -> list[float] | None:
+    """The true pose averaged over the reference window's samples (the solve estimates the pose of a window
+    mean; a platform still creeping inside the window makes it differ from the pose at its middle sample)."""
+    span = next(((a, b) for a, b in solution.get("windows", []) if a <= sample <= b), None)
+    if span is None:
+        return None
+    poses = np.array([sim.truth(sync_count=int(ticks[i])).pose for i in range(span[0], span[1] + 1)])
+    return [float(v) for v in poses.mean(axis=0)]
 
 
 def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> StartupSummary:

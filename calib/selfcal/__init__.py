@@ -48,6 +48,7 @@ from calib.selfcal._solve import (
     solve_run,
 )
 from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel
+from calib.selfcal.noise import ChannelNoise, WindowNoise, resolution_floor, window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import (
     ReferenceComparison,
@@ -68,6 +69,10 @@ from calib.selfcal.windows import (
 )
 
 __all__ = [
+    "ChannelNoise",
+    "WindowNoise",
+    "resolution_floor",
+    "window_mean_noise",
     "solve",
     "Solution",
     "ReferenceComparison",

@@ -13,6 +13,7 @@ from calib.equilibrium import default_guess, direct_statics
 from calib.robot import NoiseLevels, Robot
 from calib.selfcal.lm import levenberg_marquardt, solve_poses
 from calib.selfcal.model import CHANNELS, MeasurementModel
+from calib.selfcal.noise import window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, compare_pose
 from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_windows
@@ -44,26 +45,6 @@ def paper_noise(robot: Robot, levels: NoiseLevels | None = None) -> dict[str, np
         "swivel": np.full(n, lv.swivel),
         "orientation": np.full(3, lv.orientation),
     }
-
-
-def estimated_noise(robot: Robot, sig: dict[str, np.ndarray], windows: list[Window]) -> dict[str, np.ndarray]:
-    """Per channel, the pooled scatter (standard deviation of one sample) inside the still windows, floored
-    at the sensors' specifications."""
-    floor = sensor_noise(robot)
-    still = [w for w in windows if not w.quasi] or windows
-    groups = {"tension": sig["tau"], "length": sig["dl"], "swivel": sig["dsigma"]}
-    out = {}
-    for c, x in groups.items():
-        dev = np.concatenate([x[w.slice] - x[w.slice].mean(0) for w in still])
-        dof = sum(w.size - 1 for w in still)
-        out[c] = np.maximum(np.full(robot.n, math.sqrt(float(np.sum(dev**2)) / max(dof * robot.n, 1))), floor[c])
-    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
-    dev = np.concatenate([ori[w.slice] - ori[w.slice].mean(0) for w in still])
-    dof = max(sum(w.size - 1 for w in still), 1)
-    rp = math.sqrt(float(np.sum(dev[:, :2] ** 2)) / (2 * dof))
-    yaw = math.sqrt(float(np.sum(dev[:, 2] ** 2)) / dof)
-    out["orientation"] = np.maximum(np.array([rp, rp, yaw]), floor["orientation"])
-    return out
 
 
 def run_signals(robot: Robot, run: Any) -> dict[str, np.ndarray]:
@@ -316,7 +297,7 @@ def noise_levels(
     if noise == "estimate":
         if sig is None or not windows:
             raise SelfCalInputError("noise 'estimate' needs equilibrium windows in the run; none were found.")
-        return estimated_noise(robot, sig, windows), noise
+        return window_mean_noise(robot, sig, windows).sigma, noise
     raise SelfCalInputError(f"noise '{noise}' is not one of {', '.join(NOISE)}.")
 
 
@@ -354,6 +335,13 @@ def prepare(
         raise SelfCalInputError(f"method '{method}' is not one of {', '.join(METHODS)}.")
     if int(stride) < 1:
         raise SelfCalInputError(f"stride {stride} must be a positive integer.")
+    if model is None and noise == "estimate":
+        # the noise of window means leaves out the devices' constant errors: carry them as parameters with
+        # their datasheet priors (the diagnosis's base model), or the chi2 and the sigmas would ignore them
+        from calib.effects import EffectModel
+        from calib.effects.builtin import DeviceAccuracy
+
+        model = EffectModel(robot, [DeviceAccuracy()])
     model = model or MeasurementModel(robot)
     t_start = time.perf_counter()
     search: WindowSearch | None = None
@@ -417,6 +405,8 @@ def solve_run(
     t_start, t_rows, t_guess = pre.marks
     res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
     t_end = time.perf_counter()
+    if max_iter == 0 and np.isfinite(res.cost):  # the guess is a solution already (a converged fit's)
+        res.converged, res.message = True, "the given solution, not iterated"
     if not np.isfinite(res.cost) or not res.converged:
         raise SelfCalFailure(f"the solve did not converge after {res.iterations} iterations ({res.message}).")
     dof = problem.n_residuals - (model.n_params + 6 * meas.k)

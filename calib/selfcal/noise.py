@@ -1,0 +1,176 @@
+"""Noise of a window mean, from the run itself.
+
+A measurement row is the mean of a channel over an equilibrium window, so its uncertainty is that of a mean,
+not the scatter of one sample: for white noise it is sqrt(N) times smaller, for samples correlated in time
+(a controller's ripple, a slow sway of the platform, a filtered AHRS) larger than that. Per channel group
+(tensions, cable lengths, swivel angles pooled over the cables; roll and pitch pooled, yaw apart) the
+estimate pools every still window:
+
+- in each window a polynomial is removed: the mean for tensions (held by the force control, no platform
+  motion to reject), a quadratic for lengths, swivel angles, roll, pitch and yaw (a smooth motion of the
+  platform, settling or a slow sway, is real, the same in every kinematic channel, and the row's pose
+  follows it: it is not noise of the readings);
+- the pooled lag-1 ratio of those residuals gives the lag-1 autocorrelation ``rho`` of an AR(1) model of
+  the noise, and their pooled power its variance gamma0, both against their exact expectations for the
+  windows' sizes (the removed polynomial biases both; Marriott and Pope 1954 give the first-order bias for
+  a removed mean, here it is computed exactly);
+- the variance of the mean of N samples of that AR(1) process is gamma0 f(rho, N) / N with
+  f = 1 + 2 sum_k (1 - k/N) rho^k (the effective sample size is N / f);
+- a reading whose second differences are mostly zero sits on its counts (encoders of a still platform): its
+  window mean is then uncertain by the resolution alone;
+- the floor is the sensor's resolution (quantisation step / sqrt 12): a reading that does not move is
+  uncertain by that much however long it is averaged.
+
+The row weights take one sigma per channel, that of a window of the harmonic mean size of the windows used
+(variances go as 1/N). Constant per-device errors within the datasheet accuracy (a load-cell offset, an AHRS
+tilt) are not noise of a mean: the solve and the diagnosis carry them as parameters with priors.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.robot import Robot
+
+QUANTISED = 0.5  # fewer non-zero second differences than this share: a quantised reading, not noise
+RHO_MAX = 0.98  # an AR(1) coefficient above this is a drift, not noise: cap the correction (N / f >= ~1)
+
+
+@dataclass(frozen=True)
+class ChannelNoise:
+    """One channel group: ``sample`` the standard deviation of one sample (SI), ``rho`` the lag-1
+    autocorrelation, ``n_eff`` the effective number of independent samples of a typical window, ``mean`` the
+    standard deviation of a window mean (before the floor) and ``floor`` the resolution floor."""
+
+    sample: float
+    rho: float
+    n_eff: float
+    mean: float
+    floor: float
+
+
+@dataclass(frozen=True)
+class WindowNoise:
+    """Per-channel sigmas of a window mean (``sigma``: (n,) or (3,) arrays, N, m, rad), the window size they
+    are for (``window_size``: harmonic mean of the windows' sample counts) and each group's figures."""
+
+    sigma: dict[str, np.ndarray]
+    window_size: float
+    groups: dict[str, ChannelNoise] = field(default_factory=dict)
+
+
+def resolution_floor(robot: Robot) -> dict[str, np.ndarray]:
+    """Per channel, the quantisation step of the sensors over sqrt(12) (N, m, rad)."""
+    s, n = robot.sensors, robot.n
+    lpr = np.abs(np.asarray(s.length_per_motor_rev, float)) if s.length_per_motor_rev else np.full(n, 0.03)
+    q = math.sqrt(12.0)
+    return {
+        "tension": np.full(n, 0.01 / q),
+        "length": np.broadcast_to(lpr / 2.0**s.motor_encoder_bits / q, (n,)).copy(),
+        "swivel": np.full(n, 2 * math.pi / s.swivel_counts_per_rev / q),
+        "orientation": np.full(3, 1e-5),
+    }
+
+
+def ar1_factor(rho: float, n: float) -> float:
+    """f(rho, N) = 1 + 2 sum_{k=1}^{N-1} (1 - k/N) rho^k: Var(mean of N) = gamma0 f / N for an AR(1)."""
+    if rho <= 0.0 or n <= 1:
+        return 1.0
+    m = int(math.ceil(n)) - 1
+    k = np.arange(1, m + 1, dtype=float)
+    return float(1.0 + 2.0 * np.sum((1.0 - k / n) * rho**k))
+
+
+_RHO_GRID = np.linspace(0.0, RHO_MAX, 99)
+DEGREE = {"tension": 0, "length": 2, "swivel": 2, "tilt": 2, "yaw": 2}  # polynomial removed per window
+
+
+def _expectations(size: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """For the residuals d of a degree-``degree`` polynomial fitted to ``size`` samples of a unit-variance
+    AR(1) of coefficient rho (the grid): E[d'd] and E[sum d_t d_t+1], exactly (traces with the residual
+    projector M: tr(M Sigma) and tr(M S M Sigma)/2 with S the symmetric lag-1 shift)."""
+    t = np.linspace(-1.0, 1.0, size)
+    X = np.vander(t, degree + 1)
+    M = np.eye(size) - X @ np.linalg.pinv(X)
+    S = np.eye(size, k=1) + np.eye(size, k=-1)
+    MSM = 0.5 * M @ S @ M
+    lag = np.abs(np.subtract.outer(np.arange(size), np.arange(size)))
+    sig = _RHO_GRID[:, None, None] ** lag[None]
+    return np.einsum("ij,gij->g", M, sig), np.einsum("ij,gij->g", MSM, sig)
+
+
+def mean_factor(rho: float, size: float) -> float:
+    """Var(mean of N samples) / gamma0 for an AR(1) of coefficient rho: f(rho, N) / N."""
+    return ar1_factor(rho, size) / size
+
+
+def _pooled(blocks: list[np.ndarray], degree: int) -> tuple[float, float, float]:
+    """Sample variance gamma0 and lag-1 autocorrelation rho of the noise of one channel group and the
+    harmonic mean window size, from the residuals of a polynomial of ``degree`` fitted in each window
+    (blocks (N_w, c)): rho is the AR(1) whose expected pooled lag-1 ratio of those residuals equals the
+    measured one, gamma0 the pooled residual power over its expectation for that rho (exact for any window
+    size, the fitted polynomial's bias included)."""
+    dd = dl = 0.0
+    e0 = np.zeros(_RHO_GRID.size)
+    e1 = np.zeros(_RHO_GRID.size)
+    moving = total = 0
+    inv_n = []
+    cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for x in blocks:
+        size = x.shape[0]
+        if size < degree + 4:
+            continue
+        t = np.linspace(-1.0, 1.0, size)
+        X = np.vander(t, degree + 1)
+        d = x - X @ np.linalg.lstsq(X, x, rcond=None)[0]
+        d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
+        moving += int(np.count_nonzero(d2))
+        total += d2.size
+        dd += float(np.sum(d * d))
+        dl += float(np.sum(d[1:] * d[:-1]))
+        if size not in cache:
+            cache[size] = _expectations(size, degree)
+        a, b = cache[size]
+        e0 += a * x.shape[1]
+        e1 += b * x.shape[1]
+        inv_n.append(1.0 / size)
+    nh = 1.0 / float(np.mean(inv_n)) if inv_n else 1.0
+    if total == 0 or dd <= 0.0 or moving < QUANTISED * total:
+        return 0.0, 0.0, nh  # a reading that mostly sits on one count: its resolution is its noise
+    ratio = e1 / e0  # increasing in rho
+    i = int(np.clip(np.searchsorted(ratio, dl / dd), 0, _RHO_GRID.size - 1))
+    return dd / float(e0[i]), float(_RHO_GRID[i]), nh
+
+
+def _group(blocks: list[np.ndarray], floor: float, degree: int) -> ChannelNoise:
+    gamma0, rho, nh = _pooled(blocks, degree)
+    f = ar1_factor(rho, nh)
+    mean = math.sqrt(gamma0 * f / nh)
+    return ChannelNoise(math.sqrt(gamma0), rho, nh / f, mean, floor)
+
+
+def window_mean_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> WindowNoise:
+    """Sigma of a window mean per channel from the run's own samples in ``windows`` (objects with ``slice``,
+    ``quasi``); quasi windows are left out unless there is nothing else."""
+    floor = resolution_floor(robot)
+    still = [w for w in windows if not getattr(w, "quasi", False)] or list(windows)
+    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
+    parts = {
+        "tension": [sig["tau"][w.slice] for w in still],
+        "length": [sig["dl"][w.slice] for w in still],
+        "swivel": [sig["dsigma"][w.slice] for w in still],
+        "tilt": [ori[w.slice, :2] for w in still],
+        "yaw": [ori[w.slice, 2:] for w in still],
+    }
+    groups = {c: _group(b, float(np.max(floor["orientation" if c in ("tilt", "yaw") else c])), DEGREE[c])
+              for c, b in parts.items()}
+    n = robot.n
+    sigma = {c: np.maximum(np.full(n, groups[c].mean), floor[c]) for c in ("tension", "length", "swivel")}
+    sigma["orientation"] = np.maximum(np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean]),
+                                      floor["orientation"])
+    sizes = [w.size for w in still if w.size >= 3]
+    nh = 1.0 / float(np.mean([1.0 / s for s in sizes])) if sizes else 1.0
+    return WindowNoise(sigma, nh, groups)
