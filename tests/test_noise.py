@@ -55,8 +55,9 @@ def test_sigma_of_a_window_mean_matches_the_scatter_of_window_means(rho):
 
 
 def test_a_slow_sway_is_not_taken_for_noise():
-    """A smooth motion inside the windows (a 10 s sway of 5 x the noise, as in rigid_sway.yaml) leaves second differences near zero:
-    the estimate of the kinematic channels stays that of the white noise."""
+    """A smooth motion inside the windows (a 10 s sway of 5 x the noise, as in rigid_sway.yaml) is mostly
+    taken by the quadratic removed per window: the estimate of the kinematic channels stays within 20 % of
+    that of the white noise (measured 1.10 of it; 1.05 without the sway)."""
     rng = np.random.default_rng(5)
     size, n_windows = 40, 30
     N = n_windows * 60
