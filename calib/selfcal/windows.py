@@ -28,6 +28,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from calib.robot import Robot
 
@@ -149,17 +150,25 @@ class Activity:
         size = tau.shape[0]
         if size < w:
             return cls(w, {c: np.full(x.shape, np.inf) for c, x in channels.items()}, np.full(size, np.inf))
-        m = size - w + 1
-        ranges = {}
-        for c, x in channels.items():  # running max and min by w - 1 shifted comparisons
-            hi, lo = x[:m].copy(), x[:m].copy()
-            for j in range(1, w):
-                np.maximum(hi, x[j : j + m], out=hi)
-                np.minimum(lo, x[j : j + m], out=lo)
-            ranges[c] = _centred(hi - lo, w, size)
+        m, lo = size - w + 1, w // 2
+        # every channel's columns side by side: one running max and one running min (scipy.ndimage, C loops);
+        # entry i covers x[i - w//2 : i - w//2 + w], the edges repeat the first and last full span
+        names = list(channels)
+        x = np.concatenate([channels[c].reshape(size, -1) for c in names], axis=1)
+        rng = maximum_filter1d(x, w, axis=0)
+        rng -= minimum_filter1d(x, w, axis=0)
+        rng[:lo] = rng[lo]
+        rng[lo + m :] = rng[lo + m - 1]
+        ranges, start = {}, 0
+        for c in names:
+            width = channels[c].reshape(size, -1).shape[1]
+            ranges[c] = rng[:, start : start + width]
+            start += width
         y = tau - tau.mean(axis=0)
-        c1 = np.cumsum(np.r_[np.zeros((1, y.shape[1])), y], axis=0)
-        c2 = np.cumsum(np.r_[np.zeros((1, y.shape[1])), y * y], axis=0)
+        c1 = np.zeros((size + 1, y.shape[1]))
+        c2 = np.zeros((size + 1, y.shape[1]))
+        np.cumsum(y, axis=0, out=c1[1:])
+        np.cumsum(y * y, axis=0, out=c2[1:])
         mean = (c1[w:] - c1[:-w]) / w
         var = np.clip((c2[w:] - c2[:-w]) / w - mean * mean, 0.0, None)
         return cls(w, ranges, _centred(np.sqrt(var.max(axis=1)), w, size))
