@@ -1,111 +1,122 @@
-"""Online detection of a static equilibrium: the signals' ripple over a sliding window falls below thresholds.
+"""Online detection of a static equilibrium with the offline window search's own stillness test.
 
-The detector is fed one sample at a time (the logged samples, e.g. 10 Hz). A channel's ripple is its
-standard deviation over the last ``window`` seconds, per component; the platform is at rest when every
-component of every watched channel is below its threshold: the tensions below the load cells' uncertainty
-(N), the cable-length changes below a fraction of a millimetre (m) (under pure force control the tensions
-can be steady while the platform still swings, the encoders see it). A detection that does not come within
-``timeout`` seconds of ``start`` is reported as timed out.
-
-The thresholds adapt to the run's own noise as the offline window search does (calib.selfcal.windows):
-each is the larger of its configured floor and ``noise_factor`` times the channel's sample noise, estimated
-with the same robust scale of second differences (:func:`calib.selfcal.windows.sample_noise`) over the last
-``history`` seconds the detector saw (kept across :meth:`EquilibriumDetector.start`, refreshed every second).
+The detector is fed one sample at a time (the logged samples, e.g. 10 Hz): tensions, cable lengths, swivel
+angles, roll and pitch. It judges its most recent span of samples with
+:class:`calib.selfcal.windows.Stillness` (the object the offline search of a run uses): every length, swivel,
+roll and pitch stays within its range over the span and the tension ripple (standard deviation over the
+span) within its tolerance. The thresholds are those of the offline search, computed by
+:meth:`Stillness.of_samples` from the samples seen so far (the last ``history`` seconds, kept across
+:meth:`EquilibriumDetector.start`, refreshed every second): the larger of the floors of
+:class:`calib.selfcal.windows.WindowOptions` and the run's own noise and drift; the ripple tolerance the
+load cells' uncertainty or, if larger, a multiple of the tensions' noise floor. The platform rests once
+the spans judged still since :meth:`EquilibriumDetector.start` cover ``min_duration_s`` of consecutive
+samples, as an offline window needs. A detection that does not come within ``timeout`` seconds of
+``start`` is reported as timed out.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.selfcal.windows import sample_noise
+from calib.selfcal.windows import Stillness, WindowOptions, min_samples, span_samples, still_channels
 
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    window: float = 1.5  # s, length of the sliding window
-    thresholds: tuple[tuple[str, float], ...] = (("tau", 0.196), ("dl", 2.0e-4))  # channel, max std (SI)
+    """Stillness options (the offline search's), the ripple floor (N), timeout and wait (s after start),
+    and the seconds of past samples the noise estimates come from."""
+
+    options: WindowOptions = field(default_factory=WindowOptions)
+    ripple_floor: float = 0.196  # N: the load cells' uncertainty (accuracy x full scale)
     timeout: float = 40.0  # s after start
     min_wait: float = 0.0  # s after start before a detection counts
-    noise_factor: float = 2.0  # a channel's std over the window may reach this many times its sample noise
-    history: float = 60.0  # s of past samples its noise is estimated from
+    history: float = 600.0  # s of past samples the thresholds are estimated from
+    stillness: Stillness | None = None  # fixed thresholds (e.g. a recorded run's) instead of learning them
 
     @classmethod
-    def for_robot(cls, robot, length_ripple: float = 2.0e-4, **changes) -> DetectorConfig:
-        """Tension threshold = the robot's load-cell uncertainty (accuracy x full scale), N."""
-        return cls(thresholds=(("tau", float(robot.sensors.load_cell_uncertainty)), ("dl", length_ripple)), **changes)
-
-    def threshold(self, name: str) -> float:
-        return dict(self.thresholds)[name]
+    def for_robot(cls, robot, **changes) -> DetectorConfig:
+        """Ripple floor = the robot's load-cell uncertainty, as offline."""
+        return cls(ripple_floor=float(robot.sensors.load_cell_uncertainty), **changes)
 
 
 @dataclass(frozen=True)
 class DetectorState:
+    """After a sample: settled, timed out, elapsed s since start, whether the latest span is still and its
+    scores (largest range over its limit, tension ripple over its tolerance; NaN until a span is full)."""
+
     settled: bool
     timed_out: bool
-    elapsed: float  # s since start
-    ripple: dict[str, np.ndarray]  # channel -> per-component std over the window (empty until full)
+    elapsed: float
+    still: bool = False
+    scores: tuple[float, float] = (float("nan"), float("nan"))
 
 
 class EquilibriumDetector:
-    """Sliding-window ripple detector over named channels sampled every ``sample_period`` s."""
+    """The offline stillness test on a sliding span of samples taken every ``sample_period`` s."""
 
     def __init__(self, sample_period: float, config: DetectorConfig | None = None):
         self.config = config or DetectorConfig()
         self.sample_period = float(sample_period)
-        self.size = max(2, int(round(self.config.window / self.sample_period)))
-        self._buffers: dict[str, np.ndarray] = {}
+        opt = self.config.options
+        self.span = span_samples(opt, self.sample_period)
+        self.needed = min_samples(opt, self.sample_period)  # consecutive still judgements that make a rest
+        keep = max(2 * self.span, int(round(self.config.history / self.sample_period)))
+        self._past: deque[np.ndarray] = deque(maxlen=keep)  # rows [tau, dl, dsigma, roll, pitch]
+        self._recent: deque[np.ndarray] = deque(maxlen=self.span)  # the same rows, since start
+        self._n = 0
         self._count = 0
+        self._run = 0
         self._t0 = 0.0
         self.timeout = self.config.timeout
-        keep = max(10, int(round(self.config.history / self.sample_period)))
-        self._past: dict[str, deque[np.ndarray]] = {name: deque(maxlen=keep) for name, _ in self.config.thresholds}
         self._refresh = max(1, int(round(1.0 / self.sample_period)))
-        self.limits: dict[str, np.ndarray | float] = dict(self.config.thresholds)
+        floors = {"length": opt.length_tol, "swivel": opt.swivel_tol, "tilt": opt.tilt_tol}
+        self.stillness = self.config.stillness or Stillness(
+            self.span, {c: np.atleast_1d(v) for c, v in floors.items()}, self.config.ripple_floor)
 
     def start(self, t: float, timeout: float | None = None) -> None:
-        """Forget the window; the timeout (default the configuration's, s) runs from t (s)."""
-        self._buffers.clear()
-        self._count = 0
+        """Forget the span; the timeout (default the configuration's, s) runs from t (s)."""
+        self._recent.clear()
+        self._run = 0
         self._t0 = float(t)
         self.timeout = self.config.timeout if timeout is None else float(timeout)
-        self._update_limits()
+        self.update_thresholds()
 
-    def _update_limits(self) -> None:
-        """Per channel: max(floor, noise_factor x the sample noise of the history)."""
-        for name, floor in self.config.thresholds:
-            past = self._past[name]
-            if len(past) >= 10:
-                self.limits[name] = np.maximum(floor, self.config.noise_factor * sample_noise(np.array(past)))
+    def _split(self, rows: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        n = self._n
+        return rows[:, :n], still_channels(rows[:, n : 2 * n], rows[:, 2 * n : 3 * n], rows[:, 3 * n],
+                                           rows[:, 3 * n + 1])
 
-    def push(self, t: float, **channels: np.ndarray) -> DetectorState:
-        """Add the sample taken at t (s); channels by name (arrays of any fixed size, SI units)."""
-        slot = self._count % self.size
-        for name, _ in self.config.thresholds:
-            v = np.atleast_1d(np.asarray(channels[name], dtype=float))
-            buf = self._buffers.get(name)
-            if buf is None:
-                buf = self._buffers[name] = np.empty((self.size, v.size))
-            buf[slot] = v
-            self._past[name].append(v.copy())
+    def update_thresholds(self) -> None:
+        """The offline thresholds (:meth:`Stillness.of_samples`) of the samples kept in the history."""
+        if len(self._past) >= 3 and self.config.stillness is None:
+            tau, ch = self._split(np.array(self._past))
+            self.stillness = Stillness.of_samples(tau, ch, self.span, self.config.options, self.config.ripple_floor)
+
+    def push(self, t: float, tau: np.ndarray, dl: np.ndarray, dsigma: np.ndarray, roll: float,
+             pitch: float) -> DetectorState:
+        """Add the sample taken at t (s): tensions (n,) N, lengths (n,) m, swivels (n,) rad, roll, pitch rad."""
+        row = np.r_[np.asarray(tau, float), np.asarray(dl, float), np.asarray(dsigma, float), roll, pitch]
+        self._n = np.asarray(tau).size
+        self._past.append(row)
+        self._recent.append(row)
         self._count += 1
         if self._count % self._refresh == 0:
-            self._update_limits()
+            self.update_thresholds()
         elapsed = float(t) - self._t0
-        ripple: dict[str, np.ndarray] = {}
-        settled = False
-        if self._count >= self.size and elapsed >= self.config.min_wait:
-            settled = True
-            for name, _ in self.config.thresholds:
-                r = self._buffers[name].std(axis=0)
-                ripple[name] = r
-                settled &= bool(np.all(r < self.limits[name]))
+        still, scores = False, (float("nan"), float("nan"))
+        if len(self._recent) == self.span:
+            tau_b, ch = self._split(np.array(self._recent))
+            scores = self.stillness.judge(tau_b, ch)
+            still = scores[0] <= 1.0 and scores[1] <= 1.0
+        self._run = self._run + 1 if still else 0
+        settled = self._run >= self.needed and elapsed >= self.config.min_wait
         timed_out = not settled and elapsed > self.timeout
-        return DetectorState(settled, timed_out, elapsed, ripple)
+        return DetectorState(settled, timed_out, elapsed, still, scores)
 
     @property
     def window_samples(self) -> int:
-        """Number of samples in the sliding window."""
-        return self.size
+        """Samples the detector needs at rest after start: the span and then a window's length of spans."""
+        return self.span - 1 + self.needed

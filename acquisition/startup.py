@@ -242,7 +242,7 @@ class StartupRoutine:
             if log:
                 self._log(snap)
             if detector is not None:
-                state = detector.push(tk.t, tau=snap.tau, dl=snap.dl)
+                state = detector.push(tk.t, snap.tau, snap.dl, snap.dsigma, snap.roll, snap.pitch)
             if self.progress is not None:
                 self.progress.update(tk.t, self._phase, self._target, len(self.plan.setpoints))
         if self.on_tick is not None:

@@ -10,7 +10,7 @@ import pytest
 
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from calib.robot import load_robot
-from calib.selfcal import WindowOptions, search_windows
+from calib.selfcal import Stillness, WindowOptions, search_windows
 
 DT = 0.1
 
@@ -126,28 +126,74 @@ def test_a_setpoint_without_a_window_is_named_with_its_reason(robot):
     assert list(miss) == [2] and "never came to rest" in miss[2]
 
 
-def test_online_detector_learns_the_noise_it_sees():
-    """With 0.3 N load cells the fixed 0.196 N tension threshold never settles; the detector's noise
-    estimate (the offline one's second-difference scale) lets it settle on the same still platform."""
+def _feed(det, rng, n, t0=0.0, sigma=0.3):
+    """n samples of a platform at rest with load cells of ``sigma`` N; the last state."""
+    st = None
+    for k in range(1, n):
+        st = det.push(t0 + k * DT, 100.0 + sigma * rng.standard_normal(4), 2e-5 * rng.standard_normal(4),
+                      1e-4 * rng.standard_normal(4), 1e-4 * rng.standard_normal(), 1e-4 * rng.standard_normal())
+        if st.settled or st.timed_out:
+            break
+    return st
+
+
+def test_online_detector_learns_the_noise_it_sees(robot):
+    """With 0.3 N load cells a tension ripple tolerance of 0.196 N never settles; the offline ripple tolerance
+    (3 x the tensions' noise floor) the detector learns from the samples it sees lets it settle."""
     rng = np.random.default_rng(6)
-    cfg = DetectorConfig(window=1.5, thresholds=(("tau", 0.196), ("dl", 2e-4)), timeout=20.0)
+    cfg = DetectorConfig.for_robot(robot, timeout=20.0)
     det = EquilibriumDetector(DT, cfg)
     det.start(0.0)
-    settled = None
-    for k in range(1, 300):
-        st = det.push(k * DT, tau=100.0 + 0.3 * rng.standard_normal(4), dl=2e-5 * rng.standard_normal(4))
-        if st.settled or st.timed_out:
-            settled = st.settled
-            break
-    assert settled is True
-    for j in range(k + 1, k + 300):  # 30 s more: the estimate of the per-sample noise converges to 0.3 N
-        det.push(j * DT, tau=100.0 + 0.3 * rng.standard_normal(4), dl=2e-5 * rng.standard_normal(4))
-    np.testing.assert_allclose(det.limits["tau"], cfg.noise_factor * 0.3, rtol=0.2)
-    fixed = EquilibriumDetector(DT, DetectorConfig(window=1.5, thresholds=cfg.thresholds, timeout=20.0,
-                                                   noise_factor=0.0))
+    st = _feed(det, rng, 300)
+    assert st.settled and st.elapsed < 5.0
+    for j in range(300):  # 30 s more: the noise floor estimate converges to 0.3 N
+        det.push(30.0 + j * DT, 100.0 + 0.3 * rng.standard_normal(4), np.zeros(4), np.zeros(4), 0.0, 0.0)
+    det.update_thresholds()
+    assert det.stillness.ripple_tol == pytest.approx(3 * 0.3, rel=0.15)
+    fixed = EquilibriumDetector(DT, DetectorConfig.for_robot(robot, timeout=20.0,
+                                                             options=WindowOptions(ripple_factor=0.0)))
     fixed.start(0.0)
-    for k in range(1, 300):
-        st = fixed.push(k * DT, tau=100.0 + 0.3 * rng.standard_normal(4), dl=2e-5 * rng.standard_normal(4))
-        if st.settled or st.timed_out:
-            break
-    assert st.timed_out
+    st = _feed(fixed, rng, 300)
+    assert st.timed_out and fixed.stillness.ripple_tol == pytest.approx(robot.sensors.load_cell_uncertainty)
+
+
+def _online_windows(det, t, tau, dl, dsig, roll, pitch):
+    """Feed a record to the detector one sample at a time; its windows as offline sample spans: the runs of
+    spans judged still that last a window's length (the span ending at sample i judges its middle sample)."""
+    det.start(0.0)
+    still = np.array([det.push(t[i], tau[i], dl[i], dsig[i], roll[i], pitch[i]).still for i in range(len(t))])
+    shift = det.span - 1 - det.span // 2
+    edges = np.diff(np.r_[0, still.astype(int), 0])
+    return [(int(a) - shift, int(b) - 1 - shift) for a, b in
+            zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True) if b - a >= det.needed]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_online_and_offline_judge_a_record_identically(robot, seed):
+    """A noisy run with sway fed one sample at a time to the online detector: with the offline search's
+    Stillness its windows are the offline ones within two samples (the offline span is centred and repeats
+    its first and last full span at the run's ends); learning the thresholds from what it has seen so far, it
+    ends with exactly the offline thresholds and its windows differ only while its history is short (the
+    first two rests, judged on under 30 s of samples)."""
+    rng = np.random.default_rng(seed)
+    sp = _setpoints(rng, 8)
+    t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, sway=0.002)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp)
+    offline = [(w.first, w.last) for w in ws.found]
+    assert len(offline) == 10 and not any(w.quasi for w in ws.found)
+    given = Stillness(5, ws.thresholds, ws.ripple_tol)
+    same = _online_windows(EquilibriumDetector(DT, DetectorConfig.for_robot(robot, stillness=given)),
+                           t, tau, dl, dsig, roll, pitch)
+    assert len(same) == 10
+    assert max(max(abs(a - c), abs(b - d)) for (a, b), (c, d) in zip(same, offline, strict=True)) <= 2
+    det = EquilibriumDetector(DT, DetectorConfig.for_robot(robot, timeout=1e9, history=1e4))
+    learned = _online_windows(det, t, tau, dl, dsig, roll, pitch)
+    det.update_thresholds()
+    for c, thr in ws.thresholds.items():
+        np.testing.assert_allclose(det.stillness.thresholds[c], thr, rtol=1e-12)
+    assert det.stillness.ripple_tol == pytest.approx(ws.ripple_tol, rel=1e-12)
+    assert len(learned) == 10
+    gaps = [max(abs(a - c), abs(b - d)) for (a, b), (c, d) in zip(learned, offline, strict=True)]
+    assert max(gaps[2:]) <= 2
+    # the first two rests (under 30 s of history: the first seconds' noise, no drift estimate yet) within 2 s
+    assert max(gaps[:2]) <= 20

@@ -411,7 +411,7 @@ def solve_run(
         raise SelfCalFailure(f"the solve did not converge after {res.iterations} iterations ({res.message}).")
     dof = problem.n_residuals - (model.n_params + 6 * meas.k)
     resid = {}
-    for c, (si, nz) in problem.channel_residuals(res.theta, res.poses).items():
+    for c, (si, nz) in problem.channel_residuals(res.theta, res.poses, res.evaluation).items():
         if si.size:
             resid[c] = {"rms": float(np.sqrt(np.mean(si**2))), "rms_normalized": float(np.sqrt(np.mean(nz**2)))}
     absolute = model.absolute_readings(res.theta)

@@ -26,6 +26,7 @@ class LMResult:
     message: str
     cov_theta: np.ndarray
     cov_poses: np.ndarray
+    evaluation: Evaluation | None = None  # residuals at the solution (reused for the per-channel summary)
 
 
 def _normal_equations(ev: Evaluation, k: int, p: int):
@@ -125,7 +126,7 @@ def levenberg_marquardt(
                 message = "damping grew without bound: no descent direction"
                 break
     cov_theta, cov_poses = covariance(U, W, V)
-    return LMResult(theta, Z, cost, it, converged, message, cov_theta, cov_poses)
+    return LMResult(theta, Z, cost, it, converged, message, cov_theta, cov_poses, ev)
 
 
 def covariance(U: np.ndarray, W: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

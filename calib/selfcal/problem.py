@@ -188,10 +188,13 @@ class Problem:
             b[sel] = (Jt @ r[..., None])[..., 0]
         return cost, U, b
 
-    def channel_residuals(self, theta: np.ndarray, poses: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    def channel_residuals(
+        self, theta: np.ndarray, poses: np.ndarray, ev: Evaluation | None = None
+    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Per channel, the unweighted residuals (SI) and the normalised ones (divided by sigma), observed
-        entries only (flattened)."""
-        ev = self.evaluate(theta, poses, derivatives=False)
+        entries only (flattened); ``ev``: the evaluation at theta and poses if already computed."""
+        if ev is None:
+            ev = self.evaluate(theta, poses, derivatives=False)
         si: dict[str, list[np.ndarray]] = {c: [] for c in CHANNELS}
         nz: dict[str, list[np.ndarray]] = {c: [] for c in CHANNELS}
         for g, r, _, _ in ev.groups:

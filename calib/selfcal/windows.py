@@ -9,6 +9,8 @@ median change of the span mean from one span to the next over the samples the no
 sway inside the windows; a run that never rests has no drift to call its motion).
 The ripple tolerance is the paper's: the load cells' uncertainty or, if larger, ``ripple_factor`` times the
 noise floor of the tensions. Runs of still samples lasting at least ``min_duration_s`` are windows.
+The online detector of ``cdpr startup`` (acquisition.equilibrium) applies the same object: thresholds by
+:meth:`Stillness.of_samples` on the samples it has seen, :meth:`Stillness.judge` on its latest span.
 
 Windows and the plan (:func:`search_windows`). Consecutive windows at the same equilibrium (mean tensions
 and lengths the same within the tolerances, nothing else visited in between) are one window. With planned
@@ -28,6 +30,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from calib.robot import Robot
 
@@ -149,17 +152,25 @@ class Activity:
         size = tau.shape[0]
         if size < w:
             return cls(w, {c: np.full(x.shape, np.inf) for c, x in channels.items()}, np.full(size, np.inf))
-        m = size - w + 1
-        ranges = {}
-        for c, x in channels.items():  # running max and min by w - 1 shifted comparisons
-            hi, lo = x[:m].copy(), x[:m].copy()
-            for j in range(1, w):
-                np.maximum(hi, x[j : j + m], out=hi)
-                np.minimum(lo, x[j : j + m], out=lo)
-            ranges[c] = _centred(hi - lo, w, size)
+        m, lo = size - w + 1, w // 2
+        # every channel's columns side by side: one running max and one running min (scipy.ndimage, C loops);
+        # entry i covers x[i - w//2 : i - w//2 + w], the edges repeat the first and last full span
+        names = list(channels)
+        x = np.concatenate([channels[c].reshape(size, -1) for c in names], axis=1)
+        rng = maximum_filter1d(x, w, axis=0)
+        rng -= minimum_filter1d(x, w, axis=0)
+        rng[:lo] = rng[lo]
+        rng[lo + m :] = rng[lo + m - 1]
+        ranges, start = {}, 0
+        for c in names:
+            width = channels[c].reshape(size, -1).shape[1]
+            ranges[c] = rng[:, start : start + width]
+            start += width
         y = tau - tau.mean(axis=0)
-        c1 = np.cumsum(np.r_[np.zeros((1, y.shape[1])), y], axis=0)
-        c2 = np.cumsum(np.r_[np.zeros((1, y.shape[1])), y * y], axis=0)
+        c1 = np.zeros((size + 1, y.shape[1]))
+        c2 = np.zeros((size + 1, y.shape[1]))
+        np.cumsum(y, axis=0, out=c1[1:])
+        np.cumsum(y * y, axis=0, out=c2[1:])
         mean = (c1[w:] - c1[:-w]) / w
         var = np.clip((c2[w:] - c2[:-w]) / w - mean * mean, 0.0, None)
         return cls(w, ranges, _centred(np.sqrt(var.max(axis=1)), w, size))
@@ -176,14 +187,19 @@ class Stillness:
     ripple_tol: float
 
     @classmethod
-    def of_run(
-        cls, robot: Robot, tau: np.ndarray, channels: dict[str, np.ndarray], act: Activity, options: WindowOptions,
+    def of_samples(
+        cls, tau: np.ndarray, channels: dict[str, np.ndarray], span: int, options: WindowOptions,
+        ripple_floor: float, act: Activity | None = None,
     ) -> Stillness:
-        """Thresholds from the run's own noise, then its drift over the samples that noise alone calls still,
-        floored at the options' tolerances."""
-        w = act.span
+        """Thresholds from the samples' own noise (tensions (N, n) N, ``channels`` as :func:`still_channels`),
+        then their drift over the samples that noise alone calls still, floored at the options' tolerances:
+        per channel max(floor, noise_factor x sample noise + drift_factor x drift); ripple tolerance
+        max(ripple_floor, ripple_factor x the tensions' noise floor) (N). ``act``: their Activity if known."""
+        w = span
+        act = act if act is not None else Activity.of(tau, channels, w)
         floors = {"length": options.length_tol, "swivel": options.swivel_tol, "tilt": options.tilt_tol}
-        ripple_tol = max(robot.sensors.load_cell_uncertainty, options.ripple_factor * float(noise_floor(tau).max()))
+        tau_noise = float(noise_floor(tau).max()) if tau.shape[0] > 1 else 0.0
+        ripple_tol = max(ripple_floor, options.ripple_factor * tau_noise)
         spread = {c: options.noise_factor * sample_noise(x) for c, x in channels.items()}
         noise = {c: np.maximum(floors[c], s) for c, s in spread.items()}
         kin, ripple = cls(w, noise, ripple_tol).parts(act)
@@ -192,12 +208,49 @@ class Stillness:
                for c, x in channels.items()}
         return cls(w, thr, ripple_tol)
 
+    @classmethod
+    def of_run(
+        cls, robot: Robot, tau: np.ndarray, channels: dict[str, np.ndarray], act: Activity, options: WindowOptions,
+    ) -> Stillness:
+        """:meth:`of_samples` of a whole run, the ripple floored at the robot's load-cell uncertainty."""
+        return cls.of_samples(tau, channels, act.span, options, robot.sensors.load_cell_uncertainty, act)
+
     def parts(self, act: Activity) -> tuple[np.ndarray, np.ndarray]:
         """Per sample (N,): the kinematic score (ranges over their limits) and the ripple over its tolerance."""
         kin = np.zeros(act.ripple.shape[0])
         for c, r in act.ranges.items():
             np.maximum(kin, (r / self.thresholds[c]).max(axis=1), out=kin)
         return kin, act.ripple / self.ripple_tol
+
+    def judge(self, tau: np.ndarray, channels: dict[str, np.ndarray]) -> tuple[float, float]:
+        """The scores of one block of ``span`` consecutive samples (tensions (span, n), channels (span, c)):
+        its largest range over the channel's limit and its largest tension standard deviation over the ripple
+        tolerance; the numbers :meth:`parts` gives the block's middle sample (index span // 2) of a run."""
+        kin = 0.0
+        for c, x in channels.items():
+            kin = max(kin, float(np.max((x.max(axis=0) - x.min(axis=0)) / self.thresholds[c])))
+        return kin, float(tau.std(axis=0).max()) / self.ripple_tol
+
+    def still(self, tau: np.ndarray, channels: dict[str, np.ndarray]) -> bool:
+        """Whether a block of ``span`` samples is still: both scores of :meth:`judge` <= 1."""
+        kin, ripple = self.judge(tau, channels)
+        return kin <= 1.0 and ripple <= 1.0
+
+
+def still_channels(dl: np.ndarray, dsigma: np.ndarray, roll: np.ndarray, pitch: np.ndarray) -> dict[str, np.ndarray]:
+    """The kinematic channels the stillness test watches: lengths (N, n) m, swivels (N, n) rad and tilt
+    (N, 2) = roll, pitch rad."""
+    return {"length": dl, "swivel": dsigma, "tilt": np.stack([roll, pitch], axis=-1)}
+
+
+def span_samples(options: WindowOptions, dt: float) -> int:
+    """Samples in the stillness span for a sample period dt (s): at least 3."""
+    return max(3, int(round(options.span_s / dt)))
+
+
+def min_samples(options: WindowOptions, dt: float) -> int:
+    """Consecutive still samples a window needs for a sample period dt (s): at least 2."""
+    return max(2, int(math.ceil(options.min_duration_s / dt)))
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -344,13 +397,13 @@ def search_windows(
     opt = options or WindowOptions()
     N = dl.shape[0]
     dt = float(np.median(np.diff(t))) if N > 1 else 1.0
-    ch = {"length": dl, "swivel": dsigma, "tilt": np.stack([roll, pitch], axis=1)}
-    w = max(3, int(round(opt.span_s / dt)))
+    ch = still_channels(dl, dsigma, roll, pitch)
+    w = span_samples(opt, dt)
     act = Activity.of(tau, ch, w)
     still = Stillness.of_run(robot, tau, ch, act, opt)
     kin, ripple = still.parts(act)
     score = np.maximum(kin, ripple)
-    min_len = max(2, int(math.ceil(opt.min_duration_s / dt)))
+    min_len = min_samples(opt, dt)
     wins = [Window(a, b) for a, b in _runs(score <= 1.0) if b - a + 1 >= min_len]
     wins = _merge_same(wins, tau, dl, still)
     sp = None if setpoints is None or not len(setpoints) else np.asarray(setpoints, dtype=float)
