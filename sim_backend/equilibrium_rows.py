@@ -12,11 +12,15 @@ the size of a window average, plus (``device_biases``, on by default) the consta
 emulators draw at power-on: each load-cell channel off by up to its accuracy class (0.02 % of 100 kg),
 the AHRS roll and pitch off by up to 0.1 deg. Those are part of every run of the simulated prototype, as of
 the real one, with or without a hidden effect; they are what limits the rigid model on an effect-free run.
-The reference (zeta_0) is the home pose under the home tensions, the rows are the planned poses.
+The reference (zeta_0) is the home pose under the home tensions, the rows are the planned poses. With a
+``sway`` in the configuration each equilibrium is displaced by an independent horizontal push at the centre
+of mass (the window mean of the simulator's sway force): the tensions stay at their setpoints (force
+control), every kinematic reading follows the displaced pose, and the statics no longer hold exactly.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +30,7 @@ from calib.kinematics import inverse_kinematics, rotation, rotation_to_euler
 from calib.planning import PosePlan, plan_poses
 from calib.robot import Robot
 from calib.selfcal.problem import Measurements
+from calib.statics import equilibrium_residual
 from sim_backend.xsens_emulator import XsensNoise
 
 # standard deviation of one equilibrium-window average: N, m, rad, rad (roll, pitch, yaw)
@@ -48,6 +53,29 @@ class SimulatedRows:
     poses: np.ndarray
     guess_zeta0: np.ndarray
     guess_poses: np.ndarray
+
+
+def force_displacement(robot: Robot, poses: np.ndarray, tau: np.ndarray, force: np.ndarray) -> np.ndarray:
+    """Pose change (k, 6) of platforms in equilibrium at ``poses`` under fixed tensions ``tau`` (k, n) when a
+    force (k, 3) N acts at the centre of mass, to first order: the statics' pose Jacobian at fixed tensions
+    times the change equals the force's generalised wrench."""
+    kin = inverse_kinematics(robot, poses)
+    s = np.einsum("kab,b->ka", kin.R, robot.com)
+    wrench = np.concatenate([force, np.einsum("kaj,ka->kj", kin.H, np.cross(s, force))], axis=1)
+    _, jac = equilibrium_residual(robot, poses, tau)
+    return np.linalg.solve(jac, wrench[..., None])[..., 0]
+
+
+def sway_displacement(robot: Robot, poses: np.ndarray, tau: np.ndarray, amplitude: float,
+                      rng: np.random.Generator) -> np.ndarray:
+    """Pose change (k, 6) from the window-mean push of the simulator's sway (sim_backend.physics.Sway: per
+    horizontal axis three sines of amplitude F/3, F the cables' lateral stiffness at the first pose,
+    sum tau_i / l_i, times ``amplitude`` m), drawn independently per pose (standard deviation F / sqrt 6 per
+    axis)."""
+    stiffness = float(np.sum(tau[0] / inverse_kinematics(robot, poses[:1]).lengths[0]))
+    force = np.zeros((poses.shape[0], 3))
+    force[:, :2] = rng.standard_normal((poses.shape[0], 2)) * stiffness * amplitude / math.sqrt(6.0)
+    return force_displacement(robot, poses, tau, force)
 
 
 def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: dict | None = None,
@@ -75,6 +103,8 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
     if not ds.converged.all():
         raise ValueError("simulated_rows: no equilibrium of the true robot under some setpoint.")
     Z = ds.poses
+    if config.sway is not None and config.sway.amplitude > 0:
+        Z = Z + sway_displacement(truth, Z, tau, config.sway.amplitude, np.random.default_rng([seed, 517]))
     kin = inverse_kinematics(truth, Z)
     ea = config.physics_params().ea
     l0 = kin.lengths / (1.0 + tau / ea)

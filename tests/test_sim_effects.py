@@ -198,3 +198,34 @@ def test_every_shipped_example_loads_and_nominal_changes_nothing(tmp_path):
     bad.write_text("effects: [1, 2\n")
     with pytest.raises(SimConfigError, match="bad.yaml: not valid YAML"):
         load_sim_config(bad)
+
+
+def test_a_push_at_the_centre_of_mass_displaces_the_equilibrium_as_the_statics_say():
+    """sim_backend.equilibrium_rows.force_displacement (the sway of the row-level simulator) against the exact
+    statics: a downward push of 0.1 N is a platform 10 g heavier (direct statics), to 1e-6 m."""
+    import dataclasses
+
+    from calib.planning import plan_poses
+    from sim_backend.equilibrium_rows import force_displacement
+
+    robot = load_robot("irma4u")
+    plan = plan_poses(robot, 2)
+    Z = direct_statics(robot, plan.setpoints, plan.poses).poses
+    heavier = direct_statics(dataclasses.replace(robot, mass=robot.mass + 0.01), plan.setpoints, Z).poses
+    force = np.zeros((Z.shape[0], 3))
+    force[:, 2] = -0.01 * robot.gravity
+    d = force_displacement(robot, Z, plan.setpoints, force)
+    assert np.abs(heavier - Z).max() > 1e-3
+    assert np.abs(d - (heavier - Z)).max() < 1e-6
+
+
+def test_row_level_sway_moves_the_kinematic_readings_not_the_tensions():
+    from sim_backend.equilibrium_rows import simulated_rows
+
+    robot = load_robot("irma4u")
+    still = simulated_rows(robot, sim_config_from_dict({}), seed=4)
+    sway = simulated_rows(robot, sim_config_from_dict({"sway": {"amplitude": 0.002, "period": 10.0}}), seed=4)
+    assert np.array_equal(still.meas.tau, sway.meas.tau)
+    moved = 1e3 * np.abs(sway.poses[:, :2] - still.poses[:, :2])
+    assert 0.1 < moved.max() < 6.0  # mm, a 2 mm sway
+    assert np.abs(sway.meas.dl - still.meas.dl).max() > 1e-4
