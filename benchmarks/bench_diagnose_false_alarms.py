@@ -9,12 +9,13 @@ plausible, and predicting left-out poses better; target: nothing selected in >= 
 miss) and, for information, where some effect merely tests significant. Also reports how often the base
 model's own chi2 test rejects at 1% (expected ~1%).
 
-    python benchmarks/bench_diagnose_false_alarms.py [--seeds 100] [--first 0] [--grid 2] [--rigid]
+    python benchmarks/bench_diagnose_false_alarms.py [--seeds 100] [--first 0] [--grid 2] [--rigid] [--sway M]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from collections import Counter
@@ -24,7 +25,7 @@ from calib.planning import plan_poses
 from calib.robot import load_robot
 from sim_backend.config import SimConfig
 from sim_backend.equilibrium_rows import simulated_rows
-from sim_backend.physics import PhysicsParams
+from sim_backend.physics import PhysicsParams, Sway
 
 
 def main() -> int:
@@ -35,10 +36,14 @@ def main() -> int:
     ap.add_argument("--alpha", type=float, default=0.01)
     ap.add_argument("--rigid", action="store_true",
                     help="cables of EA 1e12 N instead of the simulator's nominal 2e6 N (which is itself a tiny effect)")
+    ap.add_argument("--sway", type=float, default=0.001,
+                    help="m, amplitude of the platform's slow sway (0: none; default 1 mm, realistic_noise.yaml)")
     args = ap.parse_args()
     robot = load_robot("irma4u")
     plan = plan_poses(robot, args.grid)
     config = SimConfig(physics=PhysicsParams(ea=1e12)) if args.rigid else SimConfig()
+    if args.sway > 0:
+        config = dataclasses.replace(config, sway=Sway(args.sway, 10.0))
     alarms, selected, chi2_reject, which = 0, 0, 0, Counter()
     t0 = time.perf_counter()
     for seed in range(args.first, args.first + args.seeds):
@@ -55,7 +60,7 @@ def main() -> int:
         chi2_reject += diag.p_value < args.alpha
     dt = time.perf_counter() - t0
     print(f"grid {args.grid}: {len(plan.poses)} poses + reference, seeds {args.first}..{args.first + args.seeds - 1} "
-          f"(no hidden effect, EA {config.physics.ea:.3g} N), alpha {args.alpha}")
+          f"(no hidden effect, EA {config.physics.ea:.3g} N, sway {1000 * args.sway:g} mm), alpha {args.alpha}")
     need = int(0.95 * args.seeds)
     print(f"seeds with an effect selected: {selected} / {args.seeds} (target: nothing selected in >= {need})")
     print(f"seeds with an effect testing significant: {alarms} / {args.seeds}  {dict(which)}")
