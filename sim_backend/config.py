@@ -164,6 +164,9 @@ class SimConfig:
             p = dataclasses.replace(p, ea=self.effects.cable_elasticity)
         if self.effects.cable_sag is not None:
             p = dataclasses.replace(p, cable_density=self.effects.cable_sag)
+        if self.effects.pulley_friction is not None:
+            mu, f = self.effects.pulley_friction
+            p = dataclasses.replace(p, pulley_mu=mu, pulley_friction=f)
         return p
 
     def tension_offset(self, n: int) -> np.ndarray:

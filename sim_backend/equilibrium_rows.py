@@ -16,8 +16,8 @@ The reference (zeta_0) is the home pose under the home tensions, the rows are th
 
 Issue-17 effects: with ``pulley_friction`` the cell (in the transmission, winch side) reads the platform
 tension tau as tau (1 - a mu) - a f, a = +1 when the cable was last paid out into the window, -1 when
-reeled in (from the sequence of equilibria: home, then the planned poses in order; 0 at home, which the
-pretension reaches from slack); with ``loadcell_hysteresis`` the cells read tau - s h, s the sign of the
+reeled in (from the plan's sequence of poses: home, then the planned poses in order; 0 at home, which
+the pretension reaches from slack); with ``loadcell_hysteresis`` the cells read tau - s h, s the sign of the
 setpoint change into the window (+1 at home: loaded from zero); with ``cable_sag`` the chord tensions
 hold the platform and half of every cable's weight at its anchor, the cells read the chord tension plus
 rho g dz / 2 and the encoders count the sagging path (the model of ``sim_backend.physics`` and of the
@@ -120,12 +120,14 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
     mu, fr = config.pulley_friction()
     density = 0.0 if e.cable_sag is None else float(e.cable_sag)
     Z = guess
+    # the direction each cable moves into each equilibrium: from the plan's sequence of poses (at home: 0)
     approach = np.zeros((Z.shape[0], n))
-    for _ in range(6 if (mu or fr or density) else 1):  # the directions and the cable weights depend on Z
+    approach[1:] = np.sign(np.diff(inverse_kinematics(truth, guess).lengths, axis=0))
+    tau = (tau_cell + approach * fr) / (1.0 - approach * mu)  # platform side of the pulleys
+    chord = tau
+    for _ in range(5 if density else 1):  # the cables' weights depend on the poses: a fixed point
         kin = inverse_kinematics(truth, Z)
-        approach[1:] = np.sign(np.diff(kin.lengths, axis=0))
-        tau = (tau_cell + approach * fr) / (1.0 - approach * mu)  # platform side of the pulleys
-        tau = tau - density * sag_cell(truth, kin)  # the chord tension: the cell reads rho g dz / 2 more
+        tau = chord - density * sag_cell(truth, kin)  # the chord tension: the cell reads rho g dz / 2 more
         ds = direct_statics_with_cables(truth, tau, Z, density, kin)
         if not ds.converged.all():
             raise ValueError("simulated_rows: no equilibrium of the true robot under some setpoint.")

@@ -161,7 +161,9 @@ class CableSag(Effect):
     (``absolute_length``) are left without the sag (below a millimetre for a plausible density)."""
 
     name = "cable_sag"
-    order = 5  # on the physical quantities, before elasticity (10)
+    # after elasticity (10: it rebuilds the length readings from the physical quantities, so an earlier sag
+    # would be lost), before the length scale (20, which scales the sag too) and the load-cell effects (28+)
+    order = 12
     description = "cable linear density (mass and parabolic sag), kg/m"
 
     def params(self, robot: Robot) -> list[ParamSpec]:
