@@ -273,6 +273,8 @@ def test_real_run_cli_report(real_run, tmp_path, capsys):
     doc = json.loads(out.out)
     assert doc["noise"] == "estimate" and doc["dof"] > 0 and doc["chi2"] > doc["dof"]
     assert len(doc["ranking"]) == 13 and doc["verdict"]
+    # every row says which way its cables moved and its loads changed into the window
+    assert all(set(r["approach"]) <= {-1, 1} and len(r["load_approach"]) == 4 for r in doc["rows"])
     top = doc["ranking"][0]
     assert {"expected_change", "plausible_range", "cv_gain", "decision"} <= set(top)
     pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))
