@@ -445,6 +445,12 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements, ref_sample: int 
         }
         if i >= 0 and meas.windows is not None:
             entry["window"] = [int(v) for v in meas.windows[i]]
+        # per cable, the way it moved (+1 out, -1 in) and its load changed (+1 up, -1 down) into the window
+        for key, rows_dir, ref_dir in (("approach", meas.approach, meas.ref_approach),
+                                       ("load_approach", meas.load_approach, meas.ref_load_approach)):
+            d = ref_dir if i < 0 else (None if rows_dir is None else rows_dir[i])
+            if d is not None:
+                entry[key] = [int(v) for v in d]
         rows.append(entry)
     return channels, cables, rows
 

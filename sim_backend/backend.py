@@ -176,7 +176,7 @@ class SimBackend:
                 lc_fd, rngs[2 * n], channels=n, offsets=self.config.tension_offset(n),
                 gains=self.config.tension_gain(n), rate_hz=1.0 / self.control_period,
                 full_scale=self.robot.sensors.load_cell_full_scale, accuracy=self.robot.sensors.load_cell_accuracy,
-                noise_std=noise.loadcell_sigma,
+                noise_std=noise.loadcell_sigma, hysteresis=self.config.loadcell_hysteresis(),
             )
             ahrs_fd, ahrs_path = open_pty_pair()
             self._fds.append(ahrs_fd)

@@ -13,6 +13,9 @@ The YAML file (every section optional; nothing is on by default)::
       mass_scale: {scale: 0.05}                # relative: true mass = (1 + scale) model mass
       pulley_position: {offset: [[0.01, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]]}   # m, per pulley
       cable_sag: {density: 0.05}               # kg/m, cable mass per length (parabolic sag)
+      pulley_friction: {mu: 0.03, f: 1.5}      # friction between load cell and platform: the cell reads
+                                               #   tau (1 - a mu) - a f, a = +1 paid out, -1 reeled in
+      loadcell_hysteresis: {h: 0.2}            # N: the cells read tau - s h, s = +1 rising load, -1 falling
     faults:                                    # at a given simulated time t (s)
       - {kind: can_frames_lost, t: 12.0, duration: 0.5, fraction: 1.0}
       - {kind: drive_fault, t: 12.0, drive: 2}             # drives, channels and cables count from 1
@@ -62,6 +65,8 @@ EFFECTS = (
     "mass_scale",
     "pulley_position",
     "cable_sag",
+    "pulley_friction",
+    "loadcell_hysteresis",
 )
 FAULTS = ("can_frames_lost", "drive_fault", "loadcell_stuck", "loadcell_disconnected", "ahrs_corrupt", "cable_slack")
 
@@ -84,6 +89,8 @@ class HiddenEffects:
     mass_scale: float | None = None  # relative
     pulley_position: tuple[tuple[float, float, float], ...] | None = None  # m, per pulley
     cable_sag: float | None = None  # kg/m
+    pulley_friction: tuple[float, float] | None = None  # mu (relative), f (N)
+    loadcell_hysteresis: float | None = None  # h, N
 
     def active(self) -> list[str]:
         """Names of the effects that are on."""
@@ -157,6 +164,9 @@ class SimConfig:
             p = dataclasses.replace(p, ea=self.effects.cable_elasticity)
         if self.effects.cable_sag is not None:
             p = dataclasses.replace(p, cable_density=self.effects.cable_sag)
+        if self.effects.pulley_friction is not None:
+            mu, f = self.effects.pulley_friction
+            p = dataclasses.replace(p, pulley_mu=mu, pulley_friction=f)
         return p
 
     def tension_offset(self, n: int) -> np.ndarray:
@@ -166,6 +176,14 @@ class SimConfig:
         """(n,) gain factors 1 + gain of the load-cell channels."""
         g = np.zeros(n) if self.effects.tension_gain is None else np.asarray(self.effects.tension_gain)
         return 1.0 + g
+
+    def pulley_friction(self) -> tuple[float, float]:
+        """(mu, f N) of the friction between the load cells and the platform; (0, 0) when off."""
+        return (0.0, 0.0) if self.effects.pulley_friction is None else self.effects.pulley_friction
+
+    def loadcell_hysteresis(self) -> float:
+        """h, N: half the difference between the cells' falling and rising readings; 0 when off."""
+        return 0.0 if self.effects.loadcell_hysteresis is None else float(self.effects.loadcell_hysteresis)
 
     def ahrs_mounting(self) -> tuple[float, float]:
         return (0.0, 0.0) if self.effects.ahrs_mounting is None else self.effects.ahrs_mounting
@@ -253,6 +271,13 @@ def _effects(c: _Check, raw: Any, n: int) -> HiddenEffects:
         elif name == "cable_sag":
             v = c.mapping(val, f, ("density",))
             out[name] = c.number(c.required(v, "density", f), f + ".density", 0.0, 5.0, strict=True)
+        elif name == "pulley_friction":
+            v = c.mapping(val, f, ("mu", "f"))
+            out[name] = (c.number(v.get("mu", 0.0), f + ".mu", 0.0, 0.5),
+                         c.number(v.get("f", 0.0), f + ".f", 0.0, 100.0))
+        elif name == "loadcell_hysteresis":
+            v = c.mapping(val, f, ("h",))
+            out[name] = c.number(c.required(v, "h", f), f + ".h", 0.0, 100.0)
     return HiddenEffects(**out)
 
 

@@ -19,9 +19,14 @@ from collections.abc import Sequence
 import numpy as np
 
 from drivers import loadcell
+from sim_backend.physics import play
 from sim_backend.pty import GaussianBlocks, PtyEmulator, free_run, read_master
 
 FULL_SCALE = 100.0 * 9.81  # N, the prototype's 100 kg cells
+
+
+# N: the load change that moves a cell onto its other hysteresis branch (the rows' APPROACH_TENSION)
+HYSTERESIS_LOAD = 2.0
 
 
 class LoadCellEmulator(PtyEmulator):
@@ -41,6 +46,7 @@ class LoadCellEmulator(PtyEmulator):
         accuracy: float = 0.0002,
         rate_hz: float = 100.0,
         model: str | None = None,
+        hysteresis: float = 0.0,
     ) -> None:
         super().__init__(master_fd, rng)
         self.n = channels
@@ -61,6 +67,11 @@ class LoadCellEmulator(PtyEmulator):
         self._open = [False] * channels
         self._decoder = loadcell.LineDecoder()
         self._normals = GaussianBlocks(rng, channels)  # the per-sample noise, drawn after the accuracy errors
+        # hysteresis h, N (the loadcell_hysteresis hidden effect): the reading is h y lower, y = +1 on a rising
+        # load, -1 on a falling one, reversed once the load left its extreme by HYSTERESIS_LOAD N
+        self.hysteresis = float(hysteresis)
+        self._y = [1.0] * channels  # the cells were loaded from zero
+        self._ext = [0.0] * channels
 
     @property
     def gains(self) -> np.ndarray:
@@ -102,6 +113,8 @@ class LoadCellEmulator(PtyEmulator):
         """:meth:`measure` as plain floats (numpy costs more than it saves on 4 channels); the same arithmetic,
         in the same order, and numpy's rounding (half to even of value * 100)."""
         tau = np.asarray(true_tensions, dtype=float).reshape(self.n).tolist()
+        if self.hysteresis:
+            tau = self._hysteresis(tau)
         std = self.noise_std
         # the noise is rng.normal(0.0, std, n), i.e. loc + scale * z for standard normal draws z
         value = [round((g * t + o + a + (0.0 + std * z)) * 100.0) / 100.0
@@ -111,6 +124,12 @@ class LoadCellEmulator(PtyEmulator):
                                                                      strict=True)]
         self._last = value
         return value
+
+    def _hysteresis(self, tau: list[float]) -> list[float]:
+        """The true tensions as the bridge sees them: h lower on the rising branch, h higher on the falling."""
+        for i, t in enumerate(tau):
+            self._y[i], self._ext[i] = play(t, self._y[i], self._ext[i], HYSTERESIS_LOAD)
+        return [t - self.hysteresis * y for t, y in zip(tau, self._y, strict=True)]
 
     def emit(self, sim_time: float, true_tensions: np.ndarray) -> int | None:
         """One control tick: write one line; returns its sequence number (None while silent)."""

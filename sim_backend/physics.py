@@ -13,6 +13,11 @@ Model (SI units throughout):
 * optional cable mass (kg/m): parabolic sag, which lengthens the path by ``w^2 Lc^3 cos^2(alpha) /
   (24 tau^2)``, loads each anchor with half the cable weight and makes the tension at the pulley (where
   the load cell is) exceed the chord tension by ``w dz / 2``;
+* optional friction in the pulleys between the load cell (in the transmission, winch side) and the
+  platform (``pulley_mu``, ``pulley_friction`` N, the ``pulley_friction`` hidden effect): the cell reads
+  tau (1 - z mu) - z f, z = +1 once the cable was paid out, -1 once reeled in, by more than
+  ``FRICTION_SLIDE`` m since the last reversal (a play operator on the motor-side length); the
+  platform's dynamics see the platform-side tension; the winch's own Coulomb friction is apart);
 * each winch: inertia J at the motor shaft (rotor + drum reflected through the gear), viscous and Coulomb
   friction (Coulomb regularised over ``coulomb_speed``), motor torque u (positive reels the cable in),
   an optional holding brake (engaged at power-on until the drive is enabled).
@@ -36,6 +41,27 @@ import numpy as np
 
 from calib.kinematics import rotation
 from calib.robot import Robot
+
+# m: the cable length the rope must slide back over the pulleys before their friction reverses (its
+# pre-sliding, ~0.25 mm for a few N over EA / l ~ 20 kN/m, doubled): the same threshold as the rows'
+# approach directions (calib.selfcal measurement_rows, APPROACH_LENGTH)
+FRICTION_SLIDE = 5e-4
+
+
+def play(x: float, state: float, extreme: float, width: float) -> tuple[float, float]:
+    """Play (backlash) operator: the direction state (+1, -1, 0 unset) and the extreme of x since the last
+    reversal, after x moved; the state reverses once x leaves its extreme by more than ``width``."""
+    if state > 0:
+        extreme = max(extreme, x)
+        if x < extreme - width:
+            return -1.0, x
+    elif state < 0:
+        extreme = min(extreme, x)
+        if x > extreme + width:
+            return 1.0, x
+    elif abs(x - extreme) > width:
+        return (1.0 if x > extreme else -1.0), x
+    return state, extreme
 
 
 class SimulationError(RuntimeError):
@@ -74,6 +100,8 @@ class PhysicsParams:
     cable_damping: stiffness-proportional cable damping, s (c = cable_damping * EA / l0).
     linear_damping N s/m and angular_damping N m s/rad on the platform (residual swing of a few seconds).
     cable_density: kg/m, 0 for massless cables (the ``cable_sag`` hidden effect sets it).
+    pulley_mu (relative) and pulley_friction (N): friction between load cell and platform (the
+    ``pulley_friction`` hidden effect sets them).
     substeps per step; stiff_theta: 1 = implicit Euler on the cable springs, 0.5 = trapezoidal-like.
     """
 
@@ -82,6 +110,8 @@ class PhysicsParams:
     linear_damping: float = 20.0
     angular_damping: float = 0.6
     cable_density: float = 0.0
+    pulley_mu: float = 0.0
+    pulley_friction: float = 0.0
     winch: WinchParams = field(default_factory=WinchParams)
     substeps: int = 1
     stiff_theta: float = 1.0
@@ -216,6 +246,9 @@ class CablePhysics:
         self._ibinv = np.linalg.inv(ib).tolist()
         self._ea = float(params.ea)
         self._w = float(params.cable_density) * self._g  # cable weight per length, N/m
+        self._mu, self._fric = float(params.pulley_mu), float(params.pulley_friction)
+        self._z = [0.0] * n  # pulley-friction state: +1 paid out, -1 reeled in, 0 not yet moved
+        self._ext = [0.0] * n  # the extreme of the cable's paid-out length since the last reversal, m
         w = params.winch
         self._jm = [w.inertia_at_motor(k) for k in self._k]
         self._bm, self._fc, self._ws = w.viscous, w.coulomb, w.coulomb_speed
@@ -409,9 +442,12 @@ class CablePhysics:
 
     def _cell_tensions(self, geo: list[tuple], tau: list[float]) -> list[float]:
         w = self._w
-        if w == 0.0:
-            return list(tau)
-        return [tau[i] + 0.5 * w * geo[i][6] if tau[i] > 0.0 else 0.0 for i in range(self.n)]
+        out = list(tau) if w == 0.0 else [tau[i] + 0.5 * w * geo[i][6] if tau[i] > 0.0 else 0.0
+                                          for i in range(self.n)]
+        if self._mu or self._fric:  # the cell is on the winch side of the pulleys
+            mu, f, z = self._mu, self._fric, self._z
+            out = [max(t * (1.0 - z[i] * mu) - z[i] * f, 0.0) if t > 0.0 else 0.0 for i, t in enumerate(out)]
+        return out
 
     # --- integration ----------------------------------------------------------------------------------
     def step(self, dt: float, t_end: float | None = None) -> None:
@@ -499,6 +535,9 @@ class CablePhysics:
         xg = self._xg
         self._xg = [xg[0] + h * vs0, xg[1] + h * vs1, xg[2] + h * vs2]
         self._th = [th + h * thd for th, thd in zip(self._th, thds, strict=True)]
+        if self._mu or self._fric:
+            for i in range(n):
+                self._z[i], self._ext[i] = play(k[i] * self._th[i], self._z[i], self._ext[i], FRICTION_SLIDE)
         self._q = _quat_integrate(self._q, ws0 * h, ws1 * h, ws2 * h)
         self._t += h
         self._tau = tau

@@ -173,6 +173,12 @@ def test_validation_errors_name_file_field_and_value():
         sim_config_from_dict({"faults": [{"kind": "meltdown", "t": 1.0}]}, 4, "<test>")
     with pytest.raises(SimConfigError, match=r"required field 'faults\[0\].t' is missing"):
         sim_config_from_dict({"faults": [{"kind": "loadcell_disconnected"}]}, 4, "<test>")
+    with pytest.raises(SimConfigError, match=r"<test>: field 'effects.pulley_friction.mu' = -0.1 must be >= 0"):
+        sim_config_from_dict({"effects": {"pulley_friction": {"mu": -0.1}}}, 4, "<test>")
+    with pytest.raises(SimConfigError, match=r"field 'effects.loadcell_hysteresis.h' = 'big' must be a finite"):
+        sim_config_from_dict({"effects": {"loadcell_hysteresis": {"h": "big"}}}, 4, "<test>")
+    with pytest.raises(SimConfigError, match=r"required field 'effects.loadcell_hysteresis.h' is missing"):
+        sim_config_from_dict({"effects": {"loadcell_hysteresis": {}}}, 4, "<test>")
     with pytest.raises(SimConfigError, match=r"field 'physics.ea' = -1 must be > 0"):
         sim_config_from_dict({"physics": {"ea": -1}}, 4, "<test>")
     with pytest.raises(SimConfigError, match=r"field 'physics.winch.drum_radius' = 0.0 must be > 0"):
@@ -229,3 +235,64 @@ def test_row_level_sway_moves_the_kinematic_readings_not_the_tensions():
     moved = 1e3 * np.abs(sway.poses[:, :2] - still.poses[:, :2])
     assert 0.1 < moved.max() < 6.0  # mm, a 2 mm sway
     assert np.abs(sway.meas.dl - still.meas.dl).max() > 1e-4
+
+
+def test_pulley_friction_cells_read_the_winch_side_by_the_direction_the_cable_moved():
+    """Torque step from TAU_A to TAU_B: the platform side settles at TAU_B; the cells (in the transmission,
+    winch side) read 3 % + 1.5 N less on the cables last paid out, as much more on those last reeled in,
+    the direction being the rows' (calib.selfcal.approach_directions on the paid-out length, 0.5 mm): the
+    platform's swing after the step can make it differ from the net change."""
+    from calib.selfcal import approach_directions
+
+    cfg = _config({"pulley_friction": {"mu": 0.03, "f": 1.5}}, NO_COULOMB)
+    ph = _physics(cfg, brakes=False)
+    k = cfg.true_transmission(ROBOT)
+    _settle(ph, 2.0)
+    for i in range(4):
+        ph.set_motor_torque(i, TAU_B[i] * abs(k[i]))
+    paid = []
+    for _ in range(int(40.0 / DT)):
+        ph.step(DT)
+        paid.append(k * ph.motor_position())
+    tau = ph.chord_tension()
+    np.testing.assert_allclose(tau, TAU_B, atol=0.05)
+    a = approach_directions(np.array(paid), np.array([len(paid) - 1]), 5e-4)[0]
+    assert set(a) == {-1.0, 1.0}  # both directions occur in this step
+    np.testing.assert_allclose(ph.cable_tension(), tau * (1 - 0.03 * a) - 1.5 * a, atol=0.05)
+
+
+def test_loadcell_hysteresis_reads_low_on_a_rising_load_and_high_on_a_falling_one():
+    from sim_backend.loadcell_emulator import LoadCellEmulator
+
+    emu = LoadCellEmulator(-1, np.random.default_rng(0), channels=2, noise_std=0.0, accuracy=0.0, hysteresis=0.2)
+    for t in np.linspace(50.0, 100.0, 20):  # channel 1 rises to 100 N, channel 2 falls to 100 N
+        emu.measure(np.array([t, 200.0 - t]))
+    np.testing.assert_allclose(emu.measure(np.array([100.0, 100.0])), [99.8, 100.2], atol=0.011)
+
+
+def test_cable_effects_in_the_rows_simulator_match_the_effects_model():
+    """simulated_rows with friction, hysteresis and sag: the readings the calib effects predict at the true
+    poses and directions, noise and device errors off (so the two implementations check each other)."""
+    from calib.effects import EffectModel, make_effects
+    from sim_backend.equilibrium_rows import simulated_rows
+
+    cfg = _config({"pulley_friction": {"mu": 0.03, "f": 1.5}, "loadcell_hysteresis": {"h": 0.2},
+                   "cable_sag": {"density": 0.06}})
+    zero = {"tension": 0.0, "length": 0.0, "swivel": 0.0, "orientation": np.zeros(3)}
+    d = simulated_rows(ROBOT, cfg, noise=zero, device_biases=False)
+    m = EffectModel(ROBOT, make_effects(["cable_sag", "pulley_friction", "loadcell_hysteresis",
+                                         "cable_elasticity"]))
+    ea = cfg.physics_params().ea  # the simulator's nominal 2e6 N stretches the cables by ~0.1 mm
+    theta = m.initial_params(d.zeta0, [0.06, 0.03, 1.5, 0.2, 1.0 / ea])
+    appr = np.stack([d.meas.approach, d.meas.load_approach], axis=-1)
+    p = m.predict(d.poses, theta, ("tension", "length"), None, appr)
+    np.testing.assert_allclose(p["tension"].value, d.meas.tau, atol=1e-6)
+    # the elasticity effect stretches by the rigid model's tension, the simulator by the chord tension,
+    # which also holds the cables' weight (~0.3 N more): 0.4 um
+    np.testing.assert_allclose(p["length"].value, d.meas.dl, atol=1e-6)
+    ref = m.predict(d.zeta0[None], theta, ("tension",), None,
+                    np.stack([d.meas.ref_approach, d.meas.ref_load_approach], axis=-1)[None])
+    np.testing.assert_allclose(ref["tension"].value[0], d.meas.ref_tau, atol=1e-6)
+    # the friction moved the equilibria: without it the same setpoints give other poses (mm)
+    plain = simulated_rows(ROBOT, _config({}), noise=zero, device_biases=False)
+    assert np.abs(plain.poses[:, :3] - d.poses[:, :3]).max() > 2e-3

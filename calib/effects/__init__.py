@@ -19,10 +19,12 @@ from collections.abc import Iterable, Sequence
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from calib.effects import builtin, cable
 from calib.effects.base import Context, Effect, EffectModel, Implausible, ParamSpec, Physical, Projected
-from calib.effects.builtin import BUILTIN
 
 ENTRY_POINT_GROUP = "cdpr.effects"
+# the library: the rigid-model corrections of issue 7, then the cable-transmission effects of issue 17
+BUILTIN: dict[str, type[Effect]] = {**builtin.BUILTIN, **cable.CABLE}
 
 __all__ = [
     "BUILTIN",

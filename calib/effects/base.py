@@ -93,7 +93,9 @@ class Context:
     """What a reading effect sees: the robot (robot effects applied), the poses (k, 6), theta (p,), the
     columns of theta that are its own (``cols``), the physical quantities at the poses (``at``) and at
     zeta_0 (``ref``, whose theta derivatives include the zeta_0 columns), and the times of the rows (k,),
-    s after the reference sample (None where the readings carry no times)."""
+    s after the reference sample (None where the readings carry no times), and the directions of the rows
+    (k, n, 2): [..., 0] the way each cable last moved before the row (+1 paid out, -1 reeled in), [..., 1]
+    the way its tension last changed (+1 rising, -1 falling); 0 or None: unknown."""
 
     robot: Robot
     poses: np.ndarray
@@ -102,6 +104,7 @@ class Context:
     at: Physical
     ref: Physical
     times: np.ndarray | None = None
+    approach: np.ndarray | None = None
 
 
 class Effect:
@@ -271,10 +274,12 @@ class EffectModel:
         return robot, ph
 
     def predict(
-        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None
+        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None,
+        approach: np.ndarray | None = None,
     ) -> dict[str, ChannelPrediction]:
         """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included; ``times`` (k,)
-        s after the reference sample, for the effects that depend on time."""
+        s after the reference sample, for the effects that depend on time; ``approach`` (k, n, 2) the
+        directions of cable motion and load change before each row, for the effects that depend on them."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)
         robot, at = self._physical(theta, z)
@@ -297,7 +302,7 @@ class EffectModel:
             (i for i, e in enumerate(self.effects) if e.stage == "reading"), key=lambda i: self.effects[i].order
         )
         for i in readers:
-            ctx = Context(robot, z, theta, self.slices[i], at, ref, times)
+            ctx = Context(robot, z, theta, self.slices[i], at, ref, times, approach)
             self.effects[i].transform(ctx, np.asarray(theta[self.slices[i]]), out)
         return out
 

@@ -36,9 +36,12 @@ import numpy as np
 
 from calib.robot import NoiseLevels, Robot
 from calib.selfcal._solve import (
+    APPROACH_LENGTH,
+    APPROACH_TENSION,
     METHODS,
     NOISE,
     Prepared,
+    approach_directions,
     measurement_rows,
     noise_levels,
     paper_noise,
@@ -97,6 +100,9 @@ __all__ = [
     "Stillness",
     "compare_pose",
     "noise_levels",
+    "APPROACH_LENGTH",
+    "APPROACH_TENSION",
+    "approach_directions",
     "measurement_rows",
     "run_signals",
     "paper_noise",

@@ -21,6 +21,30 @@ from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_wi
 METHODS = ("tlse", "lse", "hybrid")
 NOISE = ("paper", "estimate", "sensors")
 SIGNALS = ("t", "tau", "dl", "dsigma", "roll", "pitch", "dyaw")
+# the smallest motion that sets a direction: a cable's friction in its pulleys reverses once the rope has
+# slid, i.e. after more than its elastic pre-sliding stretch (a few N of friction over EA / l ~ 20 kN/m:
+# ~0.25 mm); a load cell's hysteresis loop is set by a load excursion well above the noise (0.1-0.5 N)
+APPROACH_LENGTH = 5e-4  # m
+APPROACH_TENSION = 2.0  # N
+
+
+def approach_directions(x: np.ndarray, at: np.ndarray, threshold: float) -> np.ndarray:
+    """Per sample index in ``at`` (m,) and channel, the sign of the last change of x (N, c) larger than
+    ``threshold`` before that sample: sign(x[at] - x[j]) for the latest j < at with |x[at] - x[j]| >
+    threshold; 0 where x never moved that much. (m, c)."""
+    out = np.zeros((at.shape[0], x.shape[1]))
+    for m, i in enumerate(np.asarray(at, int)):
+        todo = np.ones(x.shape[1], bool)
+        stop = i + 1
+        while todo.any() and stop > 0:  # backwards in blocks: the last large change is usually near
+            start = max(0, stop - 256)
+            d = x[i] - x[start:stop]  # (block, c)
+            big = np.abs(d) > threshold
+            for c in np.flatnonzero(todo & big.any(axis=0)):
+                out[m, c] = np.sign(d[np.flatnonzero(big[:, c])[-1], c])
+                todo[c] = False
+            stop = start
+    return out
 
 
 def sensor_noise(robot: Robot) -> dict[str, np.ndarray]:
@@ -139,6 +163,9 @@ def measurement_rows(
     o = np.array(rows_ori)
     o[:, 2] -= ref["ori"][2]
     static_ref = ref_win is not None and method != "lse"
+    # the directions the cables last moved (and their loads last changed) before each row's window starts
+    starts = np.array([a if a >= 0 else b for (a, _), b in zip(spans, samples, strict=True)])
+    ref_start = np.array([ref_win.first if ref_win is not None else int(ref_sample)])
     meas = Measurements(
         tau=np.array(rows_tau),
         dl=np.array(rows_dl) - ref["dl"],
@@ -149,6 +176,10 @@ def measurement_rows(
         samples=np.array(samples),
         times=sig["t"][np.array(samples)] - sig["t"][int(ref_sample)],
         windows=np.array(spans),
+        approach=approach_directions(sig["dl"], starts, APPROACH_LENGTH),
+        load_approach=approach_directions(sig["tau"], starts, APPROACH_TENSION),
+        ref_approach=approach_directions(sig["dl"], ref_start, APPROACH_LENGTH)[0],
+        ref_load_approach=approach_directions(sig["tau"], ref_start, APPROACH_TENSION)[0],
     )
     return meas, int(ref_sample), ref_win, ref, win_of
 
@@ -276,6 +307,7 @@ def _kinematic_only(meas: Measurements) -> Measurements:
     return Measurements(
         np.full_like(meas.tau, np.nan), meas.dl, meas.dsigma, meas.orientation,
         np.full_like(meas.ref_tau, np.nan), meas.ref_orientation, meas.samples, meas.windows, meas.times,
+        meas.approach, meas.load_approach, meas.ref_approach, meas.ref_load_approach,
     )
 
 

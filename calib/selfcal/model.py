@@ -87,10 +87,11 @@ class MeasurementModel:
         return np.zeros(0, dtype=int), np.zeros(0), np.zeros(0)
 
     def predict(
-        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None
+        self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None,
+        approach: np.ndarray | None = None,
     ) -> dict[str, ChannelPrediction]:
         """Predicted readings of ``channels`` at poses (k, 6) for global parameters theta (p,) (the rigid model
-        does not depend on the rows' ``times``)."""
+        depends neither on the rows' ``times`` nor on the directions of ``approach``, (k, n, 2))."""
         robot = self.robot
         z = np.asarray(poses, dtype=float)
         k, n, p = z.shape[0], robot.n, theta.shape[0]

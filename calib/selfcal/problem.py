@@ -27,6 +27,11 @@ class Measurements:
     ref_tau (n,) and ref_orientation (2,) are the absolute readings at the reference sample (NaN: unused).
     samples (k,) and windows (k, 2) say where each row comes from in the run (-1 when not applicable);
     times (k,) when each row was read, s after the reference sample (None: unknown).
+    approach (k, n): per row and cable, the direction the cable last moved before the row's window, +1 paid
+    out (length grew), -1 reeled in, 0 unknown; load_approach (k, n): the same for the tension the load
+    cell last saw change (+1 rising, -1 falling); ref_approach and ref_load_approach (n,) the same at the
+    reference sample. None (the default, e.g. rows of old callers) means unknown everywhere: the
+    direction-dependent effects (pulley friction, load-cell hysteresis) then see no direction.
     """
 
     tau: np.ndarray
@@ -38,6 +43,10 @@ class Measurements:
     samples: np.ndarray | None = None
     windows: np.ndarray | None = None
     times: np.ndarray | None = None
+    approach: np.ndarray | None = None
+    load_approach: np.ndarray | None = None
+    ref_approach: np.ndarray | None = None
+    ref_load_approach: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -133,6 +142,22 @@ class Problem:
         t = self.meas.times
         return None if t is None else np.asarray(t, float)[rows]
 
+    def _approach(self, rows: np.ndarray | None) -> dict[str, np.ndarray]:
+        """``{"approach": (m, n, 2)}`` for the rows (None: the reference row), the cable-motion and load
+        directions stacked; empty when the readings carry no directions (older models need no keyword)."""
+        m = self.meas
+        if rows is None:
+            a, b = m.ref_approach, m.ref_load_approach
+        else:
+            a = None if m.approach is None else np.asarray(m.approach, float)[rows]
+            b = None if m.load_approach is None else np.asarray(m.load_approach, float)[rows]
+        if a is None and b is None:
+            return {}
+        shape = np.shape(b if a is None else a)
+        a = np.zeros(shape) if a is None else np.asarray(a, float)
+        b = np.zeros(shape) if b is None else np.asarray(b, float)
+        return {"approach": np.stack([np.atleast_2d(a), np.atleast_2d(b)], axis=-1)}
+
     @property
     def n_residuals(self) -> int:
         """Number of residuals with a non-zero weight."""
@@ -143,7 +168,7 @@ class Problem:
         """Weighted residuals (and Jacobian blocks) at theta (p,) and poses (k, 6)."""
         out = []
         for g in self.groups:
-            pred = self.model.predict(poses[g.idx], theta, g.channels, self._times(g.idx))
+            pred = self.model.predict(poses[g.idx], theta, g.channels, self._times(g.idx), **self._approach(g.idx))
             val = np.concatenate([pred[c].value for c in g.channels], 1)
             r = g.weight * (val - g.reading)
             if derivatives:
@@ -152,7 +177,7 @@ class Problem:
             else:
                 J = G = None
             out.append((g, r, J, G))
-        pred0 = self.model.predict(theta[None, :6], theta, self.ref_channels, np.zeros(1))
+        pred0 = self.model.predict(theta[None, :6], theta, self.ref_channels, np.zeros(1), **self._approach(None))
         val0 = np.concatenate([pred0[c].value[0] for c in self.ref_channels])
         r0 = self.ref_weight * (val0 - self.ref_reading)
         g0 = None
@@ -178,7 +203,8 @@ class Problem:
             if not sel.size:
                 continue
             pos = np.searchsorted(g.idx, rows[sel])
-            pred = self.model.predict(poses[sel], theta, g.channels, self._times(rows[sel]))
+            pred = self.model.predict(poses[sel], theta, g.channels, self._times(rows[sel]),
+                                      **self._approach(rows[sel]))
             w = g.weight[pos]
             r = w * (np.concatenate([pred[c].value for c in g.channels], 1) - g.reading[pos])
             J = w[..., None] * np.concatenate([pred[c].d_pose for c in g.channels], 1)
