@@ -221,7 +221,7 @@ def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(r
     following the recommendation does not move zeta_0 farther from the authors' zeta_0_real than the plain
     solve (`cdpr solve RUN`, 8.65 mm parsed, 9.97 mm raw log). Measured with the noise of window means
     (parsed and raw log alike): nothing recommended; the tensions read ~10 % above the model, which only
-    implausible effects take (a 10-12 % heavier platform, gains of 6-19 %), and the devices' fitted constant
+    implausible effects take (a 10-12 % heavier platform, gains up to 19-24 %), and the devices' fitted constant
     errors leave their datasheet bounds (the rigid model pushes its misfit there)."""
     from acquisition.runlog import read_run
     from calib.selfcal import solve
@@ -238,7 +238,7 @@ def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(r
     assert followed <= plain + 1e-9
     # the verdict names what only an implausibly large effect would explain
     assert not by["mass_scale"].plausible and by["mass_scale"].params["s"] > 0.05
-    assert not by["tension_gain"].plausible and min(by["tension_gain"].params.values()) > 0.03
+    assert not by["tension_gain"].plausible and max(by["tension_gain"].params.values()) > 0.05
     assert not diag.selected or "implausibly large" in diag.verdict
     assert "reference pose" in [r["label"] for r in diag.rows]
     # issue 17's cable effects (measured, parsed / raw log): the cells read ~10 N above the model whichever

@@ -196,6 +196,9 @@ def test_every_shipped_example_loads_and_nominal_changes_nothing(tmp_path):
             assert len(cfg.faults) == 1 and cfg.faults[0].kind == name[6:]
         elif name in ("noisy_sensors", "realistic_noise"):  # the sensors' noise and a sway, no hidden effect
             assert cfg.effects.active() == [] and cfg.sensors != SensorNoise() and cfg.sway.amplitude > 0
+        elif name.startswith("rigid"):  # no effect at all: cables as stiff as the rigid model's (issue 17)
+            assert cfg.effects.active() == [] and cfg.physics_params().ea >= 1e12
+            assert (cfg.sway is not None) == (name == "rigid_sway")
         elif name != "nominal":
             assert cfg.effects.active() == [name]
     nominal = load_sim_config(example_path("nominal"))
