@@ -102,7 +102,7 @@ def noisy_seeds(seeds: int, grid: int) -> bool:
                 print(f"seed {seed}: startup exit {code}")
                 continue
             sol = json.loads((out / "solution.json").read_text())
-            z = json.loads(truth.read_text())["initial_pose"]
+            z = json.loads(truth.read_text())["window_mean_pose"]
             ws = sol["window_search"]
             err = 1e3 * float(np.linalg.norm(np.subtract(sol["initial_pose"][:3], z[:3])))
             matched = sorted(w["setpoint"] for w in ws["found"] if w["used"])
