@@ -155,8 +155,12 @@ def test_the_hint_for_a_run_with_one_window_is_honest(sim_run, tmp_path, capsys)
     run = tmp_path / "one"
     run.mkdir()
     shutil.copy(sim_run / "run.yaml", run)
+    from acquisition.runlog import read_run
+    from calib.selfcal import solve
+
+    first = solve(read_run(sim_run).robot, read_run(sim_run)).windows[0]
     lines = (sim_run / "samples.csv").read_text().splitlines()
-    (run / "samples.csv").write_text("\n".join(lines[:150]) + "\n")  # the first hold only
+    (run / "samples.csv").write_text("\n".join(lines[:first.last + 6]) + "\n")  # the first hold only
     assert main(["solve", str(run)]) == 1
     err = _one_sentence(capsys.readouterr().err)
     assert "1 equilibrium window(s) found" in err and "nothing can be solved" in err and "try" not in err
