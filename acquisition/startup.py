@@ -38,10 +38,10 @@ from calib.design import (
     TimeModel,
     WindowMean,
     candidates,
+    loop_noise,
     optimal_plan,
     select_a_optimal,
     sequential_acquisition,
-    window_mean_noise,
 )
 from calib.robot import Robot
 
@@ -134,7 +134,7 @@ class Plan:
         """The grid plan, the A-optimal plan of ``poses`` poses (``plan='optimal'``) or a sequential plan
         that stops at ``tolerance`` m (``plan='sequential'``, at most ``poses`` poses); candidates every
         ``step`` m of the static workspace, ``noise`` the window-mean sigma (default
-        :func:`calib.design.window_mean_noise`), ``time_model`` the robot time the sequential choice weighs
+        :func:`calib.design.loop_noise`), ``time_model`` the robot time the sequential choice weighs
         (default :class:`calib.design.TimeModel`). Raises ``calib.planning.PlanningError``."""
         from calib.planning import PlanningError, kinematic_path, plan_poses
 
@@ -149,7 +149,7 @@ class Plan:
         if plan == "grid":
             g = plan_poses(robot, grid)
             return cls(g.setpoints, g.poses, g.tau0)
-        noise = noise or window_mean_noise(robot)
+        noise = noise or loop_noise(robot)
         cands = candidates(robot, noise, step)
         if plan == "optimal":
             o = optimal_plan(robot, poses, noise, cands=cands)
@@ -179,6 +179,20 @@ class StartupResult:
     # sequential plan: per window the position 1-sigma (m) and estimate, and why it stopped ("tolerance" or
     # "exhausted"); None for a fixed plan
     sequential: dict[str, Any] | None = None
+
+
+def held_noise(robot: Robot, windows: list[list[tuple]]) -> dict[str, np.ndarray]:
+    """Sigma of a window mean per channel (:func:`calib.selfcal.window_mean_noise`) from the rows logged in
+    the held windows so far (each a list of :meth:`StartupRoutine._row` tuples)."""
+    from calib.selfcal import Window, window_mean_noise
+
+    rows = [r for w in windows for r in w]
+    sig = {"tau": np.array([r[1] for r in rows]), "dl": np.array([r[3] for r in rows]),
+           "dsigma": np.array([r[4] for r in rows]), "roll": np.array([r[5] for r in rows]),
+           "pitch": np.array([r[6] for r in rows]), "dyaw": np.array([r[7] for r in rows])}
+    bounds = np.cumsum([0] + [len(w) for w in windows])
+    wins = [Window(int(a), int(b) - 1) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+    return window_mean_noise(robot, sig, wins).sigma
 
 
 class StartupRoutine:
@@ -223,6 +237,7 @@ class StartupRoutine:
         self._detector: EquilibriumDetector | None = None
         self._held: list | None = None  # the rows logged in the window being held
         self._means: list[WindowMean] = []  # the mean readings of each held window (tau0's first)
+        self._held_rows: list[list[tuple]] = []  # the logged rows of each held window (sequential plan)
         self._sequential: dict[str, Any] | None = None
 
     # ---- the loop -------------------------------------------------------------------------------------
@@ -313,8 +328,12 @@ class StartupRoutine:
         for _ in range(steps):
             self._tick(tau)
         rows, self._held = self._held, None
+        noise = None
+        if self.plan.sequential is not None:  # the run's own window-mean noise, for the online solve
+            self._held_rows.append(rows)
+            noise = held_noise(self.robot, self._held_rows)
         self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
-                                      np.mean([r[5:8] for r in rows], axis=0)))
+                                      np.mean([r[5:8] for r in rows], axis=0), noise))
         last = self.writer.count - 1
         self.writer.sync()
         return first, last
