@@ -38,7 +38,7 @@ def one(plan: str, seed: int, tolerance: float | None, step: float) -> dict:
     return {"plan": plan, "seed": seed, "tolerance": tolerance,
             "error_m": float(np.linalg.norm(sol.initial_pose[:3] - truth[:3])),
             "sigma_m": float(np.sqrt(max(np.trace(sol.covariance[:3, :3]), 0.0))),
-            "robot_time_s": float(out["timing"]["acquisition_s"]), "poses": len(out["setpoints"]),
+            "robot_time_s": float(out["timing"]["acquisition_s"]), "poses": int(out["setpoints"]),
             "online_sigma_m": [w["position_sigma_m"] for w in seq.get("windows", [])]}
 
 
