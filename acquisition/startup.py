@@ -181,17 +181,26 @@ class StartupResult:
     sequential: dict[str, Any] | None = None
 
 
-def held_noise(robot: Robot, windows: list[list[tuple]]) -> dict[str, np.ndarray]:
-    """Sigma of a window mean per channel (:func:`calib.selfcal.window_mean_noise`) from the rows logged in
-    the held windows so far (each a list of :meth:`StartupRoutine._row` tuples)."""
-    from calib.selfcal import Window, window_mean_noise
+MIN_NOISE_WINDOWS = 3  # windows (home + 2 poses) before the run's own noise estimate replaces the plan's
 
-    rows = [r for w in windows for r in w]
-    sig = {"tau": np.array([r[1] for r in rows]), "dl": np.array([r[3] for r in rows]),
+
+def detected_noise(robot: Robot, rows: list[tuple], setpoints: np.ndarray,
+                   min_windows: int = MIN_NOISE_WINDOWS) -> dict[str, np.ndarray] | None:
+    """Sigma of a window mean per channel (:func:`calib.selfcal.window_mean_noise`) from the equilibrium
+    windows the solve's window search finds in the rows logged so far (each a :meth:`StartupRoutine._row`
+    tuple; ``setpoints`` (k, n) N: tau0 and the setpoints visited): the windows ``cdpr solve --noise
+    estimate`` will use at the end, not only the 2 s held right after settling. None while fewer than
+    ``min_windows`` still windows are found (a few windows give a poor AR(1) estimate)."""
+    from calib.selfcal import search_windows, window_mean_noise
+
+    sig = {"t": np.array([r[0] for r in rows]), "tau": np.array([r[1] for r in rows]),
+           "tau_ref": np.array([r[2] for r in rows]), "dl": np.array([r[3] for r in rows]),
            "dsigma": np.array([r[4] for r in rows]), "roll": np.array([r[5] for r in rows]),
            "pitch": np.array([r[6] for r in rows]), "dyaw": np.array([r[7] for r in rows])}
-    bounds = np.cumsum([0] + [len(w) for w in windows])
-    wins = [Window(int(a), int(b) - 1) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+    wins = search_windows(robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
+                          sig["tau_ref"], setpoints).used
+    if sum(not w.quasi for w in wins) < min_windows:
+        return None
     return window_mean_noise(robot, sig, wins).sigma
 
 
@@ -237,7 +246,7 @@ class StartupRoutine:
         self._detector: EquilibriumDetector | None = None
         self._held: list | None = None  # the rows logged in the window being held
         self._means: list[WindowMean] = []  # the mean readings of each held window (tau0's first)
-        self._held_rows: list[list[tuple]] = []  # the logged rows of each held window (sequential plan)
+        self._log_rows: list[tuple] = []  # the rows logged so far (sequential plan: its own noise estimate)
         self._sequential: dict[str, Any] | None = None
 
     # ---- the loop -------------------------------------------------------------------------------------
@@ -297,6 +306,8 @@ class StartupRoutine:
         t, tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, sync = row
         t0 = self._t_run0 or 0.0
         self.writer.append(round(t - t0, 9), tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, tick=sync)
+        if self.plan.sequential is not None:
+            self._log_rows.append((round(t - t0, 9), *row[1:]))
         self._ticks.append(sync)
 
     def _follow(self, traj: TensionTrajectory, phase: str, setpoint: int = -1) -> None:
@@ -330,8 +341,7 @@ class StartupRoutine:
         rows, self._held = self._held, None
         noise = None
         if self.plan.sequential is not None:  # the run's own window-mean noise, for the online solve
-            self._held_rows.append(rows)
-            noise = held_noise(self.robot, self._held_rows)
+            noise = detected_noise(self.robot, self._log_rows, np.vstack([self.plan.tau0, self.plan.setpoints]))
         self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
                                       np.mean([r[5:8] for r in rows], axis=0), noise))
         last = self.writer.count - 1

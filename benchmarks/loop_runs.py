@@ -39,7 +39,8 @@ def one(plan: str, seed: int, tolerance: float | None, step: float) -> dict:
             "error_m": float(np.linalg.norm(sol.initial_pose[:3] - truth[:3])),
             "sigma_m": float(np.sqrt(max(np.trace(sol.covariance[:3, :3]), 0.0))),
             "robot_time_s": float(out["timing"]["acquisition_s"]), "poses": int(out["setpoints"]),
-            "online_sigma_m": [w["position_sigma_m"] for w in seq.get("windows", [])]}
+            "online_sigma_m": [w["position_sigma_m"] for w in seq.get("windows", [])], "stop": seq.get("stop"),
+            "noise": sol.noise}  # the run's window-mean sigmas per channel (calib.design.LOOP_NOISE's source)
 
 
 def _key(plan: str, seed: int, tolerance: float | None) -> str:
@@ -51,7 +52,11 @@ def runs(plan: str, seeds: int, tolerance: float | None = None, step: float = 0.
     """The results of ``seeds`` startups of ``plan`` (seeds 0..seeds-1), from the cache where it has them."""
     folder = Path(cache or os.path.join(tempfile.gettempdir(), "cdpr-bench-loop"))
     folder.mkdir(parents=True, exist_ok=True)
-    todo = [s for s in range(seeds) if not (folder / f"{_key(plan, s, tolerance)}.json").is_file()]
+    def cached(s: int) -> bool:  # results from before the noise was recorded are run again
+        f = folder / f"{_key(plan, s, tolerance)}.json"
+        return f.is_file() and "noise" in json.loads(f.read_text())
+
+    todo = [s for s in range(seeds) if not cached(s)]
     with ProcessPoolExecutor(max_workers=max(1, workers)) as pool:
         for res in pool.map(one, [plan] * len(todo), todo, [tolerance] * len(todo), [step] * len(todo)):
             (folder / f"{_key(plan, res['seed'], tolerance)}.json").write_text(json.dumps(res))
