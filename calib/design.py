@@ -262,19 +262,33 @@ def optimal_plan(robot: Robot, k: int, noise: dict[str, np.ndarray], step: float
 
 @dataclass
 class SequentialDesign:
-    """The next pose of a sequential startup: among the reachable candidates not yet visited, the one with
-    the largest expected information gain per second of robot time from the current setpoint.
+    """The next pose of a sequential startup, among the reachable candidates not yet visited.
 
-    The gain of a candidate is the increase of the position precision 1/sigma^2 (1/m^2) it brings, sigma the
-    predicted position sigma of the rows acquired so far with and without it (before any row, the precision
-    is zero); the cost is the transition from where the platform is plus settling and holding. (On the
-    IRMA4U this reaches a tolerance with fewer poses than the gain log(sigma_now / sigma_with_it).)
+    Without a tolerance: the one with the largest expected information gain per second of robot time from
+    the current setpoint. The gain of a candidate is the increase of the position precision 1/sigma^2
+    (1/m^2) it brings, sigma the predicted position sigma of the rows acquired so far with and without it
+    (before any row, the precision is zero); the cost is the transition from where the platform is plus
+    settling and holding. (On the IRMA4U this reaches a tolerance with fewer poses than the gain
+    log(sigma_now / sigma_with_it).)
+
+    With a ``tolerance`` (m, set by :func:`sequential_acquisition`): the first pose of the quickest way to
+    the tolerance and back to tau0 the design can foresee. For each of the ``lookahead`` candidates of best
+    gain per second (and every candidate that reaches the tolerance alone) it rolls out the gain-per-second
+    choice until the predicted position sigma is below the tolerance (at most ``horizon`` poses, at least
+    ``min_poses`` in all), adds the return to tau0, and takes the candidate whose roll-out ends first; the
+    plain gain-per-second choice when no roll-out reaches the tolerance. The noise the rows are weighed
+    with is the current one (:meth:`reweigh`), so the plan is replanned after every window.
+
     ``update`` replaces the accumulated information with that of the current solution (its poses and
     zeta_0), so the choice follows what was actually measured.
     """
 
     cands: CandidateSet
     time_model: TimeModel
+    tolerance: float | None = None
+    min_poses: int = 2
+    lookahead: int = 24
+    horizon: int = 6
     visited: np.ndarray = field(init=False)
     total: np.ndarray = field(init=False)
 
@@ -294,18 +308,50 @@ class SequentialDesign:
         if not self.visited.any():
             self.total = info0
 
+    def _rates(self, total: np.ndarray, current: np.ndarray,
+               free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gain of precision per second from tensions ``current``, sigma after each candidate, cost (s)."""
+        now = float(position_sigma(total))
+        after = position_sigma(total[None] + self.cands.info)
+        gain = 1.0 / after**2 - (1.0 / now**2 if np.isfinite(now) else 0.0)
+        tm = self.time_model
+        cost = tm.transition(current[None], self.cands.setpoints) + tm.settle + tm.hold
+        return np.where(free, gain / cost, -np.inf), after, cost
+
+    def _finish(self, c: int, total: np.ndarray, free: np.ndarray, done: int) -> float:
+        """Robot time (s) from after candidate ``c``'s window to the tolerance and back to tau0 by the
+        gain-per-second roll-out (``total`` includes c, ``done`` windows so far); inf if not foreseen."""
+        tm, sp, tau0 = self.time_model, self.cands.setpoints, self.cands.tau0
+        t, cur, free = 0.0, c, free.copy()
+        for _ in range(self.horizon + 1):
+            if done >= self.min_poses and float(position_sigma(total)) < self.tolerance:
+                return t + float(tm.transition(sp[cur], tau0))
+            if done >= self.horizon or not free.any():
+                break
+            rate, _, cost = self._rates(total, sp[cur], free)
+            j = int(np.argmax(rate))
+            t, cur, done, total = t + float(cost[j]), j, done + 1, total + self.cands.info[j]
+            free[j] = False
+        return math.inf
+
     def next(self, current: np.ndarray) -> int | None:
         """Index of the next candidate from tensions ``current`` (n,) N, or None when all are visited."""
         free = ~self.visited
         if not free.any():
             return None
-        now = float(position_sigma(self.total))
-        after = position_sigma(self.total[None] + self.cands.info)
-        gain = 1.0 / after**2 - (1.0 / now**2 if np.isfinite(now) else 0.0)
-        cost = self.time_model.transition(current[None], self.cands.setpoints) + self.time_model.settle + \
-            self.time_model.hold
-        rate = np.where(free, gain / cost, -np.inf)
+        rate, after, cost = self._rates(self.total, current, free)
         j = int(np.argmax(rate))
+        if self.tolerance is not None:
+            done = int(self.visited.sum()) + 1
+            alone = np.flatnonzero(free & (after < self.tolerance)) if done >= self.min_poses else np.array([], int)
+            order = np.argsort(-rate)[: min(self.lookahead, int(free.sum()))]
+            best = math.inf
+            for c in dict.fromkeys([*order.tolist(), *alone.tolist()]):
+                f = free.copy()
+                f[c] = False
+                t = float(cost[c]) + self._finish(c, self.total + self.cands.info[c], f, done)
+                if t < best:
+                    best, j = t, int(c)
         self.visited[j] = True
         return j
 
@@ -378,6 +424,7 @@ def sequential_acquisition(design: SequentialDesign, online: OnlineSolve, tolera
     position 1-sigma is below ``tolerance`` m (after at least ``min_poses`` windows: the run's solve needs
     two). Its return value (``StopIteration.value``) is why it stopped: 'tolerance' or 'exhausted'."""
     current = design.cands.tau0
+    design.tolerance, design.min_poses = tolerance, min_poses
     if online.ref.noise is not None:  # the home window's own noise weighs the first choice
         online.noise = {c: np.asarray(v, float) for c, v in online.ref.noise.items()}
         design.reweigh(online.robot, online.noise, online.theta[:6])
