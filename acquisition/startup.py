@@ -482,7 +482,8 @@ class StartupRoutine:
             yield from enumerate(self.plan.setpoints)
             return
         cands = seq.design.cands
-        online = OnlineSolve(self.robot, seq.noise, self._means[0], cands.home_pose)
+        # the run's solve takes the first pose's window as the reference (the rest under tau0 is left out)
+        online = OnlineSolve(self.robot, seq.noise, self._means[0], cands.home_pose, first_is_reference=True)
         history: list = []
         steps = sequential_acquisition(seq.design, online, seq.tolerance, seq.max_poses, history)
         why, c = "exhausted", next(steps, None)
@@ -500,7 +501,8 @@ class StartupRoutine:
                 p, mm = est.theta[:3], 1000 * est.position_sigma
                 self.progress.note = f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
         self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "windows": [
-            {"pose": i, "position_sigma_m": e.position_sigma, "initial_pose": e.theta[:6].tolist(),
+            {"pose": i, "position_sigma_m": e.position_sigma if math.isfinite(e.position_sigma) else None,
+             "initial_pose": e.theta[:6].tolist(),
              "iterations": e.iterations} for i, (_, e) in enumerate(history)]}
         self.writer.update_meta(sequential=self._sequential)
 

@@ -40,6 +40,7 @@ def one(plan: str, seed: int, tolerance: float | None, step: float) -> dict:
             "sigma_m": float(np.sqrt(max(np.trace(sol.covariance[:3, :3]), 0.0))),
             "robot_time_s": float(out["timing"]["acquisition_s"]), "poses": int(out["setpoints"]),
             "online_sigma_m": [w["position_sigma_m"] for w in seq.get("windows", [])], "stop": seq.get("stop"),
+            "message": out.get("message"),
             "noise": sol.noise}  # the run's window-mean sigmas per channel (calib.design.LOOP_NOISE's source)
 
 

@@ -372,23 +372,29 @@ class WindowMean:
 
 @dataclass(frozen=True)
 class OnlineEstimate:
-    """The solve after a window: theta, row poses (k, 6), theta covariance, position sigma (m), iterations."""
+    """The solve after a window: theta, row poses (k, 6), theta covariance (None before the first solve),
+    position sigma (m, inf before the first solve), iterations."""
 
     theta: np.ndarray
     poses: np.ndarray
-    covariance: np.ndarray
+    covariance: np.ndarray | None
     position_sigma: float
     iterations: int
 
 
 class OnlineSolve:
     """The tau-l-sigma-epsilon solve of the windows acquired so far, warm-started from the previous solution
-    (a few LM iterations per window); the first window, under tau0, is the reference (zeta_0)."""
+    (a few LM iterations per window); the window under tau0 (``reference``) is the reference (zeta_0), or,
+    with ``first_is_reference``, the first pose's window, as the solve of the run does (its window search
+    leaves the rest under tau0 before the sequence out): that window gives no estimate yet (its
+    ``covariance`` is None, its 1-sigma inf) and zeta_0 is then the pose there."""
 
-    def __init__(self, robot: Robot, noise: dict[str, np.ndarray], reference: WindowMean, zeta0_guess: np.ndarray):
+    def __init__(self, robot: Robot, noise: dict[str, np.ndarray], reference: WindowMean, zeta0_guess: np.ndarray,
+                 first_is_reference: bool = False):
         self.robot = robot
         self.noise = noise
         self.ref = reference
+        self.first_is_reference = first_is_reference
         self.rows: list[WindowMean] = []
         self.model = planning_model(robot)
         self.theta = self.model.initial_params(np.asarray(zeta0_guess, float))
@@ -398,9 +404,13 @@ class OnlineSolve:
         """Add a window (its pose guessed at ``pose_guess``, e.g. the planned ideal pose) and solve again."""
         from calib.selfcal import solve
 
-        self.rows.append(window)
         if window.noise is not None:
             self.noise = {c: np.asarray(v, float) for c, v in window.noise.items()}
+        if self.first_is_reference:
+            self.first_is_reference, self.ref = False, window
+            self.theta = self.model.initial_params(np.asarray(pose_guess, float))
+            return OnlineEstimate(self.theta, self.poses, None, math.inf, 0)
+        self.rows.append(window)
         ref = self.ref
         ori = np.array([w.orientation for w in self.rows])
         ori[:, 2] -= ref.orientation[2]
@@ -434,7 +444,8 @@ def sequential_acquisition(design: SequentialDesign, online: OnlineSolve, tolera
             break
         window = yield c
         est = online.add(window, design.cands.poses[c])
-        design.update(est)
+        if est.covariance is not None:
+            design.update(est)
         if window.noise is not None:
             design.reweigh(online.robot, online.noise, est.theta[:6])
         history.append((c, est))

@@ -413,7 +413,7 @@ def sequential_outcome(seq: dict | None) -> str:
     if not seq:
         return ""
     w, tol = seq["windows"], 1000 * seq["tolerance_m"]
-    sigma = 1000 * w[-1]["position_sigma_m"] if w else float("inf")
+    sigma = 1000 * w[-1]["position_sigma_m"] if w and w[-1]["position_sigma_m"] is not None else float("inf")
     if seq["stop"] == "tolerance":
         return (f"sequential: 1-sigma of the initial position {sigma:.2f} mm < tolerance {tol:g} mm after "
                 f"{len(w)} poses.")
