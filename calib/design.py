@@ -276,7 +276,9 @@ class SequentialDesign:
     gain per second (and every candidate that reaches the tolerance alone) it rolls out the gain-per-second
     choice until the predicted position sigma is below the tolerance (at most ``horizon`` poses, at least
     ``min_poses`` in all), adds the return to tau0, and takes the candidate whose roll-out ends first; the
-    plain gain-per-second choice when no roll-out reaches the tolerance. The noise the rows are weighed
+    plain gain-per-second choice when no roll-out reaches the tolerance. With ``reference_first`` (the
+    first pose's window is the solve's reference, :class:`OnlineSolve`) the first pose adds no row: its
+    roll-outs start from the reference's information alone. The noise the rows are weighed
     with is the current one (:meth:`reweigh`), so the plan is replanned after every window.
 
     ``update`` replaces the accumulated information with that of the current solution (its poses and
@@ -289,6 +291,7 @@ class SequentialDesign:
     min_poses: int = 2
     lookahead: int = 24
     horizon: int = 6
+    reference_first: bool = False  # the first pose's window is the reference: it adds no row (OnlineSolve)
     visited: np.ndarray = field(init=False)
     total: np.ndarray = field(init=False)
 
@@ -346,10 +349,11 @@ class SequentialDesign:
             alone = np.flatnonzero(free & (after < self.tolerance)) if done >= self.min_poses else np.array([], int)
             order = np.argsort(-rate)[: min(self.lookahead, int(free.sum()))]
             best = math.inf
+            ref = self.reference_first and not self.visited.any()  # c would be the reference, not a row
             for c in dict.fromkeys([*order.tolist(), *alone.tolist()]):
                 f = free.copy()
                 f[c] = False
-                t = float(cost[c]) + self._finish(c, self.total + self.cands.info[c], f, done)
+                t = float(cost[c]) + self._finish(c, self.total + (0.0 if ref else self.cands.info[c]), f, done)
                 if t < best:
                     best, j = t, int(c)
         self.visited[j] = True
@@ -435,6 +439,7 @@ def sequential_acquisition(design: SequentialDesign, online: OnlineSolve, tolera
     two). Its return value (``StopIteration.value``) is why it stopped: 'tolerance' or 'exhausted'."""
     current = design.cands.tau0
     design.tolerance, design.min_poses = tolerance, min_poses
+    design.reference_first = online.first_is_reference
     if online.ref.noise is not None:  # the home window's own noise weighs the first choice
         online.noise = {c: np.asarray(v, float) for c, v in online.ref.noise.items()}
         design.reweigh(online.robot, online.noise, online.theta[:6])
