@@ -499,7 +499,8 @@ class StartupRoutine:
             est = history[-1][1]
             if self.progress is not None:
                 p, mm = est.theta[:3], 1000 * est.position_sigma
-                self.progress.note = f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
+                self.progress.note = (f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
+                                      if math.isfinite(mm) else "reference window")
         self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "windows": [
             {"pose": i, "position_sigma_m": e.position_sigma if math.isfinite(e.position_sigma) else None,
              "initial_pose": e.theta[:6].tolist(),
