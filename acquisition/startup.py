@@ -184,13 +184,14 @@ class StartupResult:
 MIN_NOISE_WINDOWS = 3  # windows (home + 2 poses) before the run's own noise estimate replaces the plan's
 
 
-def detected_noise(robot: Robot, rows: list[tuple], setpoints: np.ndarray,
-                   min_windows: int = MIN_NOISE_WINDOWS) -> dict[str, np.ndarray] | None:
-    """Sigma of a window mean per channel (:func:`calib.selfcal.window_mean_noise`) from the equilibrium
-    windows the solve's window search finds in the rows logged so far (each a :meth:`StartupRoutine._row`
-    tuple; ``setpoints`` (k, n) N: tau0 and the setpoints visited): the windows ``cdpr solve --noise
-    estimate`` will use at the end, not only the 2 s held right after settling. None while fewer than
-    ``min_windows`` still windows are found (a few windows give a poor AR(1) estimate)."""
+def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray,
+                     min_windows: int = MIN_NOISE_WINDOWS) -> tuple[dict[str, np.ndarray] | None, dict[int, tuple]]:
+    """The equilibrium windows the solve's window search finds in the rows logged so far (each a
+    :meth:`StartupRoutine._row` tuple; ``setpoints`` (k, n) N: tau0 and the setpoints visited), which
+    ``cdpr solve`` will use at the end: the sigma of a window mean per channel from them
+    (:func:`calib.selfcal.window_mean_noise`; None while fewer than ``min_windows`` still windows are found, a
+    few windows give a poor AR(1) estimate) and, per setpoint index found, the window's mean readings
+    (tau, dl, dsigma, roll/pitch/yaw)."""
     from calib.selfcal import search_windows, window_mean_noise
 
     sig = {"t": np.array([r[0] for r in rows]), "tau": np.array([r[1] for r in rows]),
@@ -199,9 +200,12 @@ def detected_noise(robot: Robot, rows: list[tuple], setpoints: np.ndarray,
            "pitch": np.array([r[6] for r in rows]), "dyaw": np.array([r[7] for r in rows])}
     wins = search_windows(robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
                           sig["tau_ref"], setpoints).used
+    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
+    means = {w.setpoint: (sig["tau"][w.slice].mean(0), sig["dl"][w.slice].mean(0), sig["dsigma"][w.slice].mean(0),
+                          ori[w.slice].mean(0)) for w in wins if w.setpoint >= 0}
     if sum(not w.quasi for w in wins) < min_windows:
-        return None
-    return window_mean_noise(robot, sig, wins).sigma
+        return None, means
+    return window_mean_noise(robot, sig, wins).sigma, means
 
 
 class StartupRoutine:
@@ -339,11 +343,15 @@ class StartupRoutine:
         for _ in range(steps):
             self._tick(tau)
         rows, self._held = self._held, None
-        noise = None
-        if self.plan.sequential is not None:  # the run's own window-mean noise, for the online solve
-            noise = detected_noise(self.robot, self._log_rows, np.vstack([self.plan.tau0, self.plan.setpoints]))
+        noise, found = None, {}
+        if self.plan.sequential is not None:  # the run's own noise and windows, for the online solve
+            noise, found = detected_windows(self.robot, self._log_rows,
+                                            np.vstack([self.plan.tau0, self.plan.setpoints]))
         self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
                                       np.mean([r[5:8] for r in rows], axis=0), noise))
+        for k, m in found.items():  # the poses' windows as the final solve will see them (index 0: tau0)
+            if 1 <= k < len(self._means):
+                self._means[k] = WindowMean(*m, self._means[k].noise)
         last = self.writer.count - 1
         self.writer.sync()
         return first, last
@@ -492,6 +500,7 @@ class StartupRoutine:
             self.plan.ideal_poses = np.vstack([self.plan.ideal_poses, cands.poses[c]])
             self.writer.update_procedure(self.plan.setpoints, self.plan.ideal_poses)
             yield len(history), cands.setpoints[c]
+            online.refresh(self._means[1:-1])  # the earlier poses' windows, as found so far
             try:
                 c = steps.send(self._means[-1])
             except StopIteration as stop:

@@ -404,6 +404,13 @@ class OnlineSolve:
         self.theta = self.model.initial_params(np.asarray(zeta0_guess, float))
         self.poses = np.zeros((0, 6))
 
+    def refresh(self, windows: list[WindowMean]) -> None:
+        """Replace the reference and the rows added so far (in order) with ``windows``, e.g. the equilibrium
+        windows the run's window search finds now; ignored before the reference or on a count mismatch."""
+        if self.first_is_reference or len(windows) != len(self.rows) + 1:
+            return
+        self.ref, self.rows = windows[0], list(windows[1:])
+
     def add(self, window: WindowMean, pose_guess: np.ndarray) -> OnlineEstimate:
         """Add a window (its pose guessed at ``pose_guess``, e.g. the planned ideal pose) and solve again."""
         from calib.selfcal import solve
