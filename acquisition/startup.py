@@ -38,10 +38,10 @@ from calib.design import (
     TimeModel,
     WindowMean,
     candidates,
+    loop_noise,
     optimal_plan,
     select_a_optimal,
     sequential_acquisition,
-    window_mean_noise,
 )
 from calib.robot import Robot
 
@@ -134,7 +134,7 @@ class Plan:
         """The grid plan, the A-optimal plan of ``poses`` poses (``plan='optimal'``) or a sequential plan
         that stops at ``tolerance`` m (``plan='sequential'``, at most ``poses`` poses); candidates every
         ``step`` m of the static workspace, ``noise`` the window-mean sigma (default
-        :func:`calib.design.window_mean_noise`), ``time_model`` the robot time the sequential choice weighs
+        :func:`calib.design.loop_noise`), ``time_model`` the robot time the sequential choice weighs
         (default :class:`calib.design.TimeModel`). Raises ``calib.planning.PlanningError``."""
         from calib.planning import PlanningError, kinematic_path, plan_poses
 
@@ -149,7 +149,7 @@ class Plan:
         if plan == "grid":
             g = plan_poses(robot, grid)
             return cls(g.setpoints, g.poses, g.tau0)
-        noise = noise or window_mean_noise(robot)
+        noise = noise or loop_noise(robot)
         cands = candidates(robot, noise, step)
         if plan == "optimal":
             o = optimal_plan(robot, poses, noise, cands=cands)
@@ -179,6 +179,33 @@ class StartupResult:
     # sequential plan: per window the position 1-sigma (m) and estimate, and why it stopped ("tolerance" or
     # "exhausted"); None for a fixed plan
     sequential: dict[str, Any] | None = None
+
+
+MIN_NOISE_WINDOWS = 3  # windows (home + 2 poses) before the run's own noise estimate replaces the plan's
+
+
+def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray,
+                     min_windows: int = MIN_NOISE_WINDOWS) -> tuple[dict[str, np.ndarray] | None, dict[int, tuple]]:
+    """The equilibrium windows the solve's window search finds in the rows logged so far (each a
+    :meth:`StartupRoutine._row` tuple; ``setpoints`` (k, n) N: tau0 and the setpoints visited), which
+    ``cdpr solve`` will use at the end: the sigma of a window mean per channel from them
+    (:func:`calib.selfcal.window_mean_noise`; None while fewer than ``min_windows`` still windows are found, a
+    few windows give a poor AR(1) estimate) and, per setpoint index found, the window's mean readings
+    (tau, dl, dsigma, roll/pitch/yaw)."""
+    from calib.selfcal import search_windows, window_mean_noise
+
+    sig = {"t": np.array([r[0] for r in rows]), "tau": np.array([r[1] for r in rows]),
+           "tau_ref": np.array([r[2] for r in rows]), "dl": np.array([r[3] for r in rows]),
+           "dsigma": np.array([r[4] for r in rows]), "roll": np.array([r[5] for r in rows]),
+           "pitch": np.array([r[6] for r in rows]), "dyaw": np.array([r[7] for r in rows])}
+    wins = search_windows(robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
+                          sig["tau_ref"], setpoints).used
+    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
+    means = {w.setpoint: (sig["tau"][w.slice].mean(0), sig["dl"][w.slice].mean(0), sig["dsigma"][w.slice].mean(0),
+                          ori[w.slice].mean(0)) for w in wins if w.setpoint >= 0}
+    if sum(not w.quasi for w in wins) < min_windows:
+        return None, means
+    return window_mean_noise(robot, sig, wins).sigma, means
 
 
 class StartupRoutine:
@@ -223,6 +250,7 @@ class StartupRoutine:
         self._detector: EquilibriumDetector | None = None
         self._held: list | None = None  # the rows logged in the window being held
         self._means: list[WindowMean] = []  # the mean readings of each held window (tau0's first)
+        self._log_rows: list[tuple] = []  # the rows logged so far (sequential plan: its own noise estimate)
         self._sequential: dict[str, Any] | None = None
 
     # ---- the loop -------------------------------------------------------------------------------------
@@ -282,6 +310,8 @@ class StartupRoutine:
         t, tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, sync = row
         t0 = self._t_run0 or 0.0
         self.writer.append(round(t - t0, 9), tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, tick=sync)
+        if self.plan.sequential is not None:
+            self._log_rows.append((round(t - t0, 9), *row[1:]))
         self._ticks.append(sync)
 
     def _follow(self, traj: TensionTrajectory, phase: str, setpoint: int = -1) -> None:
@@ -313,8 +343,15 @@ class StartupRoutine:
         for _ in range(steps):
             self._tick(tau)
         rows, self._held = self._held, None
+        noise, found = None, {}
+        if self.plan.sequential is not None:  # the run's own noise and windows, for the online solve
+            noise, found = detected_windows(self.robot, self._log_rows,
+                                            np.vstack([self.plan.tau0, self.plan.setpoints]))
         self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
-                                      np.mean([r[5:8] for r in rows], axis=0)))
+                                      np.mean([r[5:8] for r in rows], axis=0), noise))
+        for k, m in found.items():  # the poses' windows as the final solve will see them (index 0: tau0)
+            if 1 <= k < len(self._means):
+                self._means[k] = WindowMean(*m, self._means[k].noise)
         last = self.writer.count - 1
         self.writer.sync()
         return first, last
@@ -453,7 +490,8 @@ class StartupRoutine:
             yield from enumerate(self.plan.setpoints)
             return
         cands = seq.design.cands
-        online = OnlineSolve(self.robot, seq.noise, self._means[0], cands.home_pose)
+        # the run's solve takes the first pose's window as the reference (the rest under tau0 is left out)
+        online = OnlineSolve(self.robot, seq.noise, self._means[0], cands.home_pose, first_is_reference=True)
         history: list = []
         steps = sequential_acquisition(seq.design, online, seq.tolerance, seq.max_poses, history)
         why, c = "exhausted", next(steps, None)
@@ -462,6 +500,7 @@ class StartupRoutine:
             self.plan.ideal_poses = np.vstack([self.plan.ideal_poses, cands.poses[c]])
             self.writer.update_procedure(self.plan.setpoints, self.plan.ideal_poses)
             yield len(history), cands.setpoints[c]
+            online.refresh(self._means[1:-1])  # the earlier poses' windows, as found so far
             try:
                 c = steps.send(self._means[-1])
             except StopIteration as stop:
@@ -469,9 +508,11 @@ class StartupRoutine:
             est = history[-1][1]
             if self.progress is not None:
                 p, mm = est.theta[:3], 1000 * est.position_sigma
-                self.progress.note = f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
+                self.progress.note = (f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
+                                      if math.isfinite(mm) else "reference window")
         self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "windows": [
-            {"pose": i, "position_sigma_m": e.position_sigma, "initial_pose": e.theta[:6].tolist(),
+            {"pose": i, "position_sigma_m": e.position_sigma if math.isfinite(e.position_sigma) else None,
+             "initial_pose": e.theta[:6].tolist(),
              "iterations": e.iterations} for i, (_, e) in enumerate(history)]}
         self.writer.update_meta(sequential=self._sequential)
 

@@ -5,14 +5,16 @@ by pytest).
 
 For each seed, the 2x2x2 grid and a sequential acquisition with the tolerance TOL the grid reaches: the
 root-mean-square over the seeds of the grid's initial-position error. Both are solved by the same estimator
-(the planning model of calib.design with its window-mean noise) and compared with the simulator's true
-initial pose. Prints both distributions (error and robot time: median, 10th and 90th percentiles).
+(rows: the planning model of calib.design with its loop noise; --loop: cdpr solve --noise estimate) and
+compared with the simulator's true initial pose. Prints both distributions (error and robot time: median,
+10th and 90th percentiles).
 
-Default: window means of sim_backend.equilibrium_rows (the realistic per-sample noise of calib.design,
-load cells 1 N, encoders 0.2 mm, AHRS 0.02 deg, over a 2 s window; the load cells' and AHRS's constant
-errors drawn per seed), the sequential choice and stop rule of calib.design, robot time from its TimeModel.
-``--loop``: full simulated startups (force control, detector, emulated devices; the simulator's own noise),
-robot time of the loop; about 4 s of CPU per startup.
+Default: window means of sim_backend.equilibrium_rows (the loop's window-mean noise, calib.design.LOOP_NOISE;
+the load cells' and AHRS's constant errors drawn per seed), the sequential choice and stop rule of
+calib.design, robot time from its TimeModel.
+``--loop``: full simulated startups (benchmarks/loop_runs.py: force control, detector, emulated devices,
+sim_backend/examples/rigid_sway.yaml), errors of the estimate-noise solve against the pose averaged over
+the reference window, robot time of the loop (from power-on to the return); about 15 s of CPU per startup.
 Target: median robot time of the sequential startup <= 0.5 x the grid's, with an RMS error <= TOL.
 Exit status 1 when missed.
 """
@@ -21,13 +23,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
-from pathlib import Path
 
 import numpy as np
+from loop_runs import runs
 
-from acquisition.cli.startup import simulated_startup
-from acquisition.runlog import read_run
 from calib.design import (
     OnlineSolve,
     SequentialDesign,
@@ -35,9 +34,9 @@ from calib.design import (
     WindowMean,
     candidates,
     drive,
+    loop_noise,
     planning_model,
     sequential_acquisition,
-    window_mean_noise,
 )
 from calib.planning import PosePlan, plan_poses
 from calib.robot import load_robot
@@ -48,16 +47,10 @@ from sim_backend.equilibrium_rows import simulated_rows
 TARGET = 0.5
 
 
-def error(robot, out: dict) -> float:
-    """Initial-position error (m) of the planning estimator on the run against the simulator's truth."""
-    sol = solve(robot, read_run(out["run"]), noise=window_mean_noise(robot), model=planning_model(robot))
-    return float(np.linalg.norm(sol.initial_pose[:3] - np.asarray(out["truth"][:3])))
-
-
 def rows_study(robot, seeds: int, step: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list]:
     """Grid and sequential acquisitions on simulated window means: (TOL, grid errors and times, sequential
     errors and times, sequential pose counts)."""
-    noise, times, model = window_mean_noise(robot), TimeModel(), planning_model(robot)
+    noise, times, model = loop_noise(robot), TimeModel(), planning_model(robot)
     config, grid = load_sim_config(None, robot.n), plan_poses(robot, 2)
     cands = candidates(robot, noise, step)
     every = PosePlan(cands.poses, cands.setpoints, cands.tau0, cands.home_pose, np.full((cands.size, 3), -1), 0.0,
@@ -83,18 +76,19 @@ def rows_study(robot, seeds: int, step: float) -> tuple[float, np.ndarray, np.nd
     return tol, e_grid, t_grid, np.array(e_seq), np.array(t_seq), poses
 
 
-def loop_study(robot, seeds: int, step: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list]:
-    """The same with full simulated startups (``cdpr startup --backend sim``)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        grid = [simulated_startup(Path(tmp) / f"grid-{s}", "grid2", seed=s) for s in range(seeds)]
-        e_grid = np.array([error(robot, o) for o in grid])
-        t_grid = np.array([o["timing"]["acquisition_s"] for o in grid])
-        tol = float(np.sqrt(np.mean(e_grid**2)))
-        seq = [simulated_startup(Path(tmp) / f"seq-{s}", "sequential", tolerance=tol, seed=s, step=step)
-               for s in range(seeds)]
-        e_seq = np.array([error(robot, o) for o in seq])
-        t_seq = np.array([o["timing"]["acquisition_s"] for o in seq])
-    return tol, e_grid, t_grid, e_seq, t_seq, [o["setpoints"] for o in seq]
+def loop_study(robot, seeds: int, step: float, cache: str | None = None,
+               workers: int = 2) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list]:
+    """The same with full simulated startups (``cdpr startup --backend sim``, benchmarks/loop_runs.py: realistic
+    noise, errors of the estimate-noise solve against the pose averaged over the reference window)."""
+    grid = runs("grid2", seeds, cache=cache, workers=workers)
+    e_grid = np.array([r["error_m"] for r in grid])
+    t_grid = np.array([r["robot_time_s"] for r in grid])
+    tol = float(np.sqrt(np.mean(e_grid**2)))
+    tol = float(f"{tol:.6f}")  # the cache key and the command line carry it to the micrometre
+    seq = runs("sequential", seeds, tolerance=tol, step=step, cache=cache, workers=workers)
+    e_seq = np.array([r["error_m"] for r in seq])
+    t_seq = np.array([r["robot_time_s"] for r in seq])
+    return tol, e_grid, t_grid, e_seq, t_seq, [r["poses"] for r in seq]
 
 
 def describe(name: str, err: np.ndarray, t: np.ndarray) -> str:
@@ -109,10 +103,14 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--step", type=float, default=0.1, help="candidate spacing of the sequential plan, m")
     ap.add_argument("--loop", action="store_true", help="full simulated startups instead of window means")
+    ap.add_argument("--cache", help="--loop: folder of the runs' results (reused; shared with bench_plans.py)")
+    ap.add_argument("--workers", type=int, default=2, help="--loop: startups in parallel")
     args = ap.parse_args()
     robot = load_robot("irma4u")
-    study = loop_study if args.loop else rows_study
-    tol, e_grid, t_grid, e_seq, t_seq, poses = study(robot, args.seeds, args.step)
+    if args.loop:
+        tol, e_grid, t_grid, e_seq, t_seq, poses = loop_study(robot, args.seeds, args.step, args.cache, args.workers)
+    else:
+        tol, e_grid, t_grid, e_seq, t_seq, poses = rows_study(robot, args.seeds, args.step)
     print(f"tolerance (RMS error of the grid over {args.seeds} seeds): {1000 * tol:.3f} mm")
     print(describe("grid 2x2x2 (8 poses)", e_grid, t_grid))
     print(describe(f"sequential ({min(poses)}-{max(poses)} poses)", e_seq, t_seq))

@@ -13,9 +13,13 @@ predicted covariance of theta; the position 1-sigma reported everywhere is
 ``sqrt(trace)`` of its position block (m), the root-mean-square length of the position error, which is
 what the A-optimal design minimises.
 
-Noise. The rows are means of equilibrium windows: :func:`window_mean_noise` divides the per-sample sigma of
-each channel by the square root of the samples in a window (the default per-sample sigma, SAMPLE_NOISE, is
-the sensors' scatter in a still window); every function takes the noise as an argument.
+Noise. The rows are means of equilibrium windows; every function takes their sigma as an argument. The plans
+are chosen with the startup loop's (:func:`loop_noise`, :data:`LOOP_NOISE`: measured on the simulated
+prototype with realistic noise); a sequential startup then uses the run's own estimate from the samples of
+its windows so far (:func:`calib.selfcal.window_mean_noise` on the equilibrium windows the final solve
+will use, once there are enough) for its solve, its stop rule and its next choice.
+:func:`window_mean_noise` is the sensors' view: the per-sample sigma (SAMPLE_NOISE) over the square root
+of the samples in a window, as if the platform were still.
 
 Robot time (:class:`TimeModel`): each transition is a rest-to-rest quintic at the tension rate limit
 (15/8 max|delta tau| / rate, at least ``min_transition``), each pose waits ``settle`` s to come to rest and
@@ -24,6 +28,7 @@ holds ``hold`` s; the plan's time is the closed tour from the home tensions tau0
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -45,6 +50,24 @@ SAMPLE_NOISE = {
     "length": 2e-4,
     "swivel": math.radians(0.03),
     "orientation": np.radians([0.02, 0.02, 0.02]),
+}
+# sigma of one window mean per channel (N, m, rad) the plans are chosen with: the startup loop's, measured on
+# LOOP_RUNS grid startups of the simulated prototype with realistic noise (sim_backend/examples/rigid_sway.yaml,
+# seeds 0..19, benchmarks/loop_runs.py, 2026-11-25): per channel group the median over the runs of the run's
+# own estimate (calib.selfcal.window_mean_noise on the windows the solve uses, as ``cdpr solve --noise
+# estimate``: tensions 0.26 N, lengths 0.19 mm, swivels 0.85 mrad, roll and pitch 0.15 mrad, yaw 0.22 mrad;
+# lengths vary most between runs: 0.07-1.7 mm), times LOOP_SCALE, which makes the grid's predicted 1-sigma
+# equal the RMS error measured on those runs (0.716 mm; the median noise predicts 0.581 mm, the devices'
+# priors do not scale with the noise; that
+# solve's own printed 1-sigma is honest on these runs: RMS 0.753 mm). Printed, and checked within 5 %, by
+# ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
+LOOP_RUNS = 20
+LOOP_SCALE = 1.275
+LOOP_NOISE = {
+    "tension": 0.2608 * LOOP_SCALE,
+    "length": 1.851e-4 * LOOP_SCALE,
+    "swivel": 8.458e-4 * LOOP_SCALE,
+    "orientation": np.array([1.486e-4, 1.486e-4, 2.181e-4]) * LOOP_SCALE,
 }
 
 
@@ -74,6 +97,14 @@ def window_mean_noise(robot: Robot, samples: int = 20, per_sample: dict | None =
     base = SAMPLE_NOISE if per_sample is None else per_sample
     n = robot.n
     return {c: np.broadcast_to(np.asarray(v, float), (3 if c == "orientation" else n,)) / math.sqrt(samples)
+            for c, v in base.items()}
+
+
+def loop_noise(robot: Robot, sigma: dict | None = None) -> dict[str, np.ndarray]:
+    """Sigma of one window mean per channel (N, m, rad) the plans are judged with by default: the startup
+    loop's (:data:`LOOP_NOISE`, measured on the simulated prototype with realistic noise), or ``sigma``."""
+    base = LOOP_NOISE if sigma is None else sigma
+    return {c: np.broadcast_to(np.asarray(v, float), (3 if c == "orientation" else robot.n,)).copy()
             for c, v in base.items()}
 
 
@@ -231,19 +262,36 @@ def optimal_plan(robot: Robot, k: int, noise: dict[str, np.ndarray], step: float
 
 @dataclass
 class SequentialDesign:
-    """The next pose of a sequential startup: among the reachable candidates not yet visited, the one with
-    the largest expected information gain per second of robot time from the current setpoint.
+    """The next pose of a sequential startup, among the reachable candidates not yet visited.
 
-    The gain of a candidate is the increase of the position precision 1/sigma^2 (1/m^2) it brings, sigma the
-    predicted position sigma of the rows acquired so far with and without it (before any row, the precision
-    is zero); the cost is the transition from where the platform is plus settling and holding. (On the
-    IRMA4U this reaches a tolerance with fewer poses than the gain log(sigma_now / sigma_with_it).)
+    Without a tolerance: the one with the largest expected information gain per second of robot time from
+    the current setpoint. The gain of a candidate is the increase of the position precision 1/sigma^2
+    (1/m^2) it brings, sigma the predicted position sigma of the rows acquired so far with and without it
+    (before any row, the precision is zero); the cost is the transition from where the platform is plus
+    settling and holding. (On the IRMA4U this reaches a tolerance with fewer poses than the gain
+    log(sigma_now / sigma_with_it).)
+
+    With a ``tolerance`` (m, set by :func:`sequential_acquisition`): the first pose of the quickest way to
+    the tolerance and back to tau0 the design can foresee. For each of the ``lookahead`` candidates of best
+    gain per second (and every candidate that reaches the tolerance alone) it rolls out the gain-per-second
+    choice until the predicted position sigma is below the tolerance (at most ``horizon`` poses, at least
+    ``min_poses`` in all), adds the return to tau0, and takes the candidate whose roll-out ends first; the
+    plain gain-per-second choice when no roll-out reaches the tolerance. With ``reference_first`` (the
+    first pose's window is the solve's reference, :class:`OnlineSolve`) the first pose adds no row: its
+    roll-outs start from the reference's information alone. The noise the rows are weighed
+    with is the current one (:meth:`reweigh`), so the plan is replanned after every window.
+
     ``update`` replaces the accumulated information with that of the current solution (its poses and
     zeta_0), so the choice follows what was actually measured.
     """
 
     cands: CandidateSet
     time_model: TimeModel
+    tolerance: float | None = None
+    min_poses: int = 2
+    lookahead: int = 24
+    horizon: int = 6
+    reference_first: bool = False  # the first pose's window is the reference: it adds no row (OnlineSolve)
     visited: np.ndarray = field(init=False)
     total: np.ndarray = field(init=False)
 
@@ -255,18 +303,59 @@ class SequentialDesign:
         """Take the information of the solve after the last window (the inverse of its covariance)."""
         self.total = np.linalg.inv(estimate.covariance)
 
+    def reweigh(self, robot: Robot, noise: dict[str, np.ndarray], zeta0: np.ndarray) -> None:
+        """Weigh the candidates with ``noise`` (the run's own window-mean sigmas so far) at the current
+        estimate of zeta_0 from now on (about 0.05 s for 2300 candidates)."""
+        info0, info = information(robot, self.cands.poses, zeta0, noise)
+        self.cands = dataclasses.replace(self.cands, info=info, info0=info0)
+        if not self.visited.any():
+            self.total = info0
+
+    def _rates(self, total: np.ndarray, current: np.ndarray,
+               free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gain of precision per second from tensions ``current``, sigma after each candidate, cost (s)."""
+        now = float(position_sigma(total))
+        after = position_sigma(total[None] + self.cands.info)
+        gain = 1.0 / after**2 - (1.0 / now**2 if np.isfinite(now) else 0.0)
+        tm = self.time_model
+        cost = tm.transition(current[None], self.cands.setpoints) + tm.settle + tm.hold
+        return np.where(free, gain / cost, -np.inf), after, cost
+
+    def _finish(self, c: int, total: np.ndarray, free: np.ndarray, done: int) -> float:
+        """Robot time (s) from after candidate ``c``'s window to the tolerance and back to tau0 by the
+        gain-per-second roll-out (``total`` includes c, ``done`` windows so far); inf if not foreseen."""
+        tm, sp, tau0 = self.time_model, self.cands.setpoints, self.cands.tau0
+        t, cur, free = 0.0, c, free.copy()
+        for _ in range(self.horizon + 1):
+            if done >= self.min_poses and float(position_sigma(total)) < self.tolerance:
+                return t + float(tm.transition(sp[cur], tau0))
+            if done >= self.horizon or not free.any():
+                break
+            rate, _, cost = self._rates(total, sp[cur], free)
+            j = int(np.argmax(rate))
+            t, cur, done, total = t + float(cost[j]), j, done + 1, total + self.cands.info[j]
+            free[j] = False
+        return math.inf
+
     def next(self, current: np.ndarray) -> int | None:
         """Index of the next candidate from tensions ``current`` (n,) N, or None when all are visited."""
         free = ~self.visited
         if not free.any():
             return None
-        now = float(position_sigma(self.total))
-        after = position_sigma(self.total[None] + self.cands.info)
-        gain = 1.0 / after**2 - (1.0 / now**2 if np.isfinite(now) else 0.0)
-        cost = self.time_model.transition(current[None], self.cands.setpoints) + self.time_model.settle + \
-            self.time_model.hold
-        rate = np.where(free, gain / cost, -np.inf)
+        rate, after, cost = self._rates(self.total, current, free)
         j = int(np.argmax(rate))
+        if self.tolerance is not None:
+            done = int(self.visited.sum()) + 1
+            alone = np.flatnonzero(free & (after < self.tolerance)) if done >= self.min_poses else np.array([], int)
+            order = np.argsort(-rate)[: min(self.lookahead, int(free.sum()))]
+            best = math.inf
+            ref = self.reference_first and not self.visited.any()  # c would be the reference, not a row
+            for c in dict.fromkeys([*order.tolist(), *alone.tolist()]):
+                f = free.copy()
+                f[c] = False
+                t = float(cost[c]) + self._finish(c, self.total + (0.0 if ref else self.cands.info[c]), f, done)
+                if t < best:
+                    best, j = t, int(c)
         self.visited[j] = True
         return j
 
@@ -274,42 +363,64 @@ class SequentialDesign:
 @dataclass(frozen=True)
 class WindowMean:
     """Mean readings of one equilibrium window: tensions (n,) N, length and swivel deltas (n,) m and rad,
-    roll, pitch and yaw delta (3,) rad (deltas since the sensors were zeroed)."""
+    roll, pitch and yaw delta (3,) rad (deltas since the sensors were zeroed); ``noise``, when given, the
+    sigma of a window mean per channel estimated from the run's samples so far
+    (:func:`calib.selfcal.window_mean_noise`), which the online solve and the next choice then use."""
 
     tau: np.ndarray
     dl: np.ndarray
     dsigma: np.ndarray
     orientation: np.ndarray
+    noise: dict[str, np.ndarray] | None = None  # the run's window-mean sigmas from its samples so far
 
 
 @dataclass(frozen=True)
 class OnlineEstimate:
-    """The solve after a window: theta, row poses (k, 6), theta covariance, position sigma (m), iterations."""
+    """The solve after a window: theta, row poses (k, 6), theta covariance (None before the first solve),
+    position sigma (m, inf before the first solve), iterations."""
 
     theta: np.ndarray
     poses: np.ndarray
-    covariance: np.ndarray
+    covariance: np.ndarray | None
     position_sigma: float
     iterations: int
 
 
 class OnlineSolve:
     """The tau-l-sigma-epsilon solve of the windows acquired so far, warm-started from the previous solution
-    (a few LM iterations per window); the first window, under tau0, is the reference (zeta_0)."""
+    (a few LM iterations per window); the window under tau0 (``reference``) is the reference (zeta_0), or,
+    with ``first_is_reference``, the first pose's window, as the solve of the run does (its window search
+    leaves the rest under tau0 before the sequence out): that window gives no estimate yet (its
+    ``covariance`` is None, its 1-sigma inf) and zeta_0 is then the pose there."""
 
-    def __init__(self, robot: Robot, noise: dict[str, np.ndarray], reference: WindowMean, zeta0_guess: np.ndarray):
+    def __init__(self, robot: Robot, noise: dict[str, np.ndarray], reference: WindowMean, zeta0_guess: np.ndarray,
+                 first_is_reference: bool = False):
         self.robot = robot
         self.noise = noise
         self.ref = reference
+        self.first_is_reference = first_is_reference
         self.rows: list[WindowMean] = []
         self.model = planning_model(robot)
         self.theta = self.model.initial_params(np.asarray(zeta0_guess, float))
         self.poses = np.zeros((0, 6))
 
+    def refresh(self, windows: list[WindowMean]) -> None:
+        """Replace the reference and the rows added so far (in order) with ``windows``, e.g. the equilibrium
+        windows the run's window search finds now; ignored before the reference or on a count mismatch."""
+        if self.first_is_reference or len(windows) != len(self.rows) + 1:
+            return
+        self.ref, self.rows = windows[0], list(windows[1:])
+
     def add(self, window: WindowMean, pose_guess: np.ndarray) -> OnlineEstimate:
         """Add a window (its pose guessed at ``pose_guess``, e.g. the planned ideal pose) and solve again."""
         from calib.selfcal import solve
 
+        if window.noise is not None:
+            self.noise = {c: np.asarray(v, float) for c, v in window.noise.items()}
+        if self.first_is_reference:
+            self.first_is_reference, self.ref = False, window
+            self.theta = self.model.initial_params(np.asarray(pose_guess, float))
+            return OnlineEstimate(self.theta, self.poses, None, math.inf, 0)
         self.rows.append(window)
         ref = self.ref
         ori = np.array([w.orientation for w in self.rows])
@@ -334,13 +445,21 @@ def sequential_acquisition(design: SequentialDesign, online: OnlineSolve, tolera
     position 1-sigma is below ``tolerance`` m (after at least ``min_poses`` windows: the run's solve needs
     two). Its return value (``StopIteration.value``) is why it stopped: 'tolerance' or 'exhausted'."""
     current = design.cands.tau0
+    design.tolerance, design.min_poses = tolerance, min_poses
+    design.reference_first = online.first_is_reference
+    if online.ref.noise is not None:  # the home window's own noise weighs the first choice
+        online.noise = {c: np.asarray(v, float) for c, v in online.ref.noise.items()}
+        design.reweigh(online.robot, online.noise, online.theta[:6])
     for j in range(max_poses):
         c = design.next(current)
         if c is None:
             break
         window = yield c
         est = online.add(window, design.cands.poses[c])
-        design.update(est)
+        if est.covariance is not None:
+            design.update(est)
+        if window.noise is not None:
+            design.reweigh(online.robot, online.noise, est.theta[:6])
         history.append((c, est))
         current = design.cands.setpoints[c]
         if est.position_sigma < tolerance and j + 1 >= min_poses:

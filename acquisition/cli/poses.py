@@ -95,13 +95,13 @@ def _table(robot, title: str, out: dict) -> None:
 
 
 def _optimal(args, robot) -> int:
-    from calib.design import TimeModel, assess, candidates, optimal_plan, window_mean_noise
+    from calib.design import TimeModel, assess, candidates, loop_noise, optimal_plan
 
     if args.optimal < 1:
         raise UsageError(f"--optimal must be a positive number of poses, got {args.optimal}.")
     if not args.step > 0:
         raise UsageError(f"--step must be positive, got {args.step}.")
-    noise, times = window_mean_noise(robot), TimeModel()
+    noise, times = loop_noise(robot), TimeModel()
     try:
         grid = plan_poses(robot, args.grid)
         if sys.stderr.isatty():

@@ -124,9 +124,10 @@ def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None,
               tolerance: float | None = None, step: float = 0.1) -> Plan:
     """The plan `cdpr startup` runs: ``plan`` 'grid' (``grid`` points per axis), 'optimal' (``poses`` poses,
     default 8) or 'sequential' (stop at ``tolerance`` m, at most ``poses`` poses, default 27); None: grid, or
-    sequential when a tolerance is given. The window-mean noise the optimal and sequential plans use is the
-    per-sample noise of :data:`calib.design.SAMPLE_NOISE` over the samples of one hold. Raises UsageError."""
-    from calib.design import TimeModel, window_mean_noise
+    sequential when a tolerance is given. The window-mean noise the optimal and sequential plans are chosen with
+    is the startup loop's (:func:`calib.design.loop_noise`); a sequential startup then weighs its choices and
+    its stop rule with its own (the samples of its windows so far). Raises UsageError."""
+    from calib.design import TimeModel, loop_noise
     from calib.planning import PlanningError
 
     plan = plan or ("sequential" if tolerance is not None else "grid")
@@ -139,7 +140,7 @@ def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None,
     if poses is not None and not 1 <= poses <= 100:
         raise UsageError(f"--poses {poses} is out of range: give 1 to 100 poses.")
     poses = poses or (27 if plan == "sequential" else 8)
-    noise = window_mean_noise(robot, max(1, round(cfg.hold_time / cfg.log_period)))
+    noise = loop_noise(robot)
     try:
         return Plan.for_robot(robot, grid, cfg.method, cfg.kinematic_speed, cfg.kinematic_spacing, plan=plan,
                               poses=poses, tolerance=tolerance, noise=noise, step=step,
@@ -187,13 +188,15 @@ def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | N
     """One simulated startup in this process, as ``cdpr startup --backend sim --no-html --json`` runs it (the
     entry point of Monte-Carlo studies): ``plan`` 'gridN' (N points per axis), 'optimal' or 'sequential'
     (``tolerance`` m), candidates every ``step`` m; returns the ``--json`` summary plus ``truth``, the
-    simulator's initial pose (6,) at the solution's reference sample (also in OUT/truth.json). Raises
+    simulator's initial pose (6,) at the solution's reference sample (also in OUT/truth.json), and
+    ``truth_window_mean``, the true pose averaged over the reference window; the plant runs in this process
+    (``--sim-plant inline``). Raises
     UsageError or OperationError."""
     from acquisition.cli import build_parser
 
     out = Path(out)
     argv = ["startup", "--backend", "sim", "--no-html", "--out", str(out), "--seed", str(seed), "--robot", robot,
-            "--truth", str(out / "truth.json"), "--step", repr(float(step))]
+            "--truth", str(out / "truth.json"), "--step", repr(float(step)), "--sim-plant", "inline"]
     argv += ["--plan", "grid", "--grid", plan[4:] or "2"] if plan.startswith("grid") else ["--plan", plan]
     argv += [] if tolerance is None else ["--tolerance", repr(float(tolerance))]
     argv += [] if poses is None else ["--poses", str(poses)]
@@ -201,7 +204,8 @@ def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | N
     args = build_parser().parse_args(argv)
     with ReportRenderer() as report:
         summary = _run(args, report)
-    return summary.to_dict() | {"truth": json.loads((out / "truth.json").read_text())["initial_pose"]}
+    truth = json.loads((out / "truth.json").read_text())
+    return summary.to_dict() | {"truth": truth["initial_pose"], "truth_window_mean": truth.get("window_mean_pose")}
 
 
 def _run(args, report: ReportRenderer) -> StartupSummary:
@@ -409,7 +413,7 @@ def sequential_outcome(seq: dict | None) -> str:
     if not seq:
         return ""
     w, tol = seq["windows"], 1000 * seq["tolerance_m"]
-    sigma = 1000 * w[-1]["position_sigma_m"] if w else float("inf")
+    sigma = 1000 * w[-1]["position_sigma_m"] if w and w[-1]["position_sigma_m"] is not None else float("inf")
     if seq["stop"] == "tolerance":
         return (f"sequential: 1-sigma of the initial position {sigma:.2f} mm < tolerance {tol:g} mm after "
                 f"{len(w)} poses.")
