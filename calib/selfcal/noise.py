@@ -90,21 +90,19 @@ DEGREE = {"tension": 0, "length": 2, "swivel": 2, "tilt": 2, "yaw": 2}  # polyno
 
 def _expectations(size: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
     """For the residuals d of a degree-``degree`` polynomial fitted to ``size`` samples of a unit-variance
-    AR(1) of coefficient rho (the grid): E[d'd] and E[sum d_t d_t+1], exactly (traces with the residual
-    projector M: tr(M Sigma) and tr(M S M Sigma)/2 with S the symmetric lag-1 shift)."""
+    AR(1) of coefficient rho (the grid): E[d'd] and E[sum d_t d_t+1], exactly: tr(M Sigma) and
+    tr(M S M Sigma)/2 with M the residual projector and S the symmetric lag-1 shift; Sigma is Toeplitz
+    (rho^|i-j|), so each trace is a sum over lags of rho^lag times the matching diagonal sums of M or MSM."""
     t = np.linspace(-1.0, 1.0, size)
     X = np.vander(t, degree + 1)
     M = np.eye(size) - X @ np.linalg.pinv(X)
-    S = np.eye(size, k=1) + np.eye(size, k=-1)
-    MSM = 0.5 * M @ S @ M
-    lag = np.abs(np.subtract.outer(np.arange(size), np.arange(size)))
-    sig = _RHO_GRID[:, None, None] ** lag[None]
-    return np.einsum("ij,gij->g", M, sig), np.einsum("ij,gij->g", MSM, sig)
+    half_msm = 0.5 * (M[:, :-1] @ M[1:, :] + M[:, 1:] @ M[:-1, :])  # M S M / 2, S = up + down shift
+    powers = _RHO_GRID[:, None] ** np.arange(size)[None, :]  # (grid, lags)
 
+    def diagonal_sums(A: np.ndarray) -> np.ndarray:
+        return np.array([np.trace(A)] + [np.trace(A, k) + np.trace(A, -k) for k in range(1, size)])
 
-def mean_factor(rho: float, size: float) -> float:
-    """Var(mean of N samples) / gamma0 for an AR(1) of coefficient rho: f(rho, N) / N."""
-    return ar1_factor(rho, size) / size
+    return powers @ diagonal_sums(M), powers @ diagonal_sums(half_msm)
 
 
 def _pooled(blocks: list[np.ndarray], degree: int) -> tuple[float, float, float]:
