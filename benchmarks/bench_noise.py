@@ -18,7 +18,6 @@ pose averaged over the reference window (what a window mean estimates). Exit cod
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -36,27 +35,19 @@ CONFIGS = {"white": "rigid", "sway": "rigid_sway"}
 
 def one(config: str, seed: int, grid: int) -> dict | None:
     """One simulated startup and its estimate-noise solve: chi2, dof, error and sigma of the position (m)."""
-    from acquisition.cli import main
+    from acquisition.cli.errors import OperationError, UsageError
+    from acquisition.cli.startup import simulated_startup
     from acquisition.runlog import read_run
     from calib.selfcal import solve
     from sim_backend.config import example_path
 
     with tempfile.TemporaryDirectory() as tmp:
-        out, truth = Path(tmp) / "run", Path(tmp) / "truth.json"
-        args = ["startup", "--backend", "sim", "--grid", str(grid), "--seed", str(seed), "--out", str(out),
-                "--truth", str(truth), "--no-html", "--sim-plant", "inline"]
-        if CONFIGS[config]:
-            args += ["--sim-config", str(example_path(CONFIGS[config]))]
-        with open(os.devnull, "w") as null:
-            stdout, sys.stdout = sys.stdout, null
-            try:
-                code = main(args)
-            finally:
-                sys.stdout = stdout
-        if code != 0 or not truth.is_file():
+        out = Path(tmp) / "run"
+        try:
+            doc = simulated_startup(out, f"grid{grid}", seed=seed, sim_config=str(example_path(CONFIGS[config])))
+        except (UsageError, OperationError):
             return None
-        z = json.loads(truth.read_text())
-        ref = np.asarray(z.get("window_mean_pose") or z["initial_pose"], float)
+        ref = np.asarray(doc["truth_window_mean"] or doc["truth"], float)
         run = read_run(out)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
