@@ -134,9 +134,10 @@ def format_solution(sol: Solution) -> str:
     lines.append(f"  yaw [deg]      {math.degrees(off['yaw']):.3f}")
     lines.extend(format_windows(sol))
     lines.append(f"chi2 {sol.chi2:.1f} on {sol.dof} dof")
-    if sol.dof > 0 and sol.noise_source in ("estimate", "sensors") and chi2_dist.sf(sol.chi2, sol.dof) < 1e-3:
+    p = chi2_dist.sf(sol.chi2, sol.dof) if sol.dof > 0 else 1.0
+    if sol.noise_source in ("estimate", "sensors") and p < 1e-3:
         lines.append(f"the model does not fit these readings within their own noise (p = "
-                     f"{chi2_dist.sf(sol.chi2, sol.dof):.2g}): the 1-sigma bounds hold only for a model that does; "
+                     f"{p:.2g}): the 1-sigma bounds hold only for a model that does; "
                      "`cdpr diagnose RUN` says where it fails and what is missing, and --noise paper weighs the "
                      "channels by the errors the paper expects of the rigid model (eq. 18)")
     lines.append("residuals          rms (SI)   rms/sigma")
