@@ -86,7 +86,8 @@ def direct_statics(
             r_c, j_c = equilibrium_residual(robot, cand, t[active])
             n_c = np.abs(r_c).max(1)
             ok = (n_c < na) & ~accepted
-            za, ra, ja = np.where(ok[:, None], cand, za), np.where(ok[:, None], r_c, ra), np.where(ok[:, None, None], j_c, ja)
+            za, ra = np.where(ok[:, None], cand, za), np.where(ok[:, None], r_c, ra)
+            ja = np.where(ok[:, None, None], j_c, ja)
             accepted |= ok
             if accepted.all():
                 break
