@@ -78,6 +78,7 @@ class StartupConfig:
     kinematic_spacing: float = 0.05  # m between path waypoints
     device_timeout: float = 1.0  # s (wall) to wait for a tick's readings in lockstep
     expected_settle: float = 8.0  # s, for the time-left estimate
+    rehold: int = 2  # sequential plans: extra holds at a pose whose window the run's search finds only quasi
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -184,14 +185,15 @@ class StartupResult:
 MIN_NOISE_WINDOWS = 3  # windows (home + 2 poses) before the run's own noise estimate replaces the plan's
 
 
-def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray,
-                     min_windows: int = MIN_NOISE_WINDOWS) -> tuple[dict[str, np.ndarray] | None, dict[int, tuple]]:
+def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray, min_windows: int = MIN_NOISE_WINDOWS
+                     ) -> tuple[dict[str, np.ndarray] | None, dict[int, tuple], frozenset[int]]:
     """The equilibrium windows the solve's window search finds in the rows logged so far (each a
     :meth:`StartupRoutine._row` tuple; ``setpoints`` (k, n) N: tau0 and the setpoints visited), which
     ``cdpr solve`` will use at the end: the sigma of a window mean per channel from them
     (:func:`calib.selfcal.window_mean_noise`; None while fewer than ``min_windows`` still windows are found, a
-    few windows give a poor AR(1) estimate) and, per setpoint index found, the window's mean readings
-    (tau, dl, dsigma, roll/pitch/yaw)."""
+    few windows give a poor AR(1) estimate), per setpoint index found, the window's mean readings
+    (tau, dl, dsigma, roll/pitch/yaw), and the setpoint indices whose window is only a quasi window (the
+    stillest stretch: no still run long enough)."""
     from calib.selfcal import search_windows, window_mean_noise
 
     sig = {"t": np.array([r[0] for r in rows]), "tau": np.array([r[1] for r in rows]),
@@ -203,9 +205,10 @@ def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray,
     ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
     means = {w.setpoint: (sig["tau"][w.slice].mean(0), sig["dl"][w.slice].mean(0), sig["dsigma"][w.slice].mean(0),
                           ori[w.slice].mean(0)) for w in wins if w.setpoint >= 0}
+    quasi = frozenset(w.setpoint for w in wins if w.quasi and w.setpoint >= 0)
     if sum(not w.quasi for w in wins) < min_windows:
-        return None, means
-    return window_mean_noise(robot, sig, wins).sigma, means
+        return None, means, quasi
+    return window_mean_noise(robot, sig, wins).sigma, means, quasi
 
 
 class StartupRoutine:
@@ -252,6 +255,7 @@ class StartupRoutine:
         self._means: list[WindowMean] = []  # the mean readings of each held window (tau0's first)
         self._log_rows: list[tuple] = []  # the rows logged so far (sequential plan: its own noise estimate)
         self._sequential: dict[str, Any] | None = None
+        self._rehold = 0  # extra holds at poses whose window was only quasi (sequential plans)
 
     # ---- the loop -------------------------------------------------------------------------------------
     def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
@@ -340,13 +344,22 @@ class StartupRoutine:
         first = self.writer.count if self.writer else 0
         steps = int(round(self.cfg.hold_time / self.period))
         self._held = []
-        for _ in range(steps):
-            self._tick(tau)
-        rows, self._held = self._held, None
         noise, found = None, {}
-        if self.plan.sequential is not None:  # the run's own noise and windows, for the online solve
-            noise, found = detected_windows(self.robot, self._log_rows,
-                                            np.vstack([self.plan.tau0, self.plan.setpoints]))
+        for extra in range(self.cfg.rehold + 1):
+            for _ in range(steps):
+                self._tick(tau)
+            if self.plan.sequential is None:
+                break
+            # the run's own noise and windows, for the online solve; a pose the window search finds only a
+            # quasi window for (the detector declared rest on a stretch the search does not call still) is held
+            # again, so that the online and the final solve never take a quasi window (above all as the reference)
+            noise, found, quasi = detected_windows(self.robot, self._log_rows,
+                                                   np.vstack([self.plan.tau0, self.plan.setpoints]))
+            if setpoint < 0 or (setpoint + 1 in found and setpoint + 1 not in quasi):
+                break
+            if extra < self.cfg.rehold:
+                self._rehold += 1
+        rows, self._held = self._held, None
         self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
                                       np.mean([r[5:8] for r in rows], axis=0), noise))
         for k, m in found.items():  # the poses' windows as the final solve will see them (index 0: tau0)
@@ -510,7 +523,7 @@ class StartupRoutine:
                 p, mm = est.theta[:3], 1000 * est.position_sigma
                 self.progress.note = (f"x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m 1-sigma {mm:.2f} mm"
                                       if math.isfinite(mm) else "reference window")
-        self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "windows": [
+        self._sequential = {"tolerance_m": seq.tolerance, "stop": why, "reholds": self._rehold, "windows": [
             {"pose": i, "position_sigma_m": e.position_sigma if math.isfinite(e.position_sigma) else None,
              "initial_pose": e.theta[:6].tolist(),
              "iterations": e.iterations} for i, (_, e) in enumerate(history)]}

@@ -9,7 +9,9 @@ prediction by Monte Carlo: ``--runs`` simulated sets of window means at the plan
 each solved with the planning model; the RMS position error should match the predicted 1-sigma.
 ``--loop``: the Monte Carlo with full simulated startups of both plans instead (benchmarks/loop_runs.py:
 realistic noise, sim_backend/examples/rigid_sway.yaml; the estimate-noise solve against the pose averaged
-over the reference window; 8 poses only, the startup's --plan optimal).
+over the reference window; 8 poses only, the startup's --plan optimal), against the loop's prediction
+(calib.design.predict_loop: the first pose's window is the reference, as in the run's solve, and each
+window has the loop's noise at its pose, calib.design.LOOP_POSE_NOISE, scaled on the grid's runs only).
 Target: optimal / grid predicted 1-sigma <= 0.7, and the optimal plan's RMS error within 20 % of its predicted
 1-sigma. Exit status 1 when missed.
 """
@@ -22,7 +24,7 @@ import sys
 import numpy as np
 from loop_runs import runs
 
-from calib.design import TimeModel, assess, loop_noise, optimal_plan, planning_model
+from calib.design import TimeModel, assess, loop_noise, optimal_plan, planning_model, predict_loop
 from calib.planning import plan_poses
 from calib.robot import load_robot
 from calib.selfcal import solve
@@ -59,7 +61,7 @@ def main() -> int:
     sig, rms = {}, {}
     print(f"{'plan':<12} {'poses':>5} {'predicted 1-sigma':>18} {'MC rms error':>13} {'ratio':>6} {'robot time':>11}")
     for (name, plan), key in zip(plans.items(), ("grid2", "optimal"), strict=True):
-        a = assess(robot, plan, noise, times)
+        a = predict_loop(robot, plan, times) if args.loop else assess(robot, plan, noise, times)
         if args.loop:
             res = runs(key, args.runs, cache=args.cache, workers=args.workers)
             err = np.array([r["error_m"] for r in res])

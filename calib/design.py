@@ -71,6 +71,50 @@ LOOP_NOISE = {
 }
 
 
+
+@dataclass(frozen=True)
+class PoseNoise:
+    """Sigma of one window mean per channel at a pose, as the startup loop gets it (N, m, rad): per channel
+    ``scale * sqrt(floor**2 + (force / k)**2)``, k the platform's lateral stiffness at the pose (sum of
+    tau_i / l_i, N/m, :func:`lateral_stiffness`): a slow push on the platform (sway, force-control jitter)
+    moves a compliant pose more, and a window mean keeps part of that motion. ``force`` is in N (per m of
+    length, per rad of swivel angle... times N/m: the channel's reading change per N of push)."""
+
+    floor: dict[str, np.ndarray]
+    force: dict[str, float]
+    scale: float = 1.0
+
+    def sigma(self, robot: Robot, stiffness: np.ndarray) -> dict[str, np.ndarray]:
+        """Per channel (k, width) sigmas at poses of lateral stiffness (k,) N/m."""
+        k = np.atleast_1d(np.asarray(stiffness, float))[:, None]
+        return {c: self.scale * np.sqrt(np.broadcast_to(np.asarray(self.floor[c], float),
+                                                        (k.shape[0], 3 if c == "orientation" else robot.n))**2
+                                        + (self.force[c] / k)**2) for c in self.floor}
+
+
+def lateral_stiffness(robot: Robot, poses: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Lateral stiffness of the platform held by tensions tau (k, n) N at poses (k, 6): sum tau_i / l_i, N/m."""
+    from calib.kinematics import inverse_kinematics
+
+    lengths = inverse_kinematics(robot, np.atleast_2d(poses)).lengths
+    return np.sum(np.atleast_2d(tau) / lengths, axis=1)
+
+
+# the startup loop's window-mean noise per pose (:class:`PoseNoise`), measured on the simulated prototype with
+# realistic noise (sim_backend/examples/rigid_sway.yaml, seeds 0..19, benchmarks/loop_runs.py, 2026-11-25):
+# floor and force per channel fitted to the median over the runs of each run's own window-mean sigma
+# (calib.selfcal.window_mean_noise, as ``cdpr solve --noise estimate``) of the 20 grid startups (lateral
+# stiffness 131 and 345 N/m) and the 20 A-optimal startups (165-497 N/m): lengths 0.185 and 0.075 mm,
+# swivels 0.85 and 0.69 mrad, tensions and roll/pitch/yaw the same for both plans; then ``scale`` makes the
+# grid's predicted 1-sigma (:func:`predict_loop`: the first pose's window is the reference, as in the run's
+# solve) equal the RMS error measured on its 20 startups (0.716 mm). The optimal plan's errors are not used.
+LOOP_POSE_NOISE = PoseNoise(
+    floor={"tension": 0.2608, "length": 0.0, "swivel": 5.64e-4, "orientation": np.array([1.73e-4, 1.73e-4, 2.2e-4])},
+    force={"tension": 0.0, "length": 0.0371, "swivel": 0.109, "orientation": 0.0},
+    scale=1.903,
+)
+
+
 @dataclass(frozen=True)
 class TimeModel:
     """Robot time of a plan, s: transitions at the tension rate limit plus settling and holding per pose."""
@@ -114,22 +158,34 @@ def planning_model(robot: Robot) -> MeasurementModel:
     return EffectModel(robot, [DeviceAccuracy()])
 
 
-def information(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, noise: dict[str, np.ndarray],
+def information(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, noise: dict[str, np.ndarray] | PoseNoise,
                 model: MeasurementModel | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Information about theta of the reference window, M_0 (p, p), and of one equilibrium row at each pose,
     M (k, p, p), the row's own pose eliminated (module doc); theta is the model's start at zeta0 (default
-    model: :func:`planning_model`)."""
+    model: :func:`planning_model`). ``noise``: one sigma per channel for every window, or a
+    :class:`PoseNoise` (each window's at its pose and the model's tensions there)."""
     model = model or planning_model(robot)
     z = np.atleast_2d(np.asarray(poses, float))
     k, n = z.shape[0], robot.n
     meas = Measurements(np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, 3)),
                         np.zeros(n), np.zeros(2))
-    ev = Problem(model, meas, noise).evaluate(model.initial_params(np.asarray(zeta0, float)), z)
-    _, _, J, G = ev.groups[0]
+    per_pose = isinstance(noise, PoseNoise)
+    unit = {c: np.ones(3 if c == "orientation" else n) for c in ("tension", "length", "swivel", "orientation")}
+    theta0 = model.initial_params(np.asarray(zeta0, float))
+    ev = Problem(model, meas, unit if per_pose else noise).evaluate(theta0, z)
+    g, r, J, G = ev.groups[0]
+    g0 = ev.g0
+    if per_pose:  # unit weights so far: the residuals are the predictions (readings 0), tensions included
+        sig = noise.sigma(robot, lateral_stiffness(robot, z, r[:, g.slices["tension"]]))
+        w = 1.0 / np.concatenate([sig[c] for c in g.channels], axis=1)
+        J, G = w[..., None] * J, w[..., None] * G
+        s0 = noise.sigma(robot, lateral_stiffness(robot, theta0[None, :6], ev.r0[None, :n]))
+        w0 = np.r_[1.0 / s0["tension"][0], 1.0 / s0["orientation"][0], np.ones(g0.shape[0] - n - 3)]
+        g0 = w0[:, None] * g0
     Jt = J.transpose(0, 2, 1)
     W = Jt @ G
     M = G.transpose(0, 2, 1) @ G - W.transpose(0, 2, 1) @ np.linalg.solve(Jt @ J, W)
-    return ev.g0.T @ ev.g0, 0.5 * (M + M.transpose(0, 2, 1))
+    return g0.T @ g0, 0.5 * (M + M.transpose(0, 2, 1))
 
 
 def position_sigma(info: np.ndarray) -> np.ndarray:
@@ -241,6 +297,18 @@ class PlanAssessment:
 def assess(robot: Robot, plan: PosePlan, noise: dict[str, np.ndarray], time_model: TimeModel) -> PlanAssessment:
     """The predicted uncertainty of the initial pose and the robot time of a plan."""
     info0, info = information(robot, plan.poses, plan.home_pose, noise)
+    total = info0 + info.sum(axis=0)
+    cov = np.linalg.inv(total)
+    return PlanAssessment(np.sqrt(np.clip(np.diag(cov)[:6], 0, None)), float(position_sigma(total)),
+                          time_model.tour(plan.tau0, plan.setpoints))
+
+
+def predict_loop(robot: Robot, plan: PosePlan, time_model: TimeModel,
+                 noise: PoseNoise = LOOP_POSE_NOISE) -> PlanAssessment:
+    """What the startup loop's solve of a plan should give: its first pose's window is the reference (the run's
+    window search leaves the rest under tau0 out), the other poses are rows, each window with the loop's
+    noise at its pose (:data:`LOOP_POSE_NOISE`); robot time as :func:`assess`."""
+    info0, info = information(robot, plan.poses[1:], plan.poses[0], noise)
     total = info0 + info.sum(axis=0)
     cov = np.linalg.inv(total)
     return PlanAssessment(np.sqrt(np.clip(np.diag(cov)[:6], 0, None)), float(position_sigma(total)),

@@ -78,22 +78,23 @@ def direct_statics(
         za = z[active]
         na = norm[active]
         accepted = np.zeros(step.shape[0], bool)
-        trial_res = np.empty_like(res[active])
+        ra, ja = res[active], jac[active]
         for _ in range(12):
+            # the candidates are evaluated with their Jacobian: the full step is nearly always accepted,
+            # and its Jacobian is the next iteration's
             cand = za + alpha[:, None] * step
-            r_c, _ = equilibrium_residual(robot, cand, t[active], derivatives=False)
+            r_c, j_c = equilibrium_residual(robot, cand, t[active])
             n_c = np.abs(r_c).max(1)
             ok = (n_c < na) & ~accepted
-            trial_res[ok] = r_c[ok]
-            za = np.where(ok[:, None], cand, za)
+            za, ra = np.where(ok[:, None], cand, za), np.where(ok[:, None], r_c, ra)
+            ja = np.where(ok[:, None, None], j_c, ja)
             accepted |= ok
             if accepted.all():
                 break
             alpha = np.where(accepted, alpha, alpha * 0.5)
         if not accepted.any():
             break
-        z[active] = za
-        res, jac = equilibrium_residual(robot, z, t)
+        z[active], res[active], jac[active] = za, ra, ja
         norm = np.abs(res).max(axis=1)
     return DirectStaticsResult(z, norm <= tol * scale, norm, it)
 

@@ -12,7 +12,9 @@ from acquisition.cli import main
 from acquisition.cli.startup import simulated_startup
 from acquisition.runlog import read_run
 from calib.design import (
+    LOOP_POSE_NOISE,
     OnlineSolve,
+    PoseNoise,
     SequentialDesign,
     TimeModel,
     WindowMean,
@@ -20,8 +22,11 @@ from calib.design import (
     candidates,
     drive,
     information,
+    lateral_stiffness,
+    loop_noise,
     optimal_plan,
     planning_model,
+    predict_loop,
     separating_poses,
     sequential_acquisition,
     window_mean_noise,
@@ -60,6 +65,31 @@ def test_information_is_the_inverse_of_the_solve_covariance(robot, noise):
     info0, info = information(robot, sol.poses, sol.theta[:6], noise)
     predicted = np.linalg.inv(info0 + info.sum(0))
     np.testing.assert_allclose(predicted[:6, :6], sol.covariance[:6, :6], rtol=1e-6, atol=1e-15)
+
+
+def test_pose_noise_without_force_is_the_constant_noise(robot, noise):
+    """A per-pose noise with no stiffness term weighs every window as the constant noise does."""
+    plan = plan_poses(robot, 2)
+    const = PoseNoise({c: np.asarray(v) for c, v in noise.items()}, {c: 0.0 for c in noise})
+    a0, a = information(robot, plan.poses, plan.home_pose, noise)
+    b0, b = information(robot, plan.poses, plan.home_pose, const)
+    np.testing.assert_allclose(b0, a0, rtol=1e-12)
+    np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-9 * np.abs(a).max())
+
+
+def test_loop_prediction_of_the_grid_and_the_optimal_plan(robot):
+    """The loop's prediction: the grid's 1-sigma is the RMS error of its 20 loop startups (0.716 mm, the
+    calibration), the optimal plan's about half of it; compliant poses are noisier."""
+    grid = plan_poses(robot, 2)
+    k = lateral_stiffness(robot, grid.poses, grid.setpoints)
+    np.testing.assert_allclose(k, [131, 131, 131, 131, 345, 345, 345, 345], atol=1.0)
+    sig = LOOP_POSE_NOISE.sigma(robot, k)
+    assert sig["length"][0, 0] == pytest.approx(1.903 * 0.0371 / k[0])
+    assert sig["tension"][0, 0] == pytest.approx(1.903 * 0.2608)
+    g = predict_loop(robot, grid, TimeModel()).position_sigma
+    o = predict_loop(robot, optimal_plan(robot, 8, loop_noise(robot)), TimeModel()).position_sigma
+    assert g == pytest.approx(0.716e-3, rel=0.01)
+    assert o / g == pytest.approx(0.505, abs=0.01)
 
 
 def test_optimal_plan_beats_the_grid_and_is_reachable(robot, noise, cands):

@@ -217,7 +217,8 @@ def _guess(
     # one direct-statics solve for zeta_0 (when no ideal pose gives it) and the windows, all from home
     tau_ds = ([] if z0 is not None else [ref_tau]) + [meas.tau[i] for i in need_ds]
     if tau_ds:
-        ds = direct_statics(robot, np.array(tau_ds), np.tile(home if z0 is None else z0, (len(tau_ds), 1)))
+        # a start for the LM: equilibrium to 1e-6 of the weight (the LM refines it)
+        ds = direct_statics(robot, np.array(tau_ds), np.tile(home if z0 is None else z0, (len(tau_ds), 1)), tol=1e-6)
         poses, ok = ds.poses, ds.converged
         if z0 is None:
             z0 = poses[0] if ok[0] else home
