@@ -227,7 +227,7 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
         sigma = {"tension": np.ones(n), "length": np.full(n, per["length"]), "swivel": np.full(n, per["swivel"]),
                  "orientation": np.array([per["tilt"], per["tilt"], per["yaw"]])}
         kin = Problem(model, meas, sigma)
-        Z, _ = solve_poses(kin, theta, Z, max_iter=30, tol=1e-14)
+        Z, _ = solve_poses(kin, theta, Z, max_iter=30, tol=1e-10)
         (grp, r, J, _), = kin.evaluate(theta, Z).groups
         # redundancy numbers of the whitened per-sample pose fit: 1 - diag(J (J'J)^-1 J')
         lev = 1.0 - np.einsum("kci,kij,kcj->kc", J, np.linalg.pinv(J.transpose(0, 2, 1) @ J), J)
