@@ -39,7 +39,7 @@ from calib.effects.builtin import DeviceAccuracy
 from calib.equilibrium import inverse_geometrico_static
 from calib.planning import PlanningError, PosePlan, home, order_setpoints
 from calib.robot import Robot
-from calib.selfcal import MeasurementModel, Measurements, Problem
+from calib.selfcal import CHANNELS, MeasurementModel, Measurements, Problem, channel_width
 from calib.workspace import default_volume
 
 QUINTIC_PEAK_RATE = 15.0 / 8.0  # peak of the rest-to-rest quintic's rate over the mean rate
@@ -88,7 +88,7 @@ class PoseNoise:
         """Per channel (k, width) sigmas at poses of lateral stiffness (k,) N/m."""
         k = np.atleast_1d(np.asarray(stiffness, float))[:, None]
         return {c: self.scale * np.sqrt(np.broadcast_to(np.asarray(self.floor[c], float),
-                                                        (k.shape[0], 3 if c == "orientation" else robot.n))**2
+                                                        (k.shape[0], channel_width(c, robot.n)))**2
                                         + (self.force[c] / k)**2) for c in self.floor}
 
 
@@ -140,7 +140,7 @@ def window_mean_noise(robot: Robot, samples: int = 20, per_sample: dict | None =
     sqrt(samples in a window)."""
     base = SAMPLE_NOISE if per_sample is None else per_sample
     n = robot.n
-    return {c: np.broadcast_to(np.asarray(v, float), (3 if c == "orientation" else n,)) / math.sqrt(samples)
+    return {c: np.broadcast_to(np.asarray(v, float), (channel_width(c, n),)) / math.sqrt(samples)
             for c, v in base.items()}
 
 
@@ -148,7 +148,7 @@ def loop_noise(robot: Robot, sigma: dict | None = None) -> dict[str, np.ndarray]
     """Sigma of one window mean per channel (N, m, rad) the plans are judged with by default: the startup
     loop's (:data:`LOOP_NOISE`, measured on the simulated prototype with realistic noise), or ``sigma``."""
     base = LOOP_NOISE if sigma is None else sigma
-    return {c: np.broadcast_to(np.asarray(v, float), (3 if c == "orientation" else robot.n,)).copy()
+    return {c: np.broadcast_to(np.asarray(v, float), (channel_width(c, robot.n),)).copy()
             for c, v in base.items()}
 
 
@@ -170,7 +170,7 @@ def information(robot: Robot, poses: np.ndarray, zeta0: np.ndarray, noise: dict[
     meas = Measurements(np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, 3)),
                         np.zeros(n), np.zeros(2))
     per_pose = isinstance(noise, PoseNoise)
-    unit = {c: np.ones(3 if c == "orientation" else n) for c in ("tension", "length", "swivel", "orientation")}
+    unit = {c: np.ones(channel_width(c, n)) for c in CHANNELS}
     theta0 = model.initial_params(np.asarray(zeta0, float))
     ev = Problem(model, meas, unit if per_pose else noise).evaluate(theta0, z)
     g, r, J, G = ev.groups[0]
@@ -571,9 +571,7 @@ def separating_poses(robot: Robot, meas: Measurements, noise: dict[str, np.ndarr
     platform of each fitted model rests at that model's equilibrium (direct statics of its true robot)."""
     from calib.diagnose import fit
     from calib.equilibrium import direct_statics
-    from calib.selfcal import CHANNELS
-
-    w = np.concatenate([1.0 / np.broadcast_to(noise[c], (3 if c == "orientation" else robot.n,)) for c in CHANNELS])
+    w = np.concatenate([1.0 / np.broadcast_to(noise[c], (channel_width(c, robot.n),)) for c in CHANNELS])
     vals, jacs, ok = [], [], np.ones(cands.size, bool)
     for e in effects:
         f = fit(robot, meas, noise, [DeviceAccuracy(), e], theta0, poses0)

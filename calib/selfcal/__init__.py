@@ -50,7 +50,7 @@ from calib.selfcal._solve import (
     sensor_noise,
     solve_run,
 )
-from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel
+from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel, channel_width
 from calib.selfcal.noise import ChannelNoise, WindowNoise, resolution_floor, window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import (
@@ -91,6 +91,7 @@ __all__ = [
     "METHODS",
     "NOISE",
     "CHANNELS",
+    "channel_width",
     "find_windows",
     "search_windows",
     "prepare",
