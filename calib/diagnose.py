@@ -826,11 +826,13 @@ def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: in
                 reference_sample=reference_sample)
     sig = run_signals(robot, run)
     meas = measurement_rows(sig, sol.windows, method, stride, sol.reference_sample)[0]
+    # the estimate-noise solve's own sigmas: the kinematic ones without the motion the rows' poses absorb
+    solved = {c: np.asarray(v, float) for c, v in sol.noise.items()}
     if noise == "estimate":
-        sigma, source = window_noise(robot, sig, sol.windows), "estimate"
+        sigma, source = solved, "estimate"
     elif noise == "accuracy":  # the noise of a window mean floored at the sensors' accuracy
         acc = sensor_noise(robot)
-        sigma = {c: np.maximum(v, acc[c]) for c, v in window_noise(robot, sig, sol.windows).items()}
+        sigma = {c: np.maximum(v, acc[c]) for c, v in solved.items()}
         source = "accuracy"
     else:
         sigma, source = noise_levels(robot, noise, sig, sol.windows)

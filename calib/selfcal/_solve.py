@@ -13,13 +13,14 @@ from calib.equilibrium import default_guess, direct_statics
 from calib.robot import NoiseLevels, Robot
 from calib.selfcal.lm import levenberg_marquardt, solve_poses
 from calib.selfcal.model import CHANNELS, MeasurementModel
-from calib.selfcal.noise import window_mean_noise
+from calib.selfcal.noise import pose_free_noise, window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, compare_pose
 from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_windows
 
 METHODS = ("tlse", "lse", "hybrid")
 NOISE = ("paper", "estimate", "sensors")
+REFINE = 2  # estimate-noise solves: pose-free kinematic noise at the solution, then the solve again, twice
 SIGNALS = ("t", "tau", "dl", "dsigma", "roll", "pitch", "dyaw")
 # the smallest motion that sets a direction: a cable's friction in its pulleys reverses once the rope has
 # slid, i.e. after more than its elastic pre-sliding stretch (a few N of friction over EA / l ~ 20 kN/m:
@@ -437,6 +438,18 @@ def solve_run(
     model, meas, ref_sample, source = problem.model, problem.meas, pre.ref_sample, pre.noise_source
     t_start, t_rows, t_guess = pre.marks
     res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
+    if source == "estimate" and method == "tlse" and ref is not None and res.converged and max_iter > 0:
+        # the kinematic channels' window-mean noise without the platform's motion (which the rows' poses
+        # absorb), estimated at the solution; a second pass at the better solution settles it
+        sig = run_signals(robot, run)
+        base = window_mean_noise(robot, sig, wins)
+        ref_win = next(w for w in wins if w.first <= ref_sample <= w.last)
+        for _ in range(REFINE):
+            spans = [(ref_win.slice, res.theta[:6])] + [
+                (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
+            noise = pose_free_noise(model, sig, spans, ref, res.theta, base).noise
+            problem = Problem(model, meas, noise.sigma)
+            res = levenberg_marquardt(problem, res.theta, res.poses, max_iter=max_iter)
     t_end = time.perf_counter()
     if max_iter == 0 and np.isfinite(res.cost):  # the guess is a solution already (a converged fit's)
         res.converged, res.message = True, "the given solution, not iterated"

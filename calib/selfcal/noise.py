@@ -172,3 +172,89 @@ def window_mean_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> Wind
     sizes = [w.size for w in still if w.size >= 3]
     nh = 1.0 / float(np.mean([1.0 / s for s in sizes])) if sizes else 1.0
     return WindowNoise(sigma, nh, groups)
+
+
+KINEMATIC = ("length", "swivel")  # the groups whose window means lose the pose motion (see pose_free_noise)
+VCE_ROUNDS = 4  # variance-component rounds of the per-sample pose fit (the sigmas settle in 2-3)
+
+
+@dataclass(frozen=True)
+class PoseFreeNoise:
+    """What :func:`pose_free_noise` estimates: per kinematic group the sigma of one sample's pose-free part
+    (``sample``, SI), its window-mean figures (``groups``, as :class:`ChannelNoise`) and the share of
+    (window, channel) readings that never left their count (``stuck``)."""
+
+    noise: WindowNoise
+    sample: dict[str, float]
+    stuck: dict[str, float]
+
+
+def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, np.ndarray]],
+                    ref: dict[str, np.ndarray], theta: np.ndarray, base: WindowNoise,
+                    rounds: int = VCE_ROUNDS) -> PoseFreeNoise:
+    """Noise of the kinematic window means (lengths, swivel angles, roll/pitch, yaw) without the platform's
+    motion inside the windows. The force control moves winches and platform together: every kinematic
+    reading follows the pose, and that motion is absorbed by each row's own pose, so it is not noise of the
+    row. Each sample of each still window gets its own pose (the measurement model ``model`` at the solved
+    ``theta``, started from its window's pose; ``spans``: (window slice, pose (6,)) pairs, ``ref``: the
+    reference window's means the rows are relative to); the per-group sigma of a sample's remainder is
+    estimated by variance components (Helmert: sum of squared residuals over the sum of the redundancy
+    numbers 1 - h_ii of the whitened pose fit, re-weighted ``rounds`` times); the remainders' lag-1
+    correlation in each window gives the AR(1) factor of their window mean, as in :func:`window_mean_noise`.
+    A reading that sat on one count for a whole window keeps its quantisation error in the mean: the
+    share of such readings adds q^2/12 times that share. Tensions keep ``base``'s figures (the force
+    control holds them; their jitter is not a pose motion)."""
+    from calib.selfcal.lm import solve_poses
+    from calib.selfcal.problem import Measurements, Problem
+
+    robot = model.robot
+    n = robot.n
+    idx = np.concatenate([np.arange(s.start, s.stop) for s, _ in spans])
+    owner = np.concatenate([np.full(s.stop - s.start, j) for j, (s, _) in enumerate(spans)])
+    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"] - ref["ori"][2]], 1)[idx]
+    meas = Measurements(np.full((idx.size, n), np.nan), sig["dl"][idx] - ref["dl"],
+                        sig["dsigma"][idx] - ref["dsigma"], ori, np.full(n, np.nan), np.full(2, np.nan))
+    Z = np.array([z for _, z in spans], float)[owner]
+    floor = resolution_floor(robot)
+    g = base.groups
+    per = {"length": max(g["length"].sample, floor["length"].max()),  # per-sample sigmas to start from
+           "swivel": max(g["swivel"].sample, floor["swivel"].max()),
+           "tilt": max(g["tilt"].sample, 1e-5), "yaw": max(g["yaw"].sample, 1e-5)}
+    cols = {"length": slice(0, n), "swivel": slice(n, 2 * n), "tilt": slice(2 * n, 2 * n + 2),
+            "yaw": slice(2 * n + 2, 2 * n + 3)}
+    e = lev = None
+    for _ in range(max(1, rounds)):
+        sigma = {"tension": np.ones(n), "length": np.full(n, per["length"]), "swivel": np.full(n, per["swivel"]),
+                 "orientation": np.array([per["tilt"], per["tilt"], per["yaw"]])}
+        kin = Problem(model, meas, sigma)
+        Z, _ = solve_poses(kin, theta, Z, max_iter=30, tol=1e-10)
+        (grp, r, J, _), = kin.evaluate(theta, Z).groups
+        # redundancy numbers of the whitened per-sample pose fit: 1 - diag(J (J'J)^-1 J')
+        lev = 1.0 - np.einsum("kci,kij,kcj->kc", J, np.linalg.pinv(J.transpose(0, 2, 1) @ J), J)
+        e = r / grp.weight
+        per |= {c: math.sqrt(float(np.sum(e[:, s] ** 2) / max(float(np.sum(lev[:, s])), 1e-12)))
+                for c, s in cols.items() if c in KINEMATIC}
+    raw = {"length": sig["dl"], "swivel": sig["dsigma"]}
+    groups = dict(base.groups)
+    stuck = {}
+    for c, s in cols.items():
+        if c not in KINEMATIC:
+            continue
+        blocks = [e[owner == j, s] for j in range(len(spans))]
+        gamma0, rho, nh = _pooled(blocks, 0)
+        red = float(np.mean(lev[:, s]))
+        gamma0 = gamma0 / max(red, 1e-12)  # the pose fit took 1 - red of each sample's variance
+        f = ar1_factor(rho, nh)
+        q = float(np.max(floor["orientation" if c in ("tilt", "yaw") else c]))
+        share = 0.0
+        if c in raw:
+            share = float(np.mean([np.ptp(raw[c][sl], axis=0) == 0.0 for sl, _ in spans]))
+        var_q = share * (q * math.sqrt(12.0)) ** 2 / 12.0  # q here is step / sqrt 12
+        mean = math.sqrt(gamma0 * f / nh + var_q)
+        stuck[c] = share
+        groups[c] = ChannelNoise(math.sqrt(gamma0), rho, nh / f, mean, q)
+    sigma_out = dict(base.sigma)
+    sigma_out["length"] = np.full(n, groups["length"].mean)
+    sigma_out["swivel"] = np.full(n, groups["swivel"].mean)
+    sigma_out["orientation"] = np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean])
+    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, stuck)
