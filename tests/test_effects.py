@@ -208,7 +208,8 @@ def test_absolute_lengths_are_what_the_encoders_count():
 def test_device_accuracy_columns_and_its_prior_pseudo_readings():
     """The devices' constant errors compose with the other effects (exact columns), and each of their
     parameters adds one pseudo-reading (theta_j - 0) / sd_j, sd = accuracy / sqrt(3): the degrees of
-    freedom of a fit do not change."""
+    freedom of a fit do not change. The AHRS yaw drifts at a rate within the gyro's in-run bias stability
+    (8 deg/h): its column is the rows' time."""
     from calib.effects.builtin import DeviceAccuracy
     from calib.selfcal.problem import Measurements, Problem
 
@@ -217,19 +218,26 @@ def test_device_accuracy_columns_and_its_prior_pseudo_readings():
     theta = model.initial_params(POSES[2] + 0.01 * rng.standard_normal(6), _values(model, rng))
     _check_fd(model, theta, POSES)
     idx, mean, sd = model.priors()
-    assert idx.tolist() == list(range(12, 18)) and not mean.any()
+    assert idx.tolist() == list(range(12, 19)) and not mean.any()
     np.testing.assert_allclose(sd[:4], 0.0002 * 100 * 9.81 / np.sqrt(3))  # 0.113 N
-    np.testing.assert_allclose(sd[4:], np.radians(0.2) / np.sqrt(3))
+    np.testing.assert_allclose(sd[4:6], np.radians(0.2) / np.sqrt(3))
+    np.testing.assert_allclose(sd[6], np.radians(8.0) / 3600 / np.sqrt(3))  # 2.24e-5 rad/s
+    times = np.array([12.0, 30.0, 47.5, 61.0])
+    with_t = model.predict(POSES, theta, ("orientation",), times)["orientation"]
+    without = model.predict(POSES, theta, ("orientation",))["orientation"]
+    np.testing.assert_allclose(with_t.value[:, 2] - without.value[:, 2], theta[18] * times)
+    np.testing.assert_allclose(with_t.d_theta[:, 2, 18], times)
+    assert not without.d_theta[:, :, 18].any()
     k, n = POSES.shape[0], ROBOT.n
     meas = Measurements(np.full((k, n), 60.0), np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, 3)),
                         np.full(n, 60.0), np.zeros(2))
     sigma = {"tension": 0.1, "length": 1e-4, "swivel": 1e-3, "orientation": np.array([1e-3, 1e-3, 1e-2])}
     with_p, without = Problem(model, meas, sigma), Problem(EffectModel(ROBOT, model.effects[:2]), meas, sigma)
-    assert with_p.n_residuals == without.n_residuals + 6
+    assert with_p.n_residuals == without.n_residuals + 7
     ev = with_p.evaluate(theta, POSES)
-    np.testing.assert_allclose(ev.r0[-6:], theta[12:] / sd)
-    np.testing.assert_allclose(ev.g0[-6:, 12:], np.diag(1.0 / sd))
-    assert not ev.g0[-6:, :12].any()
+    np.testing.assert_allclose(ev.r0[-7:], theta[12:] / sd)
+    np.testing.assert_allclose(ev.g0[-7:, 12:], np.diag(1.0 / sd))
+    assert not ev.g0[-7:, :12].any()
 
 
 def test_yaw_drift_column_is_the_row_time_and_needs_times():

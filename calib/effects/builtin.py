@@ -375,17 +375,23 @@ class MassScale(Effect):
         return z, z.copy(), (tau / (1.0 + float(values[0])))[..., None]
 
 
+YAW_RATE_BOUND = math.radians(8.0) / 3600.0  # rad/s: the MTi-630's gyro in-run bias stability (datasheet)
+
+
 class DeviceAccuracy(Effect):
     """The constant errors a datasheet allows every device, as parameters with a Gaussian prior: load cell
-    i reads tau_i + b_i (N), the AHRS reads roll + b_roll and pitch + b_pitch (rad). The prior standard
-    deviation is the accuracy bound over sqrt(3) (a uniform error within the bound, GUM type B): 0.02 % of
-    full scale for the cells, the roll/pitch accuracy for the AHRS (robot ``sensors``). Not a candidate
+    i reads tau_i + b_i (N), the AHRS reads roll + b_roll and pitch + b_pitch (rad) and its yaw drifts by
+    yaw_rate * t (rad/s, t the row's time after the reference sample: an unreferenced heading integrates the
+    gyro's residual bias). The prior standard deviation is the bound over sqrt(3) (a uniform error within
+    the bound, GUM type B): 0.02 % of full scale for the cells, the roll/pitch accuracy for the AHRS (robot
+    ``sensors``), the gyro's in-run bias stability for the yaw rate. Not a candidate
     effect: the diagnosis keeps it in every fit, so that only what exceeds the devices' specifications is
     reported as a missing effect."""
 
     name = "device_accuracy"
     order = 45
-    description = "per-device constant errors within the datasheet accuracy (load cells N, AHRS roll/pitch rad)"
+    description = ("per-device constant errors within the datasheet accuracy (load cells N, AHRS roll/pitch rad,"
+                   " AHRS yaw drift rad/s)")
 
     def params(self, robot: Robot) -> list[ParamSpec]:
         s = robot.sensors
@@ -394,6 +400,9 @@ class DeviceAccuracy(Effect):
         return [ParamSpec(f"b_{i + 1}", "N", 0.0, -np.inf, np.inf, 0.1, prior=cell) for i in range(robot.n)] + [
             ParamSpec("b_roll", "rad", 0.0, -np.inf, np.inf, 1e-3, prior=ahrs),
             ParamSpec("b_pitch", "rad", 0.0, -np.inf, np.inf, 1e-3, prior=ahrs),
+            # MTi-630 datasheet: gyro in-run bias stability 8 deg/h, what the filter cannot remove from an
+            # unreferenced heading over a startup of minutes (the emulated device drifts within 3.6 deg/h)
+            ParamSpec("yaw_rate", "rad/s", 0.0, -np.inf, np.inf, 1e-5, prior=YAW_RATE_BOUND / math.sqrt(3.0)),
         ]
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
@@ -403,8 +412,12 @@ class DeviceAccuracy(Effect):
         if "orientation" in preds:
             pr = preds["orientation"]
             pr.value = pr.value.copy()
-            pr.value[:, :2] += values[n:]
+            pr.value[:, :2] += values[n:n + 2]
             pr.d_theta[:, [0, 1], [a + n, a + n + 1]] = 1.0
+            if ctx.times is not None:
+                t = np.asarray(ctx.times, float)
+                pr.value[:, 2] += float(values[n + 2]) * t
+                pr.d_theta[:, 2, a + n + 2] = t
 
 
 BUILTIN: dict[str, type[Effect]] = {
