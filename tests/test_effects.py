@@ -304,3 +304,31 @@ def test_cable_effects_change_readings_as_their_physics_says():
     # the sag lengthens the path by (rho g)^2 lc h^2 / (24 tau^2): tenths of a mm at 0.05 kg/m, 30-170 N
     sag = (0.05 * ROBOT.gravity) ** 2 * terms.m / (24 * (tau + 0.05 * terms.tw) ** 2)
     assert 1e-6 < sag.max() < 1e-3, sag.max()
+
+
+def test_reference_noise_shifts_every_row_of_a_relative_channel_by_one_value_per_cable():
+    """The reference window's noise is one offset per cable in lengths and swivel angles and one in yaw,
+    the same in every row (exact columns), with priors of the reference mean's sigma: the rows' sigma
+    scaled by sqrt(harmonic-mean window size / reference window size)."""
+    from calib.effects.builtin import DeviceAccuracy, ReferenceNoise
+
+    sigma = {"tension": np.full(4, 0.1), "length": np.full(4, 4e-5), "swivel": np.full(4, 1e-5),
+             "orientation": np.array([1e-4, 1e-4, 2e-4])}
+    windows = np.array([[0, 19], [30, 59], [70, 89]])  # 20, 30 and 20 samples: harmonic mean 22.5
+    rn = ReferenceNoise.for_rows(sigma, windows, ref_size=90)
+    assert rn.sd["length"] == pytest.approx(4e-5 * np.sqrt(22.5 / 90))
+    assert rn.sd["swivel"] == pytest.approx(1e-5 * 0.5) and rn.sd["yaw"] == pytest.approx(2e-4 * 0.5)
+    model = EffectModel(ROBOT, [DeviceAccuracy(), rn])
+    rng = np.random.default_rng(5)
+    values = np.r_[np.zeros(7), 3e-5 * rng.standard_normal(4), 1e-5 * rng.standard_normal(4), 4e-4]
+    theta = model.initial_params(POSES[1], values)
+    _check_fd(model, theta, POSES)
+    base = EffectModel(ROBOT, [DeviceAccuracy()]).predict(POSES, theta[:13], CHANNELS)
+    pred = model.predict(POSES, theta, CHANNELS)
+    np.testing.assert_allclose(pred["length"].value - base["length"].value, np.tile(values[7:11], (4, 1)))
+    np.testing.assert_allclose(pred["swivel"].value - base["swivel"].value, np.tile(values[11:15], (4, 1)))
+    np.testing.assert_allclose(pred["orientation"].value[:, 2] - base["orientation"].value[:, 2], 4e-4)
+    np.testing.assert_allclose(pred["tension"].value, base["tension"].value)
+    idx, _, sd = model.priors()
+    assert idx.tolist() == list(range(6, 6 + 7 + 9))
+    np.testing.assert_allclose(sd[7:], [rn.sd["length"]] * 4 + [rn.sd["swivel"]] * 4 + [rn.sd["yaw"]])

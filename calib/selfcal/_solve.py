@@ -418,6 +418,19 @@ def prepare(
                     (t_start, t_rows, time.perf_counter()))
 
 
+def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[str, np.ndarray],
+                          windows: np.ndarray | None, ref_size: int):
+    """The model with the reference window's noise for these sigmas (builtin.ReferenceNoise.for_rows, in
+    place of any earlier one) and theta to match (its values start at 0)."""
+    from calib.effects import EffectModel
+    from calib.effects.builtin import ReferenceNoise
+
+    kept = [e for e in getattr(model, "effects", []) if not isinstance(e, ReferenceNoise)]
+    n_kept = EffectModel(robot, kept).n_params if kept else 6
+    new = EffectModel(robot, [*kept, ReferenceNoise.for_rows(sigma, windows, ref_size)])
+    return new, np.r_[theta[:n_kept], np.zeros(new.n_params - n_kept)]
+
+
 def solve_run(
     robot: Robot,
     run: Any,
@@ -448,8 +461,9 @@ def solve_run(
             spans = [(ref_win.slice, res.theta[:6])] + [
                 (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
             noise = pose_free_noise(model, sig, spans, ref, res.theta, base).noise
+            model, theta = _with_reference_noise(robot, model, res.theta, noise.sigma, meas.windows, ref_win.size)
             problem = Problem(model, meas, noise.sigma)
-            res = levenberg_marquardt(problem, res.theta, res.poses, max_iter=max_iter)
+            res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
     t_end = time.perf_counter()
     if max_iter == 0 and np.isfinite(res.cost):  # the guess is a solution already (a converged fit's)
         res.converged, res.message = True, "the given solution, not iterated"
