@@ -703,7 +703,8 @@ def _pair_step(current: Fit, pred_now: Prediction, ranked: list[Candidate], effe
 
 
 def _step(f: Fit, pred: Prediction, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
-    out = {"effects": [n for n in f.names if n not in (DeviceAccuracy.name, ReferenceNoise.name)], "chi2": float(f.chi2), "dof": int(f.dof),
+    base = (DeviceAccuracy.name, ReferenceNoise.name)
+    out = {"effects": [n for n in f.names if n not in base], "chi2": float(f.chi2), "dof": int(f.dof),
            "cv_chi2": pred.total, "converged": bool(f.converged),
            "initial_pose": [float(v) for v in f.theta[:6]],
            "params": {e: {k: _num(v) for k, v in p.items()} for e, p in f.params().items()}}
