@@ -839,9 +839,8 @@ def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: in
     else:
         sigma, source = noise_levels(robot, noise, sig, sol.windows)
     reference = None
-    if noise in ("estimate", "accuracy"):  # the noise of window means: the reference's is one of them
-        ref_win = next(w for w in sol.windows if w.first <= sol.reference_sample <= w.last)
-        reference = ReferenceNoise.for_rows(sigma, meas.windows, ref_win.size)
+    if noise in ("estimate", "accuracy") and sol.reference_noise:  # the solve's: the same priors in every fit
+        reference = ReferenceNoise(**sol.reference_noise)
     return RunRows(robot, meas, sigma, source, sol, reference)
 
 
