@@ -272,14 +272,21 @@ def html_report(diag: Diagnosis, pngs: Sequence[str | Path], title: str = "cdpr 
 
 
 def device_errors_line(robot, dev: dict[str, float]) -> str:
-    """The devices' fitted constant errors against their datasheet bounds (load cells N, AHRS deg); an error
-    outside its bound is named with how many times the bound it is: the base model does not hold there."""
+    """The devices' fitted constant errors against their datasheet bounds (load cells N, AHRS tilt deg, AHRS
+    yaw drift deg/h); an error outside its bound is named with how many times the bound it is: the base
+    model does not hold there."""
+    from calib.effects.builtin import YAW_RATE_BOUND
+
     sn = robot.sensors
     parts, outside = [], []
     for k, v in dev.items():
-        angle = k.endswith(("roll", "pitch"))
-        bound = sn.ahrs_roll_pitch_accuracy if angle else sn.load_cell_uncertainty
-        val, b, unit = (math.degrees(v), math.degrees(bound), "deg") if angle else (v, bound, "N")
+        if k == "yaw_rate":
+            bound, factor, unit = YAW_RATE_BOUND, math.degrees(1.0) * 3600.0, "deg/h"
+        elif k.endswith(("roll", "pitch")):
+            bound, factor, unit = sn.ahrs_roll_pitch_accuracy, math.degrees(1.0), "deg"
+        else:
+            bound, factor, unit = sn.load_cell_uncertainty, 1.0, "N"
+        val, b = v * factor, bound * factor
         parts.append(f"{k}={val:.3g} {unit}")
         if abs(v) > bound:
             outside.append(f"{k} = {val:.3g} {unit} is {abs(v) / bound:.0f}x its datasheet bound +-{b:.3g} {unit}")

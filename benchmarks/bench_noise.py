@@ -82,7 +82,9 @@ def main() -> int:
             print(f"{c}: no run finished")
             ok = False
             continue
-        inside = sum(stats.chi2.ppf(0.005, r["dof"]) <= r["chi2"] <= stats.chi2.ppf(0.995, r["dof"]) for r in rs)
+        below = sum(r["chi2"] < stats.chi2.ppf(0.005, r["dof"]) for r in rs)
+        above = sum(r["chi2"] > stats.chi2.ppf(0.995, r["dof"]) for r in rs)
+        inside = len(rs) - below - above
         zs = np.array([np.divide(r["err"], r["sigma"]) for r in rs])
         rms = float(np.sqrt(np.mean(zs**2)))
         per_axis = np.sqrt(np.mean(zs**2, axis=0))
@@ -91,7 +93,7 @@ def main() -> int:
         rms_ok = 0.8 <= rms <= 1.25
         ok &= band_ok and rms_ok and failed == 0
         print(f"{c:6s} {len(rs)} runs ({failed} failed): chi2 inside its 99% band in {inside}/{len(rs)} "
-              f"(target >= 95%) {'ok' if band_ok else 'MISSED'}; median chi2/dof "
+              f"(target >= 95%) {'ok' if band_ok else 'MISSED'} ({below} below, {above} above); median chi2/dof "
               f"{np.median([r['chi2'] / r['dof'] for r in rs]):.2f}")
         print(f"       rms(error/sigma) {rms:.2f} (x {per_axis[0]:.2f}, y {per_axis[1]:.2f}, z {per_axis[2]:.2f}; "
               f"target 0.8-1.25) {'ok' if rms_ok else 'MISSED'}; position error median {np.median(errs):.3f} mm, "

@@ -43,7 +43,7 @@ import numpy as np
 from scipy import stats
 
 from calib.effects import BUILTIN, Effect, EffectModel, Implausible, Projected
-from calib.effects.builtin import DeviceAccuracy
+from calib.effects.builtin import DeviceAccuracy, ReferenceNoise
 from calib.prediction import LEVEL, Prediction, leave_one_pose_out
 from calib.robot import Robot
 from calib.selfcal.lm import levenberg_marquardt
@@ -703,7 +703,8 @@ def _pair_step(current: Fit, pred_now: Prediction, ranked: list[Candidate], effe
 
 
 def _step(f: Fit, pred: Prediction, reference_pose: np.ndarray | None = None) -> dict[str, Any]:
-    out = {"effects": [n for n in f.names if n != DeviceAccuracy.name], "chi2": float(f.chi2), "dof": int(f.dof),
+    base = (DeviceAccuracy.name, ReferenceNoise.name)
+    out = {"effects": [n for n in f.names if n not in base], "chi2": float(f.chi2), "dof": int(f.dof),
            "cv_chi2": pred.total, "converged": bool(f.converged),
            "initial_pose": [float(v) for v in f.theta[:6]],
            "params": {e: {k: _num(v) for k, v in p.items()} for e, p in f.params().items()}}
@@ -812,6 +813,7 @@ class RunRows:
     sigma: dict[str, np.ndarray]
     source: str
     solution: Any
+    reference: Effect | None = None  # the reference window's noise (ReferenceNoise), in every fit
 
 
 def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: int = 1,
@@ -836,14 +838,18 @@ def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: in
         source = "accuracy"
     else:
         sigma, source = noise_levels(robot, noise, sig, sol.windows)
-    return RunRows(robot, meas, sigma, source, sol)
+    reference = None
+    if noise in ("estimate", "accuracy") and sol.reference_noise:  # the solve's: the same priors in every fit
+        reference = ReferenceNoise(**sol.reference_noise)
+    return RunRows(robot, meas, sigma, source, sol, reference)
 
 
 def base_fit(rows: RunRows, included: Sequence[Effect] = ()) -> Fit:
     """The diagnosis's base model on a run's rows: the devices' constant errors within their datasheet
     accuracy plus the included effects, started from the rigid solve."""
     sol = rows.solution
-    return fit(rows.robot, rows.meas, rows.sigma, [DeviceAccuracy(), *included], sol.theta[:6], sol.poses)
+    base = [DeviceAccuracy()] + ([rows.reference] if rows.reference is not None else [])
+    return fit(rows.robot, rows.meas, rows.sigma, [*base, *included], sol.theta[:6], sol.poses)
 
 
 def effect_chain(rows: RunRows, effects: Sequence[Effect]) -> list[Fit]:
@@ -869,6 +875,8 @@ def diagnose_run(
     from :func:`run_rows` (method tlse)."""
     rows = run_rows(run, noise)
     sol = rows.solution
+    if rows.reference is not None:  # the base model of base_fit: devices, the reference's noise, the included
+        included = [rows.reference, *included]
     return diagnose(rows.robot, rows.meas, rows.sigma, sol.theta[:6], sol.poses, candidates, included, alpha,
                     max_effects=max_effects, noise_source=rows.source, reference_pose=reference_pose,
                     reference_sample=sol.reference_sample)

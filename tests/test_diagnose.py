@@ -487,3 +487,15 @@ def test_cable_effects_are_not_selected_on_an_effect_free_run_nor_without_direct
     blind = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=1, max_effects=1)
     for name in ("pulley_friction", "loadcell_hysteresis"):
         assert next(c for c in blind.ranking if c.effect == name).score_dof == 0
+
+
+def test_device_errors_line_gives_the_yaw_drift_in_degrees_per_hour_against_the_gyro_bound():
+    """The AHRS's yaw drift is reported in deg/h against the MTi-630's 8 deg/h (sc_8_final fits ~32 deg/h)."""
+    from acquisition.diagnose_report import device_errors_line
+
+    rate = np.radians(32.0) / 3600.0
+    line = device_errors_line(ROBOT, {"b_1": 0.05, "b_roll": np.radians(0.1), "yaw_rate": rate})
+    assert "yaw_rate=32 deg/h" in line and "b_roll=0.1 deg" in line and "b_1=0.05 N" in line
+    assert "yaw_rate = 32 deg/h is 4x its datasheet bound +-8 deg/h" in line
+    inside = device_errors_line(ROBOT, {"b_1": 0.05, "yaw_rate": rate / 8.0})
+    assert inside.startswith("devices' constant errors, fitted within their datasheet accuracy")

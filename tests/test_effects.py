@@ -208,7 +208,8 @@ def test_absolute_lengths_are_what_the_encoders_count():
 def test_device_accuracy_columns_and_its_prior_pseudo_readings():
     """The devices' constant errors compose with the other effects (exact columns), and each of their
     parameters adds one pseudo-reading (theta_j - 0) / sd_j, sd = accuracy / sqrt(3): the degrees of
-    freedom of a fit do not change."""
+    freedom of a fit do not change. The AHRS yaw drifts at a rate within the gyro's in-run bias stability
+    (8 deg/h): its column is the rows' time."""
     from calib.effects.builtin import DeviceAccuracy
     from calib.selfcal.problem import Measurements, Problem
 
@@ -217,19 +218,26 @@ def test_device_accuracy_columns_and_its_prior_pseudo_readings():
     theta = model.initial_params(POSES[2] + 0.01 * rng.standard_normal(6), _values(model, rng))
     _check_fd(model, theta, POSES)
     idx, mean, sd = model.priors()
-    assert idx.tolist() == list(range(12, 18)) and not mean.any()
+    assert idx.tolist() == list(range(12, 19)) and not mean.any()
     np.testing.assert_allclose(sd[:4], 0.0002 * 100 * 9.81 / np.sqrt(3))  # 0.113 N
-    np.testing.assert_allclose(sd[4:], np.radians(0.2) / np.sqrt(3))
+    np.testing.assert_allclose(sd[4:6], np.radians(0.2) / np.sqrt(3))
+    np.testing.assert_allclose(sd[6], np.radians(8.0) / 3600 / np.sqrt(3))  # 2.24e-5 rad/s
+    times = np.array([12.0, 30.0, 47.5, 61.0])
+    with_t = model.predict(POSES, theta, ("orientation",), times)["orientation"]
+    without = model.predict(POSES, theta, ("orientation",))["orientation"]
+    np.testing.assert_allclose(with_t.value[:, 2] - without.value[:, 2], theta[18] * times)
+    np.testing.assert_allclose(with_t.d_theta[:, 2, 18], times)
+    assert not without.d_theta[:, :, 18].any()
     k, n = POSES.shape[0], ROBOT.n
     meas = Measurements(np.full((k, n), 60.0), np.zeros((k, n)), np.zeros((k, n)), np.zeros((k, 3)),
                         np.full(n, 60.0), np.zeros(2))
     sigma = {"tension": 0.1, "length": 1e-4, "swivel": 1e-3, "orientation": np.array([1e-3, 1e-3, 1e-2])}
     with_p, without = Problem(model, meas, sigma), Problem(EffectModel(ROBOT, model.effects[:2]), meas, sigma)
-    assert with_p.n_residuals == without.n_residuals + 6
+    assert with_p.n_residuals == without.n_residuals + 7
     ev = with_p.evaluate(theta, POSES)
-    np.testing.assert_allclose(ev.r0[-6:], theta[12:] / sd)
-    np.testing.assert_allclose(ev.g0[-6:, 12:], np.diag(1.0 / sd))
-    assert not ev.g0[-6:, :12].any()
+    np.testing.assert_allclose(ev.r0[-7:], theta[12:] / sd)
+    np.testing.assert_allclose(ev.g0[-7:, 12:], np.diag(1.0 / sd))
+    assert not ev.g0[-7:, :12].any()
 
 
 def test_yaw_drift_column_is_the_row_time_and_needs_times():
@@ -296,3 +304,31 @@ def test_cable_effects_change_readings_as_their_physics_says():
     # the sag lengthens the path by (rho g)^2 lc h^2 / (24 tau^2): tenths of a mm at 0.05 kg/m, 30-170 N
     sag = (0.05 * ROBOT.gravity) ** 2 * terms.m / (24 * (tau + 0.05 * terms.tw) ** 2)
     assert 1e-6 < sag.max() < 1e-3, sag.max()
+
+
+def test_reference_noise_shifts_every_row_of_a_relative_channel_by_one_value_per_cable():
+    """The reference window's noise is one offset per cable in lengths and swivel angles and one in yaw,
+    the same in every row (exact columns), with priors of the reference mean's sigma: the rows' sigma
+    scaled by sqrt(harmonic-mean window size / reference window size)."""
+    from calib.effects.builtin import DeviceAccuracy, ReferenceNoise
+
+    sigma = {"tension": np.full(4, 0.1), "length": np.full(4, 4e-5), "swivel": np.full(4, 1e-5),
+             "orientation": np.array([1e-4, 1e-4, 2e-4])}
+    windows = np.array([[0, 19], [30, 59], [70, 89]])  # 20, 30 and 20 samples: harmonic mean 22.5
+    rn = ReferenceNoise.for_rows(sigma, windows, ref_size=90)
+    assert rn.sd["length"] == pytest.approx(4e-5 * np.sqrt(22.5 / 90))
+    assert rn.sd["swivel"] == pytest.approx(1e-5 * 0.5) and rn.sd["yaw"] == pytest.approx(2e-4 * 0.5)
+    model = EffectModel(ROBOT, [DeviceAccuracy(), rn])
+    rng = np.random.default_rng(5)
+    values = np.r_[np.zeros(7), 3e-5 * rng.standard_normal(4), 1e-5 * rng.standard_normal(4), 4e-4]
+    theta = model.initial_params(POSES[1], values)
+    _check_fd(model, theta, POSES)
+    base = EffectModel(ROBOT, [DeviceAccuracy()]).predict(POSES, theta[:13], CHANNELS)
+    pred = model.predict(POSES, theta, CHANNELS)
+    np.testing.assert_allclose(pred["length"].value - base["length"].value, np.tile(values[7:11], (4, 1)))
+    np.testing.assert_allclose(pred["swivel"].value - base["swivel"].value, np.tile(values[11:15], (4, 1)))
+    np.testing.assert_allclose(pred["orientation"].value[:, 2] - base["orientation"].value[:, 2], 4e-4)
+    np.testing.assert_allclose(pred["tension"].value, base["tension"].value)
+    idx, _, sd = model.priors()
+    assert idx.tolist() == list(range(6, 6 + 7 + 9))
+    np.testing.assert_allclose(sd[7:], [rn.sd["length"]] * 4 + [rn.sd["swivel"]] * 4 + [rn.sd["yaw"]])

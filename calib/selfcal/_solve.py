@@ -13,7 +13,7 @@ from calib.equilibrium import default_guess, direct_statics
 from calib.robot import NoiseLevels, Robot
 from calib.selfcal.lm import levenberg_marquardt, solve_poses
 from calib.selfcal.model import CHANNELS, MeasurementModel
-from calib.selfcal.noise import pose_free_noise, window_mean_noise
+from calib.selfcal.noise import pose_free_noise, shrunk_sigma, variance_factors, window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, compare_pose
 from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_windows
@@ -21,6 +21,7 @@ from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_wi
 METHODS = ("tlse", "lse", "hybrid")
 NOISE = ("paper", "estimate", "sensors")
 REFINE = 2  # estimate-noise solves: pose-free kinematic noise at the solution, then the solve again, twice
+VCE_ROUNDS_ROWS = 4  # then variance-component rounds on the window means (noise.shrunk_sigma; settles in 2-3)
 SIGNALS = ("t", "tau", "dl", "dsigma", "roll", "pitch", "dyaw")
 # the smallest motion that sets a direction: a cable's friction in its pulleys reverses once the rope has
 # slid, i.e. after more than its elastic pre-sliding stretch (a few N of friction over EA / l ~ 20 kN/m:
@@ -418,6 +419,19 @@ def prepare(
                     (t_start, t_rows, time.perf_counter()))
 
 
+def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[str, np.ndarray],
+                          windows: np.ndarray | None, ref_size: int):
+    """The model with the reference window's noise for these sigmas (builtin.ReferenceNoise.for_rows, in
+    place of any earlier one) and theta to match (its values start at 0)."""
+    from calib.effects import EffectModel
+    from calib.effects.builtin import ReferenceNoise
+
+    kept = [e for e in getattr(model, "effects", []) if not isinstance(e, ReferenceNoise)]
+    n_kept = EffectModel(robot, kept).n_params if kept else 6
+    new = EffectModel(robot, [*kept, ReferenceNoise.for_rows(sigma, windows, ref_size)])
+    return new, np.r_[theta[:n_kept], np.zeros(new.n_params - n_kept)]
+
+
 def solve_run(
     robot: Robot,
     run: Any,
@@ -448,8 +462,21 @@ def solve_run(
             spans = [(ref_win.slice, res.theta[:6])] + [
                 (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
             noise = pose_free_noise(model, sig, spans, ref, res.theta, base).noise
+            model, theta = _with_reference_noise(robot, model, res.theta, noise.sigma, meas.windows, ref_win.size)
             problem = Problem(model, meas, noise.sigma)
-            res = levenberg_marquardt(problem, res.theta, res.poses, max_iter=max_iter)
+            res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
+        # the within-window sigmas bound each group's noise of a mean from above (they include motion the
+        # means average out, e.g. the force control's ripple, and the share the rows' poses absorb): where
+        # the window means scatter less around the fit, variance components bring them down, never up; the
+        # reference's noise keeps its within-window prior (the fit cannot see the reference's own error)
+        within = noise.sigma
+        for _ in range(VCE_ROUNDS_ROWS):
+            shrunk = shrunk_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses))
+            if shrunk is None:
+                break
+            model, theta = _with_reference_noise(robot, model, res.theta, within, meas.windows, ref_win.size)
+            problem = Problem(model, meas, shrunk)
+            res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
     t_end = time.perf_counter()
     if max_iter == 0 and np.isfinite(res.cost):  # the guess is a solution already (a converged fit's)
         res.converged, res.message = True, "the given solution, not iterated"
@@ -502,4 +529,5 @@ def solve_run(
         effects=effects,
         reference=comparison,
         window_search=search,
+        reference_noise=next((dict(e.sd) for e in getattr(model, "effects", []) if e.name == "reference_noise"), None),
     )

@@ -258,3 +258,72 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     sigma_out["swivel"] = np.full(n, groups["swivel"].mean)
     sigma_out["orientation"] = np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean])
     return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, stuck)
+
+
+VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")
+VCE_MIN_REDUNDANCY = 5.0  # a group with fewer degrees of freedom keeps its within-window sigma
+VCE_SETTLED = 0.98  # a factor above this is 1: nothing left to shrink
+
+
+def variance_factors(problem, theta: np.ndarray, poses: np.ndarray) -> dict[str, tuple[float, float]]:
+    """Per channel group (tensions, lengths, swivel angles, roll and pitch, yaw; the reference row's tensions
+    and roll/pitch count with their group), Helmert's variance factor of the window means at a solution and
+    the group's redundancy: sum r_i^2 / sum (1 - h_ii) of the weighted residuals r, h the hat matrix of the
+    whitened fit over theta and every pose (dense: a few hundred rows). 1 when the group's sigma is what its
+    rows scatter by around the fitted model."""
+    ev = problem.evaluate(theta, poses)
+    k, p = poses.shape[0], theta.size
+    n = problem.model.robot.n
+    res, rows, labels = [], [], []
+    for g, r, J, G in ev.groups:
+        m = g.idx.size
+        full = np.zeros((m, r.shape[1], p + 6 * k))
+        full[..., :p] = G
+        full[np.arange(m)[:, None], :, p + 6 * g.idx[:, None] + np.arange(6)[None, :]] = J.transpose(0, 2, 1)
+        names = []
+        for c in g.channels:
+            names += ["tilt", "tilt", "yaw"] if c == "orientation" else [c] * n
+        keep = g.weight > 0
+        res.append(r[keep])
+        rows.append(full[keep])
+        labels.append(np.broadcast_to(np.array(names), r.shape)[keep])
+    ref: list[str] = []
+    for c in problem.ref_channels:
+        ref += [c] * n if c == "tension" else ["tilt", "tilt", "yaw"]
+    ref += ["prior"] * (ev.r0.size - len(ref))
+    g0 = np.zeros((ev.r0.size, p + 6 * k))
+    g0[:, :p] = ev.g0
+    keep0 = np.r_[problem.ref_weight > 0, np.ones(ev.r0.size - problem.ref_weight.size, bool)]
+    res.append(ev.r0[keep0])
+    rows.append(g0[keep0])
+    labels.append(np.array(ref)[keep0])
+    r, lab = np.concatenate(res), np.concatenate(labels)
+    q, _ = np.linalg.qr(np.vstack(rows))
+    red = 1.0 - np.sum(q * q, axis=1)
+    out = {}
+    for c in VCE_GROUPS:
+        m = lab == c
+        if m.any():
+            out[c] = (float(np.sum(r[m] ** 2) / max(float(np.sum(red[m])), 1e-12)), float(np.sum(red[m])))
+    return out
+
+
+def shrunk_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float, float]]) -> dict[str, np.ndarray] | None:
+    """The sigmas with every group whose rows scatter less than its sigma says (factor < VCE_SETTLED, with at
+    least VCE_MIN_REDUNDANCY degrees of freedom) scaled by sqrt(factor); never scaled up: a group that
+    scatters more keeps its within-window sigma, so that a misfit shows in chi2 instead of being taken for
+    noise. None when nothing changes."""
+    out = {c: np.array(v, float) for c, v in sigma.items()}
+    changed = False
+    for c, (f, red) in factors.items():
+        if red < VCE_MIN_REDUNDANCY or f >= VCE_SETTLED:
+            continue
+        s = math.sqrt(max(f, 1e-6))
+        if c == "tilt":
+            out["orientation"][:2] *= s
+        elif c == "yaw":
+            out["orientation"][2] *= s
+        else:
+            out[c] = out[c] * s
+        changed = True
+    return out if changed else None

@@ -96,6 +96,7 @@ class Solution:
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
     reference: ReferenceComparison | None = None
     window_search: WindowSearch | None = None
+    reference_noise: dict[str, float] | None = None  # priors of the reference window's noise (m, rad, rad)
 
     def to_json(self) -> dict[str, Any]:
         """The `cdpr solve --json` object of spec/cli.md (plus a few extra keys)."""
@@ -131,6 +132,8 @@ class Solution:
                 "thresholds": {c: [float(v) for v in x] for c, x in ws.thresholds.items()},
                 "ripple_tol": float(ws.ripple_tol),
             }
+        if self.reference_noise is not None:
+            out["reference_noise"] = {k: float(v) for k, v in self.reference_noise.items()}
         if self.reference is not None:
             out["reference"] = {
                 "eps_p": self.reference.eps_p,
