@@ -79,3 +79,34 @@ def test_a_reading_on_its_counts_is_floored_at_its_resolution():
     wn = window_mean_noise(ROBOT, sig, wins)
     assert wn.sigma["swivel"][0] == pytest.approx(resolution_floor(ROBOT)["swivel"][0])
     assert wn.sigma["swivel"][0] == pytest.approx(2 * math.pi / 65536 / math.sqrt(12))
+
+
+def test_variance_factors_measure_the_rows_scatter_and_only_shrink_the_sigmas():
+    """Window means with known white noise (27 simulated equilibria): weighed with twice their sigma, each
+    group's Helmert factor is near 1/4 and shrunk_sigma halves it; weighed with half, the factors are near 4
+    and nothing is scaled up (a misfit must stay in chi2)."""
+    from calib.selfcal.lm import levenberg_marquardt
+    from calib.selfcal.model import MeasurementModel
+    from calib.selfcal.noise import shrunk_sigma, variance_factors
+    from calib.selfcal.problem import Problem
+    from sim_backend.config import sim_config_from_dict
+    from sim_backend.equilibrium_rows import simulated_rows
+
+    rows = simulated_rows(ROBOT, sim_config_from_dict({}), seed=4, grid=3, device_biases=False)
+    model = MeasurementModel(ROBOT)
+    for scale, expect in ((2.0, 0.25), (0.5, 4.0)):
+        sigma = {c: scale * np.asarray(v, float) for c, v in rows.sigma.items()}
+        problem = Problem(model, rows.meas, sigma)
+        res = levenberg_marquardt(problem, rows.zeta0.copy(), rows.poses.copy())
+        fac = variance_factors(problem, res.theta, res.poses)
+        for group in ("tension", "length", "swivel", "tilt"):
+            f, red = fac[group]
+            assert red > 12 and expect / 1.6 < f < expect * 1.6, (scale, group, f, red)
+        dof = problem.n_residuals - model.n_params - 6 * rows.meas.k
+        assert sum(red for _, red in fac.values()) == pytest.approx(dof, abs=0.5)
+        shrunk = shrunk_sigma(sigma, fac)
+        if expect < 1:
+            assert shrunk["tension"][0] == pytest.approx(sigma["tension"][0] * math.sqrt(fac["tension"][0]))
+            assert shrunk["orientation"][0] < sigma["orientation"][0]
+        else:
+            assert shrunk is None
