@@ -48,7 +48,6 @@ from calib.prediction import LEVEL, Prediction, leave_one_pose_out
 from calib.robot import Robot
 from calib.selfcal.lm import levenberg_marquardt
 from calib.selfcal.model import CHANNELS
-from calib.selfcal.noise import window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 
 OVERLAP = 0.95  # share of an explained direction another candidate must reproduce to be a confusion
@@ -795,14 +794,6 @@ def pose_error(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(np.asarray(a, float)[:3] - np.asarray(b, float)[:3]))
 
 
-def window_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> dict[str, np.ndarray]:
-    """Per channel, the standard deviation of a window mean (:func:`calib.selfcal.window_mean_noise`: the
-    run's own noise with its correlation in time, floored at the sensors' resolution, not at their accuracy
-    class: a constant error within the accuracy class (a load-cell offset, an AHRS tilt) is carried by
-    DeviceAccuracy in every fit, and what exceeds it is what the diagnosis must be able to reveal)."""
-    return window_mean_noise(robot, sig, windows).sigma
-
-
 @dataclass
 class RunRows:
     """What both the diagnosis and ``cdpr solve --effects`` fit on a run: the rows of a method's windows,
@@ -819,7 +810,8 @@ class RunRows:
 def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: int = 1,
              reference_sample: int | None = None) -> RunRows:
     """The rows, noise and start of a run: the windows, rows and initial guess are those of
-    ``calib.selfcal.solve(method)``; noise ``estimate`` is :func:`window_noise`, ``accuracy`` that noise
+    ``calib.selfcal.solve(method)``; noise ``estimate`` is that solve's (the noise of window means,
+    calib.selfcal.noise, with its refinements and the reference window's noise), ``accuracy`` that noise
     floored at the sensors' accuracy class, ``paper`` (eq. 18) and ``sensors`` as in solve."""
     from calib.selfcal import measurement_rows, noise_levels, run_signals, sensor_noise, solve
 
@@ -846,7 +838,8 @@ def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: in
 
 def base_fit(rows: RunRows, included: Sequence[Effect] = ()) -> Fit:
     """The diagnosis's base model on a run's rows: the devices' constant errors within their datasheet
-    accuracy plus the included effects, started from the rigid solve."""
+    accuracy, the reference window's noise (with the estimate-noise solve's priors) and the included
+    effects, started from the rigid solve."""
     sol = rows.solution
     base = [DeviceAccuracy()] + ([rows.reference] if rows.reference is not None else [])
     return fit(rows.robot, rows.meas, rows.sigma, [*base, *included], sol.theta[:6], sol.poses)
