@@ -426,7 +426,7 @@ class ReferenceNoise(Effect):
     any window mean's, is in every row at once: row reading = model + d, d = -e, one value per cable and
     relative channel. Carried as parameters with a Gaussian prior of the reference mean's sigma, it widens
     the initial pose's sigma by what the reference contributes instead of letting that error pass for
-    information (on effect-free simulated runs with a slow sway it was half the initial position's error).
+    information (on effect-free simulated runs with a slow sway it made most of the initial position's error).
     Not a candidate effect: the estimate-noise solve and the diagnosis keep it in every fit of a run
     (:meth:`for_rows`); rows without a reference window (equilibrium rows given directly) have none."""
 

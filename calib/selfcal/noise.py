@@ -24,6 +24,11 @@ estimate pools every still window:
 The row weights take one sigma per channel, that of a window of the harmonic mean size of the windows used
 (variances go as 1/N). Constant per-device errors within the datasheet accuracy (a load-cell offset, an AHRS
 tilt) are not noise of a mean: the solve and the diagnosis carry them as parameters with priors.
+
+At a solution the estimate is refined (calib.selfcal.solve, noise 'estimate'): :func:`pose_free_noise` takes the
+platform's motion out of the kinematic groups, and :func:`variance_factors` / :func:`shrunk_sigma` bring a
+group down to what its window means scatter by around the fit (never up). The reference window's own noise,
+which every relative row carries at once, is a parameter with a prior (calib.effects.builtin.ReferenceNoise).
 """
 
 from __future__ import annotations
