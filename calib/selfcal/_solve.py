@@ -34,18 +34,21 @@ def approach_directions(x: np.ndarray, at: np.ndarray, threshold: float) -> np.n
     """Per sample index in ``at`` (m,) and channel, the sign of the last change of x (N, c) larger than
     ``threshold`` before that sample: sign(x[at] - x[j]) for the latest j < at with |x[at] - x[j]| >
     threshold; 0 where x never moved that much. (m, c)."""
-    out = np.zeros((at.shape[0], x.shape[1]))
-    for m, i in enumerate(np.asarray(at, int)):
-        todo = np.ones(x.shape[1], bool)
-        stop = i + 1
-        while todo.any() and stop > 0:  # backwards in blocks: the last large change is usually near
-            start = max(0, stop - 256)
-            d = x[i] - x[start:stop]  # (block, c)
-            big = np.abs(d) > threshold
-            for c in np.flatnonzero(todo & big.any(axis=0)):
-                out[m, c] = np.sign(d[np.flatnonzero(big[:, c])[-1], c])
-                todo[c] = False
-            stop = start
+    at = np.asarray(at, int)
+    m, c = at.shape[0], x.shape[1]
+    out = np.zeros((m, c))
+    todo = np.ones((m, c), bool)
+    block = 128  # backwards in blocks, every sample and channel at once: the last large change is usually near
+    for lag0 in range(1, int(at.max(initial=0)) + 1, block):
+        j = at[:, None] - np.arange(lag0, lag0 + block)[None, :]  # (m, block), latest first
+        d = x[at][:, None, :] - x[np.maximum(j, 0)]  # (m, block, c)
+        big = (np.abs(d) > threshold) & (j >= 0)[..., None] & todo[:, None, :]
+        hit = big.any(axis=1)
+        first = big.argmax(axis=1)[:, None, :]  # the smallest lag: the latest such j
+        out[hit] = np.sign(np.take_along_axis(d, first, axis=1)[:, 0, :])[hit]
+        todo &= ~hit
+        if not todo.any():
+            break
     return out
 
 
@@ -167,7 +170,9 @@ def measurement_rows(
     static_ref = ref_win is not None and method != "lse"
     # the directions the cables last moved (and their loads last changed) before each row's window starts
     starts = np.array([a if a >= 0 else b for (a, _), b in zip(spans, samples, strict=True)])
-    ref_start = np.array([ref_win.first if ref_win is not None else int(ref_sample)])
+    at = np.r_[starts, ref_win.first if ref_win is not None else int(ref_sample)]  # the rows', then the reference's
+    length_dir = approach_directions(sig["dl"], at, APPROACH_LENGTH)
+    load_dir = approach_directions(sig["tau"], at, APPROACH_TENSION)
     meas = Measurements(
         tau=np.array(rows_tau),
         dl=np.array(rows_dl) - ref["dl"],
@@ -178,10 +183,10 @@ def measurement_rows(
         samples=np.array(samples),
         times=sig["t"][np.array(samples)] - sig["t"][int(ref_sample)],
         windows=np.array(spans),
-        approach=approach_directions(sig["dl"], starts, APPROACH_LENGTH),
-        load_approach=approach_directions(sig["tau"], starts, APPROACH_TENSION),
-        ref_approach=approach_directions(sig["dl"], ref_start, APPROACH_LENGTH)[0],
-        ref_load_approach=approach_directions(sig["tau"], ref_start, APPROACH_TENSION)[0],
+        approach=length_dir[:-1],
+        load_approach=load_dir[:-1],
+        ref_approach=length_dir[-1],
+        ref_load_approach=load_dir[-1],
     )
     return meas, int(ref_sample), ref_win, ref, win_of
 
