@@ -137,6 +137,27 @@ def test_authors_optimum_is_reached(irma_data, robot):
     assert np.abs(sol.poses.ravel() - xs[6:]).max() < 1e-4
 
 
+def test_lm_stops_within_its_a_posteriori_sigma_tolerance(irma_data, robot):
+    """The stop on the Gauss-Newton step (1e-3 a-posteriori sigmas) saves evaluations on sc_8_final and leaves
+    every unknown within 1e-3 of its sigma x sqrt(chi2/dof) of the fully converged solve (stol=0)."""
+    from calib.selfcal import prepare
+    from calib.selfcal.lm import levenberg_marquardt
+
+    pre = prepare(robot, _run_arrays(irma_data))
+    quick = levenberg_marquardt(pre.problem, pre.theta0, pre.poses0)
+    full = levenberg_marquardt(pre.problem, pre.theta0, pre.poses0, stol=0.0)
+    assert quick.converged and "Gauss-Newton" in quick.message
+    assert full.iterations - quick.iterations >= 2  # 6 -> 4 steps
+    dof = pre.problem.n_residuals - (pre.theta0.size + 6 * pre.poses0.shape[0])
+    scale = math.sqrt(2.0 * full.cost / dof)
+    sd_theta = np.sqrt(np.diag(full.cov_theta)) * scale
+    sd_poses = np.sqrt(np.diagonal(full.cov_poses, axis1=1, axis2=2)) * scale
+    assert np.abs(quick.theta - full.theta).max(initial=0) > 0  # it did stop early
+    assert np.all(np.abs(quick.theta - full.theta) <= 1e-3 * sd_theta)
+    assert np.all(np.abs(quick.poses - full.poses) <= 1e-3 * sd_poses)
+    assert quick.cost - full.cost <= 0.5e-6 * 2.0 * full.cost / dof + 1e-12
+
+
 def _run_arrays(folder):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
