@@ -13,7 +13,7 @@ from scipy.stats import chi2 as chi2_dist
 from acquisition.cli.args import parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import RunFormatError, read_run
-from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, solve
+from calib.selfcal import METHODS, MISFIT_P, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, solve
 
 SOLUTION_FILE = "solution.json"
 
@@ -117,16 +117,17 @@ def _too_few_windows_hint(run) -> str:
 
 def format_solution(sol: Solution) -> str:
     """A readable table of a solution."""
-    z, s = sol.initial_pose, sol.initial_pose_sigma
+    z, s, k = sol.initial_pose, sol.initial_pose_sigma, sol.sigma_scale
     lines = [
         f"method {sol.method}, {len(sol.poses) + 1} poses, reference sample {sol.reference_sample}, "
         f"noise {sol.noise_source}, {sol.iterations} iterations, {sol.timing['solve_s'] * 1000:.1f} ms",
-        "initial pose       value        1-sigma",
+        "initial pose       value        1-sigma" + (f"   x {k:.3g} (*)" if k > 1 else ""),
     ]
     for j, name in enumerate(("x [m]", "y [m]", "z [m]")):
-        lines.append(f"  {name:<14} {z[j]:>10.4f}  {s[j]:>10.4f}")
+        lines.append(f"  {name:<14} {z[j]:>10.4f}  {s[j]:>10.4f}" + (f"  {k * s[j]:>10.4f}" if k > 1 else ""))
     for j, name in enumerate(("roll [deg]", "pitch [deg]", "yaw [deg]")):
-        lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f}  {math.degrees(s[3 + j]):>10.3f}")
+        scaled = f"  {math.degrees(k * s[3 + j]):>10.3f}" if k > 1 else ""
+        lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f}  {math.degrees(s[3 + j]):>10.3f}{scaled}")
     off = sol.sensor_offsets
     lines.append("sensor offsets (absolute = offset + reading)")
     lines.append("  length [m]     " + "  ".join(f"{v:.4f}" for v in off["length"]))
@@ -135,11 +136,14 @@ def format_solution(sol: Solution) -> str:
     lines.extend(format_windows(sol))
     lines.append(f"chi2 {sol.chi2:.1f} on {sol.dof} dof")
     p = chi2_dist.sf(sol.chi2, sol.dof) if sol.dof > 0 else 1.0
-    if sol.noise_source in ("estimate", "sensors") and p < 1e-3:
+    if sol.noise_source in ("estimate", "sensors") and p < MISFIT_P:
         lines.append(f"the model does not fit these readings within their own noise (p = "
                      f"{p:.2g}): the 1-sigma bounds hold only for a model that does; "
                      "`cdpr diagnose RUN` says where it fails and what is missing, and --noise paper weighs the "
                      "channels by the errors the paper expects of the rigid model (eq. 18)")
+    if k > 1:
+        lines.append(f"(*) the 1-sigma times sqrt(chi2/dof) = {k:.3g}, the misfit counted as noise: the order of "
+                     "the error it leaves; a model error is not noise, so even these bounds can be too narrow")
     lines.append("residuals          rms (SI)   rms/sigma")
     for c, d in sol.residuals.items():
         lines.append(f"  {c:<14} {d['rms']:>10.4g}  {d['rms_normalized']:>10.3f}")

@@ -54,12 +54,14 @@ from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel, c
 from calib.selfcal.noise import ChannelNoise, WindowNoise, resolution_floor, window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import (
+    MISFIT_P,
     ReferenceComparison,
     SelfCalFailure,
     SelfCalInputError,
     Solution,
     TooFewWindows,
     compare_pose,
+    sigma_scale,
 )
 from calib.selfcal.windows import (
     MissingSetpoint,
@@ -72,6 +74,8 @@ from calib.selfcal.windows import (
 )
 
 __all__ = [
+    "MISFIT_P",
+    "sigma_scale",
     "ChannelNoise",
     "WindowNoise",
     "resolution_floor",
