@@ -33,7 +33,10 @@ from acquisition.runlog import RunWriter
 from acquisition.safety import SafeStop, SafetyLimits, SafetySupervisor
 from acquisition.trajectory import TensionTrajectory
 from calib.design import (
+    LOOP_POSE_NOISE,
+    OnlineEstimate,
     OnlineSolve,
+    PoseNoise,
     SequentialDesign,
     TimeModel,
     WindowMean,
@@ -130,12 +133,13 @@ class Plan:
     @classmethod
     def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05,
                   plan: str = "grid", poses: int = 8, tolerance: float | None = None,
-                  noise: dict[str, np.ndarray] | None = None, step: float = 0.1,
+                  noise: dict[str, np.ndarray] | PoseNoise | None = None, step: float = 0.1,
                   time_model: TimeModel | None = None) -> Plan:
         """The grid plan, the A-optimal plan of ``poses`` poses (``plan='optimal'``) or a sequential plan
         that stops at ``tolerance`` m (``plan='sequential'``, at most ``poses`` poses); candidates every
-        ``step`` m of the static workspace, ``noise`` the window-mean sigma (default
-        :func:`calib.design.loop_noise`), ``time_model`` the robot time the sequential choice weighs
+        ``step`` m of the static workspace, ``noise`` the window-mean sigma, per channel or per pose (default
+        the loop's per pose, :data:`calib.design.LOOP_POSE_NOISE`), ``time_model`` the robot time the
+        sequential choice weighs
         (default :class:`calib.design.TimeModel`). Raises ``calib.planning.PlanningError``."""
         from calib.planning import PlanningError, kinematic_path, plan_poses
 
@@ -150,7 +154,7 @@ class Plan:
         if plan == "grid":
             g = plan_poses(robot, grid)
             return cls(g.setpoints, g.poses, g.tau0)
-        noise = noise or loop_noise(robot)
+        noise = noise or LOOP_POSE_NOISE
         cands = candidates(robot, noise, step)
         if plan == "optimal":
             o = optimal_plan(robot, poses, noise, cands=cands)
@@ -163,7 +167,10 @@ class Plan:
             raise PlanningError(f"the tolerance {1000 * tolerance:g} mm cannot be reached: {k} poses of the static "
                                 f"workspace predict at best a 1-sigma of the initial position of "
                                 f"{1000 * reach:.3f} mm.")
-        seq = Sequential(SequentialDesign(cands, time_model or TimeModel()), float(tolerance), noise, poses)
+        pose_noise = noise if isinstance(noise, PoseNoise) else None
+        flat = loop_noise(robot) if pose_noise is not None else noise  # the online solve weighs its rows per channel
+        seq = Sequential(SequentialDesign(cands, time_model or TimeModel(), pose_noise=pose_noise), float(tolerance),
+                         flat, poses)
         return cls(np.empty((0, robot.n)), np.empty((0, 6)), cands.tau0, sequential=seq)
 
 
@@ -182,33 +189,59 @@ class StartupResult:
     sequential: dict[str, Any] | None = None
 
 
-MIN_NOISE_WINDOWS = 3  # windows (home + 2 poses) before the run's own noise estimate replaces the plan's
+MIN_RUN_SOLVE_ROWS = 2  # rows (poses after the reference) before the run's own solve gives the online estimate
 
 
-def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray, min_windows: int = MIN_NOISE_WINDOWS
-                     ) -> tuple[dict[str, np.ndarray] | None, dict[int, tuple], frozenset[int]]:
+def _signals(rows: list[tuple]) -> dict[str, np.ndarray]:
+    """The run's arrays from the rows logged so far (each a :meth:`StartupRoutine._row` tuple)."""
+    names = ("t", "tau", "tau_ref", "dl", "dsigma", "roll", "pitch", "dyaw")
+    return {name: np.array([r[i] for r in rows]) for i, name in enumerate(names)}
+
+
+def run_estimate(robot: Robot, rows: list[tuple], setpoints: np.ndarray, ideal_poses: np.ndarray,
+                 min_rows: int = MIN_RUN_SOLVE_ROWS) -> tuple[OnlineEstimate, dict[str, np.ndarray]] | None:
+    """What ``cdpr solve --noise estimate`` gives on the rows logged so far (``setpoints`` (k, n) N and
+    ``ideal_poses`` (k, 6) the plan's so far, as run.yaml holds them): the online estimate of a sequential
+    startup with the noise, the reference's noise and the device priors the final solve will have, and the
+    noise its rows were weighed with. Its theta and covariance are those of the planning model's parameters
+    (:func:`calib.design.planning_model`: zeta_0 and the devices' constant errors; the reference window's
+    noise marginalised out). None while the run holds fewer than ``min_rows`` rows or the solve fails."""
+    from types import SimpleNamespace
+
+    from calib.design import planning_model
+    from calib.selfcal import SelfCalFailure, SelfCalInputError, solve
+
+    run = SimpleNamespace(**_signals(rows), setpoints=np.asarray(setpoints, float),
+                          ideal_poses=np.asarray(ideal_poses, float))
+    try:
+        sol = solve(robot, run, noise="estimate")
+    except (SelfCalFailure, SelfCalInputError, np.linalg.LinAlgError):
+        return None
+    if sol.poses.shape[0] < min_rows:
+        return None
+    p = planning_model(robot).n_params
+    cov = sol.covariance[:p, :p]
+    est = OnlineEstimate(sol.theta[:p], sol.poses, cov, float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
+                         sol.iterations)
+    return est, {c: np.asarray(v, float) for c, v in sol.noise.items()}
+
+
+def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray
+                     ) -> tuple[dict[int, tuple], frozenset[int]]:
     """The equilibrium windows the solve's window search finds in the rows logged so far (each a
     :meth:`StartupRoutine._row` tuple; ``setpoints`` (k, n) N: tau0 and the setpoints visited), which
-    ``cdpr solve`` will use at the end: the sigma of a window mean per channel from them
-    (:func:`calib.selfcal.window_mean_noise`; None while fewer than ``min_windows`` still windows are found, a
-    few windows give a poor AR(1) estimate), per setpoint index found, the window's mean readings
-    (tau, dl, dsigma, roll/pitch/yaw), and the setpoint indices whose window is only a quasi window (the
-    stillest stretch: no still run long enough)."""
-    from calib.selfcal import search_windows, window_mean_noise
+    ``cdpr solve`` will use at the end: per setpoint index found, the window's mean readings (tau, dl, dsigma,
+    roll/pitch/yaw), and the setpoint indices whose window is only a quasi window (the stillest stretch: no
+    still run long enough)."""
+    from calib.selfcal import search_windows
 
-    sig = {"t": np.array([r[0] for r in rows]), "tau": np.array([r[1] for r in rows]),
-           "tau_ref": np.array([r[2] for r in rows]), "dl": np.array([r[3] for r in rows]),
-           "dsigma": np.array([r[4] for r in rows]), "roll": np.array([r[5] for r in rows]),
-           "pitch": np.array([r[6] for r in rows]), "dyaw": np.array([r[7] for r in rows])}
+    sig = _signals(rows)
     wins = search_windows(robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
                           sig["tau_ref"], setpoints).used
     ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
     means = {w.setpoint: (sig["tau"][w.slice].mean(0), sig["dl"][w.slice].mean(0), sig["dsigma"][w.slice].mean(0),
                           ori[w.slice].mean(0)) for w in wins if w.setpoint >= 0}
-    quasi = frozenset(w.setpoint for w in wins if w.quasi and w.setpoint >= 0)
-    if sum(not w.quasi for w in wins) < min_windows:
-        return None, means, quasi
-    return window_mean_noise(robot, sig, wins).sigma, means, quasi
+    return means, frozenset(w.setpoint for w in wins if w.quasi and w.setpoint >= 0)
 
 
 class StartupRoutine:
@@ -344,27 +377,34 @@ class StartupRoutine:
         first = self.writer.count if self.writer else 0
         steps = int(round(self.cfg.hold_time / self.period))
         self._held = []
-        noise, found = None, {}
+        noise, found = None, {}  # the run's own noise: from its own solve, once there is one (below)
         for extra in range(self.cfg.rehold + 1):
             for _ in range(steps):
                 self._tick(tau)
             if self.plan.sequential is None:
                 break
-            # the run's own noise and windows, for the online solve; a pose the window search finds only a
-            # quasi window for (the detector declared rest on a stretch the search does not call still) is held
-            # again, so that the online and the final solve never take a quasi window (above all as the reference)
-            noise, found, quasi = detected_windows(self.robot, self._log_rows,
-                                                   np.vstack([self.plan.tau0, self.plan.setpoints]))
+            # the run's windows, for the online solve; a pose the window search finds only a quasi window for
+            # (the detector declared rest on a stretch the search does not call still) is held again, so that
+            # the online and the final solve never take a quasi window (above all as the reference)
+            visited = np.vstack([self.plan.tau0, self.plan.setpoints])
+            found, quasi = detected_windows(self.robot, self._log_rows, visited)
             if setpoint < 0 or (setpoint + 1 in found and setpoint + 1 not in quasi):
                 break
             if extra < self.cfg.rehold:
                 self._rehold += 1
         rows, self._held = self._held, None
+        estimate = None
+        if self.plan.sequential is not None and setpoint >= 0:
+            # the run's own solve so far, as `cdpr solve --noise estimate` will make it at the end: its 1-sigma
+            # is the one the stop rule compares with the tolerance, its noise weighs the next choice
+            got = run_estimate(self.robot, self._log_rows, self.plan.setpoints, self.plan.ideal_poses)
+            if got is not None:
+                estimate, noise = got
         self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
-                                      np.mean([r[5:8] for r in rows], axis=0), noise))
+                                      np.mean([r[5:8] for r in rows], axis=0), noise, estimate))
         for k, m in found.items():  # the poses' windows as the final solve will see them (index 0: tau0)
             if 1 <= k < len(self._means):
-                self._means[k] = WindowMean(*m, self._means[k].noise)
+                self._means[k] = WindowMean(*m, self._means[k].noise, self._means[k].estimate)
         last = self.writer.count - 1
         self.writer.sync()
         return first, last

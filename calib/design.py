@@ -13,11 +13,13 @@ predicted covariance of theta; the position 1-sigma reported everywhere is
 ``sqrt(trace)`` of its position block (m), the root-mean-square length of the position error, which is
 what the A-optimal design minimises.
 
-Noise. The rows are means of equilibrium windows; every function takes their sigma as an argument. The plans
-are chosen with the startup loop's (:func:`loop_noise`, :data:`LOOP_NOISE`: measured on the simulated
-prototype with realistic noise); a sequential startup then uses the run's own estimate from the samples of
-its windows so far (:func:`calib.selfcal.window_mean_noise` on the equilibrium windows the final solve
-will use, once there are enough) for its solve, its stop rule and its next choice.
+Noise. The rows are means of equilibrium windows; every function takes their sigma as an argument, per
+channel or per pose (:class:`PoseNoise`). The plans are chosen with the startup loop's noise at each pose
+(:data:`LOOP_POSE_NOISE`; per channel, :data:`LOOP_NOISE`: both measured on the simulated prototype with
+realistic noise, as the run's own solve weighs its window means); a sequential startup then takes, once its
+own solve (``cdpr solve --noise estimate`` on the samples so far) has two rows, that solve's estimate and
+1-sigma for its stop rule and that solve's noise, with the loop's dependence on the pose, for its next
+choice.
 :func:`window_mean_noise` is the sensors' view: the per-sample sigma (SAMPLE_NOISE) over the square root
 of the samples in a window, as if the platform were still.
 
@@ -53,23 +55,22 @@ SAMPLE_NOISE = {
 }
 # sigma of one window mean per channel (N, m, rad) the plans are chosen with: the startup loop's, measured on
 # LOOP_RUNS grid startups of the simulated prototype with realistic noise (sim_backend/examples/rigid_sway.yaml,
-# seeds 0..19, benchmarks/loop_runs.py, 2026-11-25): per channel group the median over the runs of the run's
-# own estimate (calib.selfcal.window_mean_noise on the windows the solve uses, as ``cdpr solve --noise
-# estimate``: tensions 0.26 N, lengths 0.19 mm, swivels 0.85 mrad, roll and pitch 0.15 mrad, yaw 0.22 mrad;
-# lengths vary most between runs: 0.07-1.7 mm), times LOOP_SCALE, which makes the grid's predicted 1-sigma
-# equal the RMS error measured on those runs (0.716 mm; the median noise predicts 0.581 mm, the devices'
-# priors do not scale with the noise; that
-# solve's own printed 1-sigma is honest on these runs: RMS 0.753 mm). Printed, and checked within 5 %, by
+# seeds 0..19, benchmarks/loop_runs.py, 2026-11-25): per channel group the median over the runs of the noise
+# the run's own solve weighs its window means with in the end (``cdpr solve --noise estimate``: pose-free
+# kinematic noise, variance components on the window means, docs/effects.md): tensions 0.247 N, lengths
+# 0.044 mm, swivels 6.6 urad, roll and pitch 0.091 mrad, yaw 0.177 mrad, times LOOP_SCALE, which makes the
+# grid's predicted 1-sigma equal the RMS error measured on those runs (0.156 mm; the median noise predicts
+# 0.129 mm: the planning model leaves out the reference window's own noise, and the devices' priors do not
+# scale with the noise; that solve's own printed 1-sigma: RMS 0.135 mm). Printed, and checked within 5 %, by
 # ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
 LOOP_RUNS = 20
-LOOP_SCALE = 1.275
+LOOP_SCALE = 1.221
 LOOP_NOISE = {
-    "tension": 0.2608 * LOOP_SCALE,
-    "length": 1.851e-4 * LOOP_SCALE,
-    "swivel": 8.458e-4 * LOOP_SCALE,
-    "orientation": np.array([1.486e-4, 1.486e-4, 2.181e-4]) * LOOP_SCALE,
+    "tension": 0.2466 * LOOP_SCALE,
+    "length": 4.383e-5 * LOOP_SCALE,
+    "swivel": 6.569e-6 * LOOP_SCALE,
+    "orientation": np.array([9.095e-5, 9.095e-5, 1.769e-4]) * LOOP_SCALE,
 }
-
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,16 @@ class PoseNoise:
                                                         (k.shape[0], channel_width(c, robot.n)))**2
                                         + (self.force[c] / k)**2) for c in self.floor}
 
+    def matched(self, robot: Robot, stiffness: np.ndarray, noise: dict[str, np.ndarray]) -> PoseNoise:
+        """The same dependence on the pose, each channel scaled so that its root-mean-square over poses of
+        lateral stiffness ``stiffness`` (k,) N/m is ``noise`` (per channel, e.g. a run's own estimate there):
+        a run's noise level with the loop's shape."""
+        sig = self.sigma(robot, stiffness)
+        f = {c: np.broadcast_to(np.asarray(noise[c], float), sig[c].shape[1:]) / np.sqrt(np.mean(sig[c]**2, axis=0))
+             for c in sig}
+        return PoseNoise({c: np.asarray(self.floor[c], float) * f[c] for c in sig},
+                         {c: self.force[c] * f[c] for c in sig}, self.scale)
+
 
 def lateral_stiffness(robot: Robot, poses: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """Lateral stiffness of the platform held by tensions tau (k, n) N at poses (k, 6): sum tau_i / l_i, N/m."""
@@ -102,16 +113,17 @@ def lateral_stiffness(robot: Robot, poses: np.ndarray, tau: np.ndarray) -> np.nd
 
 # the startup loop's window-mean noise per pose (:class:`PoseNoise`), measured on the simulated prototype with
 # realistic noise (sim_backend/examples/rigid_sway.yaml, seeds 0..19, benchmarks/loop_runs.py, 2026-11-25):
-# floor and force per channel fitted to the median over the runs of each run's own window-mean sigma
-# (calib.selfcal.window_mean_noise, as ``cdpr solve --noise estimate``) of the 20 grid startups (lateral
-# stiffness 131 and 345 N/m) and the 20 A-optimal startups (165-497 N/m): lengths 0.185 and 0.075 mm,
-# swivels 0.85 and 0.69 mrad, tensions and roll/pitch/yaw the same for both plans; then ``scale`` makes the
+# floor and force per channel fitted to the median over the runs of the noise each run's own solve weighs its
+# window means with (``cdpr solve --noise estimate``) on the 20 grid startups (lateral stiffness 131 and
+# 345 N/m) and the 20 A-optimal startups: sigma^2 = floor^2 + force^2 / k^2 pooled over each plan's poses
+# (lengths: a 0.036 mm floor and 4.3 mN / k; swivels, roll, pitch and yaw: no floor); then ``scale`` makes the
 # grid's predicted 1-sigma (:func:`predict_loop`: the first pose's window is the reference, as in the run's
-# solve) equal the RMS error measured on its 20 startups (0.716 mm). The optimal plan's errors are not used.
+# solve) equal the RMS error measured on its 20 startups (0.156 mm). The optimal plan's errors are not used.
+# Printed, and checked within 5 %, by ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
 LOOP_POSE_NOISE = PoseNoise(
-    floor={"tension": 0.2608, "length": 0.0, "swivel": 5.64e-4, "orientation": np.array([1.73e-4, 1.73e-4, 2.2e-4])},
-    force={"tension": 0.0, "length": 0.0371, "swivel": 0.109, "orientation": 0.0},
-    scale=1.903,
+    floor={"tension": 0.2062, "length": 3.611e-5, "swivel": 0.0, "orientation": np.zeros(3)},
+    force={"tension": 23.39, "length": 4.29e-3, "swivel": 1.16e-3, "orientation": 0.02406},
+    scale=1.457,
 )
 
 
@@ -360,6 +372,7 @@ class SequentialDesign:
     lookahead: int = 24
     horizon: int = 6
     reference_first: bool = False  # the first pose's window is the reference: it adds no row (OnlineSolve)
+    pose_noise: PoseNoise | None = None  # how the noise the candidates were weighed with depends on the pose
     visited: np.ndarray = field(init=False)
     total: np.ndarray = field(init=False)
 
@@ -373,7 +386,13 @@ class SequentialDesign:
 
     def reweigh(self, robot: Robot, noise: dict[str, np.ndarray], zeta0: np.ndarray) -> None:
         """Weigh the candidates with ``noise`` (the run's own window-mean sigmas so far) at the current
-        estimate of zeta_0 from now on (about 0.05 s for 2300 candidates)."""
+        estimate of zeta_0 from now on (about 0.05 s for 2300 candidates). With a ``pose_noise`` (the noise's
+        dependence on the pose the candidates were chosen with), ``noise`` sets its level at the poses visited
+        so far (:meth:`PoseNoise.matched`) and the candidates keep their differences."""
+        if self.pose_noise is not None and self.visited.any():
+            at = np.flatnonzero(self.visited)
+            stiff = lateral_stiffness(robot, self.cands.poses[at], self.cands.setpoints[at])
+            noise = self.pose_noise.matched(robot, stiff, noise)
         info0, info = information(robot, self.cands.poses, zeta0, noise)
         self.cands = dataclasses.replace(self.cands, info=info, info0=info0)
         if not self.visited.any():
@@ -433,13 +452,17 @@ class WindowMean:
     """Mean readings of one equilibrium window: tensions (n,) N, length and swivel deltas (n,) m and rad,
     roll, pitch and yaw delta (3,) rad (deltas since the sensors were zeroed); ``noise``, when given, the
     sigma of a window mean per channel estimated from the run's samples so far
-    (:func:`calib.selfcal.window_mean_noise`), which the online solve and the next choice then use."""
+    (:func:`calib.selfcal.window_mean_noise`, or the noise the run's own solve weighed its rows with), which
+    the online solve and the next choice then use; ``estimate``, when given, the run's own solve with this
+    window (``cdpr solve --noise estimate`` on the samples so far, planning-model parameters), which the
+    online solve then takes as its estimate instead of solving the window means itself."""
 
     tau: np.ndarray
     dl: np.ndarray
     dsigma: np.ndarray
     orientation: np.ndarray
     noise: dict[str, np.ndarray] | None = None  # the run's window-mean sigmas from its samples so far
+    estimate: OnlineEstimate | None = None  # the run's own solve with this window, when it could be made
 
 
 @dataclass(frozen=True)
@@ -490,6 +513,14 @@ class OnlineSolve:
             self.theta = self.model.initial_params(np.asarray(pose_guess, float))
             return OnlineEstimate(self.theta, self.poses, None, math.inf, 0)
         self.rows.append(window)
+        if window.estimate is not None:  # the run's own solve: the final solve's noise, reference and windows
+            est = window.estimate
+            self.theta = np.asarray(est.theta, float)
+            if est.poses.shape[0] == len(self.rows):  # a warm start for a later solve of the means
+                self.poses = np.asarray(est.poses, float)
+            else:
+                self.poses = np.vstack([self.poses, np.asarray(pose_guess, float)[None]])
+            return est
         ref = self.ref
         ori = np.array([w.orientation for w in self.rows])
         ori[:, 2] -= ref.orientation[2]

@@ -95,13 +95,13 @@ def _table(robot, title: str, out: dict) -> None:
 
 
 def _optimal(args, robot) -> int:
-    from calib.design import TimeModel, assess, candidates, loop_noise, optimal_plan
+    from calib.design import LOOP_POSE_NOISE, TimeModel, candidates, optimal_plan, predict_loop
 
     if args.optimal < 1:
         raise UsageError(f"--optimal must be a positive number of poses, got {args.optimal}.")
     if not args.step > 0:
         raise UsageError(f"--step must be positive, got {args.step}.")
-    noise, times = loop_noise(robot), TimeModel()
+    noise, times = LOOP_POSE_NOISE, TimeModel()
     try:
         grid = plan_poses(robot, args.grid)
         if sys.stderr.isatty():
@@ -110,7 +110,7 @@ def _optimal(args, robot) -> int:
         plan = optimal_plan(robot, args.optimal, noise, cands=cands)
     except PlanningError as exc:
         raise OperationError(str(exc)) from exc
-    a_opt, a_grid = assess(robot, plan, noise, times), assess(robot, grid, noise, times)
+    a_opt, a_grid = predict_loop(robot, plan, times, noise), predict_loop(robot, grid, times, noise)
     out = plan.to_dict() | {"predicted": a_opt.to_dict(), "grid": {"poses": len(grid.poses), **a_grid.to_dict()},
                             "candidates": cands.size}
     if args.json:

@@ -125,9 +125,10 @@ def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None,
     """The plan `cdpr startup` runs: ``plan`` 'grid' (``grid`` points per axis), 'optimal' (``poses`` poses,
     default 8) or 'sequential' (stop at ``tolerance`` m, at most ``poses`` poses, default 27); None: grid, or
     sequential when a tolerance is given. The window-mean noise the optimal and sequential plans are chosen with
-    is the startup loop's (:func:`calib.design.loop_noise`); a sequential startup then weighs its choices and
-    its stop rule with its own (the samples of its windows so far). Raises UsageError."""
-    from calib.design import TimeModel, loop_noise
+    is the startup loop's at each pose (:data:`calib.design.LOOP_POSE_NOISE`); a sequential startup then
+    weighs its choices and its stop rule with its own (its own solve of the samples so far). Raises
+    UsageError."""
+    from calib.design import LOOP_POSE_NOISE, TimeModel
     from calib.planning import PlanningError
 
     plan = plan or ("sequential" if tolerance is not None else "grid")
@@ -140,7 +141,7 @@ def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None,
     if poses is not None and not 1 <= poses <= 100:
         raise UsageError(f"--poses {poses} is out of range: give 1 to 100 poses.")
     poses = poses or (27 if plan == "sequential" else 8)
-    noise = loop_noise(robot)
+    noise = LOOP_POSE_NOISE
     try:
         return Plan.for_robot(robot, grid, cfg.method, cfg.kinematic_speed, cfg.kinematic_spacing, plan=plan,
                               poses=poses, tolerance=tolerance, noise=noise, step=step,
