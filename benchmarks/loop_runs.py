@@ -32,15 +32,17 @@ def one(plan: str, seed: int, tolerance: float | None, step: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = simulated_startup(Path(tmp) / "run", plan, tolerance=tolerance, seed=seed, step=step,
                                 sim_config=str(example_path(CONFIG)))
-        sol = solve(robot, read_run(out["run"]), noise="estimate")
+        run = read_run(out["run"])
+        sol = solve(robot, run, noise="estimate")
     truth = np.asarray(out["truth_window_mean"] or out["truth"], float)
-    seq = out.get("sequential") or {}
+    seq = run.meta.get("sequential") or {}
     return {"plan": plan, "seed": seed, "tolerance": tolerance,
             "error_m": float(np.linalg.norm(sol.initial_pose[:3] - truth[:3])),
             "sigma_m": float(np.sqrt(max(np.trace(sol.covariance[:3, :3]), 0.0))),
             "robot_time_s": float(out["timing"]["acquisition_s"]), "poses": int(out["setpoints"]),
             "online_sigma_m": [w["position_sigma_m"] for w in seq.get("windows", [])], "stop": seq.get("stop"),
             "message": out.get("message"),
+            "setpoints": run.setpoints.tolist(), "ideal_poses": run.ideal_poses.tolist(),
             "noise": sol.noise}  # the run's window-mean sigmas per channel (calib.design.LOOP_NOISE's source)
 
 
@@ -62,3 +64,12 @@ def runs(plan: str, seeds: int, tolerance: float | None = None, step: float = 0.
         for res in pool.map(one, [plan] * len(todo), todo, [tolerance] * len(todo), [step] * len(todo)):
             (folder / f"{_key(plan, res['seed'], tolerance)}.json").write_text(json.dumps(res))
     return [json.loads((folder / f"{_key(plan, s, tolerance)}.json").read_text()) for s in range(seeds)]
+
+
+def cached_runs(plan: str, seeds: int, tolerance: float | None = None, cache: str | None = None) -> list[dict]:
+    """The cached results of seeds 0..seeds-1 of ``plan``, or [] unless all of them are in the cache."""
+    folder = Path(cache or os.path.join(tempfile.gettempdir(), "cdpr-bench-loop"))
+    files = [folder / f"{_key(plan, s, tolerance)}.json" for s in range(seeds)]
+    if not all(f.is_file() for f in files):
+        return []
+    return [json.loads(f.read_text()) for f in files]
