@@ -226,6 +226,52 @@ def run_estimate(robot: Robot, rows: list[tuple], setpoints: np.ndarray, ideal_p
     return est, {c: np.asarray(v, float) for c, v in sol.noise.items()}
 
 
+ESTIMATE_TIMEOUT = 30.0  # s the platform is held at most while the run's own solve computes on a real clock
+
+
+class EstimateWorker:
+    """The run's own solve (:func:`run_estimate`) of a sequential startup. On a real clock it is computed in a
+    worker process while the control loop keeps ticking at the held tensions (the drives keep their SYNC, the
+    supervisor its readings; the solve of a long run takes a second or more); in lockstep (the simulated
+    prototype, which waits for every tick) in line, which keeps the run deterministic."""
+
+    def __init__(self, lockstep: bool):
+        self.lockstep = lockstep
+        self._pool = None
+
+    def compute(self, args: tuple, tick: Callable[[], object], now: Callable[[], float],
+                timeout: float = ESTIMATE_TIMEOUT):
+        """run_estimate(*args); on a real clock ``tick()`` is called until it is ready (None after ``timeout``
+        s of ``now()`` or if the worker died)."""
+        if self.lockstep:
+            return run_estimate(*args)
+        from concurrent.futures.process import BrokenProcessPool
+
+        if self._pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            # spawned, not forked: the process has the bus's threads running
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        future = self._pool.submit(run_estimate, *args)
+        t0 = now()
+        while not future.done():
+            if now() - t0 > timeout:
+                future.cancel()
+                return None
+            tick()
+        try:
+            return future.result()
+        except BrokenProcessPool:
+            self._pool = None
+            return None
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+
+
 def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray
                      ) -> tuple[dict[int, tuple], frozenset[int]]:
     """The equilibrium windows the solve's window search finds in the rows logged so far (each a
@@ -289,6 +335,7 @@ class StartupRoutine:
         self._log_rows: list[tuple] = []  # the rows logged so far (sequential plan: its own noise estimate)
         self._sequential: dict[str, Any] | None = None
         self._rehold = 0  # extra holds at poses whose window was only quasi (sequential plans)
+        self._estimates = EstimateWorker(clock.lockstep)  # the run's own solve after each hold (sequential)
 
     # ---- the loop -------------------------------------------------------------------------------------
     def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
@@ -392,14 +439,16 @@ class StartupRoutine:
                 break
             if extra < self.cfg.rehold:
                 self._rehold += 1
-        rows, self._held = self._held, None
         estimate = None
         if self.plan.sequential is not None and setpoint >= 0:
             # the run's own solve so far, as `cdpr solve --noise estimate` will make it at the end: its 1-sigma
-            # is the one the stop rule compares with the tolerance, its noise weighs the next choice
-            got = run_estimate(self.robot, self._log_rows, self.plan.setpoints, self.plan.ideal_poses)
+            # is the one the stop rule compares with the tolerance, its noise weighs the next choice (on a real
+            # clock the platform stays held, and logged, while it computes)
+            args = (self.robot, list(self._log_rows), self.plan.setpoints.copy(), self.plan.ideal_poses.copy())
+            got = self._estimates.compute(args, lambda: self._tick(tau), self.clock.now)
             if got is not None:
                 estimate, noise = got
+        rows, self._held = self._held, None
         self._means.append(WindowMean(*(np.mean([r[i] for r in rows], axis=0) for i in (1, 3, 4)),
                                       np.mean([r[5:8] for r in rows], axis=0), noise, estimate))
         for k, m in found.items():  # the poses' windows as the final solve will see them (index 0: tau0)
@@ -518,6 +567,7 @@ class StartupRoutine:
             self._safe_stop(stop)
             raise StartupStopped(stop.kind, stop.message, self.out if self.writer else None) from None
         finally:
+            self._estimates.close()
             if self.progress is not None:
                 done = self._phase == "return"  # the sequence went through
                 self.progress.update(self.progress.total if done else self.clock.now(), "done" if done else "stopped",
