@@ -121,6 +121,20 @@ def pose_lines(pose: Sequence[float], sigma: Sequence[float] | None = None) -> l
     return out
 
 
+def misfit_lines(sol: Mapping[str, Any]) -> list[str]:
+    """When the chi2 test rejects the model (``calib.selfcal.sigma_scale`` > 1): the factor and what it says
+    of the printed 1-sigma, one sentence; else nothing."""
+    from calib.selfcal import sigma_scale
+
+    chi2, dof = float(sol.get("chi2", math.nan)), int(sol.get("dof") or 0)
+    k = sigma_scale(chi2, dof)
+    if k <= 1.0:
+        return []
+    return [f"  chi2 above its band: the model misses the readings by sqrt(chi2/dof) = {k:.3g} times the noise "
+            f"used, so the 1-sigma bounds above are too narrow; times {k:.3g} they give the order of the error "
+            "(`cdpr diagnose RUN` says what is missing)"]
+
+
 def render_text(summary: StartupSummary) -> str:
     """The summary printed at the end of ``cdpr startup``."""
     lines = [f"startup {summary.status}: run {summary.run} ({summary.method}, {summary.setpoints} setpoints)"]
@@ -146,6 +160,7 @@ def render_text(summary: StartupSummary) -> str:
                 if ch in res:
                     lines.append(f"  {ch:<12}{float(res[ch]['rms']):>12.5g}{float(res[ch]['rms_normalized']):>12.3f}"
                                  f" {UNITS[ch]}")
+            lines += misfit_lines(sol)
     if summary.windows:
         lines.append("equilibrium windows held (first, last sample): "
                      + ", ".join(f"[{a}, {b}]" for a, b in summary.windows))

@@ -52,6 +52,14 @@ def test_text_summary_shows_pose_in_mm_and_degrees_with_sigma():
     assert "  time: acquisition_s 120.00 s, solve_s 0.02 s, control_p99_ms 0.11 ms" in text
 
 
+def test_text_summary_says_when_the_model_misses_its_noise():
+    """chi2 12.5 on 40 dof says nothing of a misfit; 4000 on 40 says the bounds are 10 times too narrow."""
+    assert "chi2 above its band" not in render_text(summary())
+    bad = StartupSummary("ok", "RUN", "equilibrium", 9, solution=SOLUTION | {"chi2": 4000.0}, windows=[(0, 19)])
+    text = render_text(bad)
+    assert "chi2 above its band" in text and "sqrt(chi2/dof) = 10 times" in text and text.count("chi2 above") == 1
+
+
 def test_offsets_file_reads_back_with_every_field(tmp_path):
     when = dt.datetime(2026, 11, 22, 3, 0, 0, tzinfo=dt.UTC)
     p = write_offsets(tmp_path / "offsets.yaml", SOLUTION, "irma4u", "RUN", when)
