@@ -229,6 +229,14 @@ def run_estimate(robot: Robot, rows: list[tuple], setpoints: np.ndarray, ideal_p
 ESTIMATE_TIMEOUT = 30.0  # s the platform is held at most while the run's own solve computes on a real clock
 
 
+def _ignore_interrupts() -> None:
+    """In the estimate worker: SIGINT and SIGTERM are the routine's (its safe stop), not the worker's."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
 class EstimateWorker:
     """The run's own solve (:func:`run_estimate`) of a sequential startup. On a real clock it is computed in a
     worker process while the control loop keeps ticking at the held tensions (the drives keep their SYNC, the
@@ -251,8 +259,9 @@ class EstimateWorker:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
-            # spawned, not forked: the process has the bus's threads running
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+            # spawned, not forked: the process has the bus's threads running; Ctrl-C is the routine's to handle
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=_ignore_interrupts)
         future = self._pool.submit(run_estimate, *args)
         t0 = now()
         while not future.done():
