@@ -220,9 +220,7 @@ def run_estimate(robot: Robot, rows: list[tuple], setpoints: np.ndarray, ideal_p
     if sol.poses.shape[0] < min_rows:
         return None
     p = planning_model(robot).n_params
-    cov = sol.covariance[:p, :p]
-    est = OnlineEstimate(sol.theta[:p], sol.poses, cov, float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
-                         sol.iterations)
+    est = OnlineEstimate.of(sol.theta[:p], sol.poses, sol.covariance[:p, :p], sol.iterations)
     return est, {c: np.asarray(v, float) for c, v in sol.noise.items()}
 
 

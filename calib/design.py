@@ -476,6 +476,11 @@ class OnlineEstimate:
     position_sigma: float
     iterations: int
 
+    @classmethod
+    def of(cls, theta: np.ndarray, poses: np.ndarray, covariance: np.ndarray, iterations: int) -> OnlineEstimate:
+        """An estimate with its position sigma: sqrt of the trace of the covariance's position block (m)."""
+        return cls(theta, poses, covariance, float(np.sqrt(max(np.trace(covariance[:3, :3]), 0.0))), iterations)
+
 
 class OnlineSolve:
     """The tau-l-sigma-epsilon solve of the windows acquired so far, warm-started from the previous solution
@@ -531,9 +536,7 @@ class OnlineSolve:
         poses0 = np.vstack([self.poses, np.asarray(pose_guess, float)[None]])
         sol = solve(self.robot, meas, method="tlse", noise=self.noise, guess=(self.theta, poses0), model=self.model)
         self.theta, self.poses = sol.theta, sol.poses
-        cov = sol.covariance
-        return OnlineEstimate(sol.theta, sol.poses, cov, float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
-                              sol.iterations)
+        return OnlineEstimate.of(sol.theta, sol.poses, sol.covariance, sol.iterations)
 
 
 def sequential_acquisition(design: SequentialDesign, online: OnlineSolve, tolerance: float, max_poses: int,
@@ -546,9 +549,6 @@ def sequential_acquisition(design: SequentialDesign, online: OnlineSolve, tolera
     current = design.cands.tau0
     design.tolerance, design.min_poses = tolerance, min_poses
     design.reference_first = online.first_is_reference
-    if online.ref.noise is not None:  # the home window's own noise weighs the first choice
-        online.noise = {c: np.asarray(v, float) for c, v in online.ref.noise.items()}
-        design.reweigh(online.robot, online.noise, online.theta[:6])
     for j in range(max_poses):
         c = design.next(current)
         if c is None:
