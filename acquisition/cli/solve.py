@@ -13,7 +13,7 @@ from scipy.stats import chi2 as chi2_dist
 from acquisition.cli.args import parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import RunFormatError, read_run
-from calib.selfcal import METHODS, MISFIT_P, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, solve
+from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, solve
 
 SOLUTION_FILE = "solution.json"
 
@@ -135,10 +135,9 @@ def format_solution(sol: Solution) -> str:
     lines.append(f"  yaw [deg]      {math.degrees(off['yaw']):.3f}")
     lines.extend(format_windows(sol))
     lines.append(f"chi2 {sol.chi2:.1f} on {sol.dof} dof")
-    p = chi2_dist.sf(sol.chi2, sol.dof) if sol.dof > 0 else 1.0
-    if sol.noise_source in ("estimate", "sensors") and p < MISFIT_P:
+    if sol.noise_source in ("estimate", "sensors") and k > 1:  # the chi2 test rejects the model (sigma_scale)
         lines.append(f"the model does not fit these readings within their own noise (p = "
-                     f"{p:.2g}): the 1-sigma bounds hold only for a model that does; "
+                     f"{chi2_dist.sf(sol.chi2, sol.dof):.2g}): the 1-sigma bounds hold only for a model that does; "
                      "`cdpr diagnose RUN` says where it fails and what is missing, and --noise paper weighs the "
                      "channels by the errors the paper expects of the rigid model (eq. 18)")
     if k > 1:
