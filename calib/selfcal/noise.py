@@ -197,8 +197,9 @@ class PoseFreeNoise:
 def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, np.ndarray]],
                     ref: dict[str, np.ndarray], theta: np.ndarray, base: WindowNoise,
                     rounds: int = VCE_ROUNDS) -> PoseFreeNoise:
-    """Noise of the kinematic window means (lengths, swivel angles, roll/pitch, yaw) without the platform's
-    motion inside the windows. The force control moves winches and platform together: every kinematic
+    """Noise of the length and swivel-angle window means (:data:`KINEMATIC`) without the platform's
+    motion inside the windows (roll, pitch and yaw keep ``base``'s group figures: the AHRS channels only weigh
+    the per-sample pose fits). The force control moves winches and platform together: every kinematic
     reading follows the pose, and that motion is absorbed by each row's own pose, so it is not noise of the
     row. Each sample of each still window gets its own pose (the measurement model ``model`` at the solved
     ``theta``, started from its window's pose; ``spans``: (window slice, pose (6,)) pairs, ``ref``: the
@@ -242,18 +243,15 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     raw = {"length": sig["dl"], "swivel": sig["dsigma"]}
     groups = dict(base.groups)
     stuck = {}
-    for c, s in cols.items():
-        if c not in KINEMATIC:
-            continue
+    for c in KINEMATIC:
+        s = cols[c]
         blocks = [e[owner == j, s] for j in range(len(spans))]
         gamma0, rho, nh = _pooled(blocks, 0)
         red = float(np.mean(lev[:, s]))
         gamma0 = gamma0 / max(red, 1e-12)  # the pose fit took 1 - red of each sample's variance
         f = ar1_factor(rho, nh)
-        q = float(np.max(floor["orientation" if c in ("tilt", "yaw") else c]))
-        share = 0.0
-        if c in raw:
-            share = float(np.mean([np.ptp(raw[c][sl], axis=0) == 0.0 for sl, _ in spans]))
+        q = float(np.max(floor[c]))
+        share = float(np.mean([np.ptp(raw[c][sl], axis=0) == 0.0 for sl, _ in spans]))
         var_q = share * (q * math.sqrt(12.0)) ** 2 / 12.0  # q here is step / sqrt 12
         mean = math.sqrt(gamma0 * f / nh + var_q)
         stuck[c] = share
