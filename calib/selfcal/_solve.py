@@ -355,6 +355,7 @@ class Prepared:
     ref_sample: int
     noise_source: str
     marks: tuple[float, float, float]  # start, rows done, guess done
+    signals: dict[str, np.ndarray] | None = None  # the run's checked arrays (None for rows given directly)
 
 
 def prepare(
@@ -421,7 +422,7 @@ def prepare(
         else:
             Z0 = np.asarray(guess[1], float).reshape(-1, 6)
     return Prepared(problem, theta0, Z0, wins, search, ref, ref_sample, source,
-                    (t_start, t_rows, time.perf_counter()))
+                    (t_start, t_rows, time.perf_counter()), sig)
 
 
 def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[str, np.ndarray],
@@ -460,7 +461,7 @@ def solve_run(
     if source == "estimate" and method == "tlse" and ref is not None and res.converged and max_iter > 0:
         # the kinematic channels' window-mean noise without the platform's motion (which the rows' poses
         # absorb), estimated at the solution; a second pass at the better solution settles it
-        sig = run_signals(robot, run)
+        sig = pre.signals
         base = window_mean_noise(robot, sig, wins)
         ref_win = next(w for w in wins if w.first <= ref_sample <= w.last)
         for _ in range(REFINE):
