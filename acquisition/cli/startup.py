@@ -83,6 +83,9 @@ def register(sub) -> None:
                    help="pause S seconds after setpoint J's window, at it or (home) under tau0 (repeatable)")
     p.add_argument("--bus-log", choices=("blf", "asc"), default="blf",
                    help="format of the raw CAN record RUN/bus.<fmt> (python-can's loggers; default blf)")
+    p.add_argument("--live", metavar="[HOST:]PORT", default=None,
+                   help="watch the startup live in Foxglove: a read-only WebSocket server on PORT (0: any free "
+                        "port), bound to 127.0.0.1 unless HOST is named (acquisition/live.py, docs/live.md)")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
     add_force(p)
@@ -230,6 +233,13 @@ def _run(args, report: ReportRenderer) -> StartupSummary:
     args.run_meta = meta
     out = Path(args.out or f"run-{_dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
     check_output_option(out, args.force, "--out")
+    if args.live is not None:  # a wrong address is told before anything moves
+        from acquisition.live import LiveAddress
+
+        try:
+            LiveAddress.parse(args.live)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from exc
     if args.truth:
         check_output_option(args.truth, args.force, "--truth")
     if args.backend == "hw":
@@ -266,12 +276,16 @@ def _run_sim(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> Start
         with SimBackend(robot, sim_config, args.seed, period, ahrs_rate=ahrs_rate_for(cfg.log_period),
                         plant_process=SIM_PLANT[args.sim_plant]) as sim:
             rig = _connect(sim.devices, robot, clock, True, period, cfg, out, args.bus_log)
-            routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
-                                     supervisor=supervisor, meta=args.run_meta)
+            live = None
             try:
+                live = _live(args, robot, cfg, supervisor)
+                routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="sim", progress=_progress(args),
+                                         supervisor=supervisor, meta=args.run_meta, on_tick=live.hook)
                 with report.paused():
-                    result = _acquire(routine)
+                    result = _acquire(live.started(routine))
             finally:
+                if live is not None:
+                    live.close()
                 rig.close()
                 supervisor.restore_signals()
             summary = _solve_and_report(args, robot, cfg, result, out, report)
@@ -313,16 +327,32 @@ def _run_hw(args, robot, plan, cfg, out: Path, report: ReportRenderer) -> Startu
     supervisor = _supervisor(robot, cfg)
     try:
         rig = _connect(devices, robot, clock, False, period, cfg, out, args.bus_log)
-        routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args),
-                                 supervisor=supervisor, meta=args.run_meta)
+        live = None
         try:
+            live = _live(args, robot, cfg, supervisor)
+            routine = StartupRoutine(robot, rig, clock, plan, out, cfg, source="hardware", progress=_progress(args),
+                                     supervisor=supervisor, meta=args.run_meta, on_tick=live.hook)
             with report.paused():
-                result = _acquire(routine)
+                result = _acquire(live.started(routine))
         finally:
+            if live is not None:
+                live.close()
             rig.close()
     finally:
         supervisor.restore_signals()
     return _solve_and_report(args, robot, cfg, result, out, report)
+
+
+def _live(args, robot, cfg: StartupConfig, supervisor: SafetySupervisor):
+    """The live view of ``--live`` (acquisition/live.py), or one that does nothing."""
+    from acquisition.live import LiveView
+
+    if args.live is None:
+        return LiveView.off()
+    try:
+        return LiveView.start(args.live, robot, cfg.rate, supervisor.limits)
+    except OSError as exc:
+        raise OperationError(str(exc).rstrip(".") + ".") from exc
 
 
 def _supervisor(robot, cfg: StartupConfig) -> SafetySupervisor:
