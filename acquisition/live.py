@@ -145,9 +145,11 @@ class RunView:
                    setpoint=int(f.setpoint), tick=int(f.tick))
         return msg
 
-    def frame(self, f: Frame, pose: np.ndarray | None, scene: bool = True) -> list[tuple[str, Any]]:
+    def frame(self, f: Frame, pose: np.ndarray | None, scene: bool = True, solved: np.ndarray | None = None
+              ) -> list[tuple[str, Any]]:
         """The messages of one frame: its sample (if logged), the scene and transform at ``pose`` (6,) (None:
-        unknown), and a log line when the phase or setpoint changes."""
+        unknown; ``solved``: the solve's initial pose, see SceneModel.update), and a log line when the phase or
+        setpoint changes."""
         out: list[tuple[str, Any]] = []
         if f.logged:
             out.append(("/samples", self.sample(f)))
@@ -157,7 +159,7 @@ class RunView:
             out.append(("/log", log_message(f.t_ns, f"phase {f.phase}{where}")))
         if scene:
             label = f"{f.phase}" + (f" {f.setpoint}" if f.setpoint >= 0 else "")
-            out.append(("/scene", self.scene.update(f.t_ns, pose, f.tau, label)))
+            out.append(("/scene", self.scene.update(f.t_ns, pose, f.tau, label, solved)))
             if pose is not None:
                 out.append(("/tf", self.scene.transform(f.t_ns, pose)))
         return out

@@ -136,9 +136,11 @@ class SceneModel:
         g = np.empty((0, 6)) if ghosts is None else np.asarray(ghosts, dtype=float).reshape(-1, 6)
         return cls(robot, g, float(robot.tau_min), float(robot.tau_max), size)
 
-    def update(self, t_ns: int, pose: np.ndarray | None, tau: np.ndarray, label: str = ""):
+    def update(self, t_ns: int, pose: np.ndarray | None, tau: np.ndarray, label: str = "",
+               solved: np.ndarray | None = None):
         """A complete ``foxglove.SceneUpdate`` (every entity, so a late viewer or a seek sees the whole scene):
-        the platform and its cables at ``pose`` (6,) (left out when None), cable colours from ``tau`` (n,) N."""
+        the platform and its cables at ``pose`` (6,) (left out when None), cable colours from ``tau`` (n,) N;
+        ``solved`` (6,): the solve's initial pose, drawn as entity ``solution`` (platform and cables, green)."""
         from foxglove.messages import (
             CubePrimitive,
             KeyValuePair,
@@ -168,6 +170,17 @@ class SceneModel:
                 for g, qk in zip(self.ghosts, q, strict=True)], texts=[TextPrimitive(
                     pose=_pose(g[:3] + [0, 0, 0.08], IDENTITY), billboard=True, font_size=12.0, scale_invariant=True,
                     color=_colour((0.5, 0.7, 1.0, 0.8)), text=str(j)) for j, g in enumerate(self.ghosts)]))
+        if solved is not None:
+            seg = cable_segments(robot, solved)
+            green = _colour((0.3, 0.9, 0.4, 0.6))
+            entities.append(SceneEntity(
+                timestamp=stamp, frame_id=WORLD, id="solution",
+                cubes=[CubePrimitive(pose=_pose(solved[:3], quaternion(solved, robot.orientation)[0]),
+                                     size=_vec(self.platform_size), color=green)],
+                lines=[LinePrimitive(type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True,
+                                     color=green,
+                                     points=[_point(p) for p in np.stack([seg.exits[0], seg.anchors[0]], 1)
+                                             .reshape(-1, 3)])]))
         if pose is not None and np.all(np.isfinite(pose)):
             seg = cable_segments(robot, pose)
             cols = tension_colours(tau, self.low, self.high)

@@ -1,5 +1,6 @@
 """`cdpr export RUN --format mcap`: read back with the mcap reader, every sample value, the windows, the events
-and the solution as written, each channel with its JSON Schema."""
+and the solution as written, each JSON channel with its JSON Schema; the 3D scene, the transforms and the log
+decoded with the Foxglove schemas the file carries (protobuf), the scene's cables checked against the model."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from acquisition.cli import main
@@ -19,15 +21,37 @@ SOLUTION = {"method": "tlse", "initial_pose": [0.3604, 0.3675, 1.158, 0.0847, -0
             "windows": [[4, 7], [8, 11]], "chi2": 29.9}
 
 
+FOXGLOVE = {"/scene": "foxglove.SceneUpdate", "/tf": "foxglove.FrameTransform", "/log": "foxglove.Log"}
+
+
+def protobuf_class(name: str, file_descriptor_set: bytes):
+    """The message class of ``name`` from a schema's FileDescriptorSet (what a Foxglove viewer decodes with)."""
+    pool = descriptor_pool.DescriptorPool()
+    fds = descriptor_pb2.FileDescriptorSet.FromString(file_descriptor_set)
+    for f in fds.file:
+        pool.Add(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+
+
 def read_mcap(path):
-    """{topic: [(log_time, message dict)]}, {topic: schema dict}, metadata {name: dict}."""
-    messages, schemas = {}, {}
+    """{topic: [(log_time, message dict or decoded protobuf)]}, {topic: JSON schema dict or schema name},
+    metadata {name: dict}."""
+    messages, schemas, classes = {}, {}, {}
     with open(path, "rb") as fh:
         reader = make_reader(fh)
         for schema, channel, message in reader.iter_messages():
-            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
-            schemas[channel.topic] = json.loads(schema.data)
-            messages.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
+            if channel.topic in FOXGLOVE:
+                assert (schema.name, schema.encoding, channel.message_encoding) == (
+                    FOXGLOVE[channel.topic], "protobuf", "protobuf")
+                if schema.name not in classes:
+                    classes[schema.name] = protobuf_class(schema.name, schema.data)
+                schemas[channel.topic] = schema.name
+                msg = classes[schema.name].FromString(message.data)
+            else:
+                assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+                schemas[channel.topic] = json.loads(schema.data)
+                msg = json.loads(message.data)
+            messages.setdefault(channel.topic, []).append((message.log_time, msg))
         meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
     return messages, schemas, meta
 
@@ -67,7 +91,7 @@ def test_every_sample_value_the_windows_events_and_solution_round_trip(small_run
     assert "12 samples" in capsys.readouterr().out
     run = read_run(small_run.path)
     messages, schemas, meta = read_mcap(out)
-    assert set(messages) == {"/samples", "/windows", "/events", "/solution"}
+    assert {"/samples", "/windows", "/events", "/solution", "/supervisor", "/log", "/scene"} <= set(messages)
     assert_samples_round_trip(run, messages["/samples"])
     assert messages["/samples"][5][1]["temperature"] is None
     assert schemas["/samples"]["properties"]["tau_3"] == {"type": ["number", "null"]}
@@ -93,3 +117,61 @@ def test_an_unsolved_real_run_exports_every_value_and_the_windows_found_in_its_s
     assert_samples_round_trip(run, messages["/samples"])
     wins = [m for _, m in messages["/windows"]]
     assert len(wins) >= 8 and {w["source"] for w in wins} == {"signals"}  # the authors held 8 setpoints
+
+
+def entity(update, name):
+    return next(e for e in update.entities if e.id == name)
+
+
+def segment_points(line):
+    """A LineList's points as (n, 2, 3): (pulley exit, anchor) per cable."""
+    return np.array([[p.x, p.y, p.z] for p in line.points]).reshape(-1, 2, 3)
+
+
+def test_the_scene_of_a_solved_real_run_is_the_model_at_the_solved_poses(irma_data, tmp_path):
+    from calib.equilibrium import direct_statics
+    from calib.kinematics import inverse_kinematics
+    from calib.selfcal import solve
+
+    run = import_irma(irma_data / "sc_8_final_parsed.mat", tmp_path / "irma")
+    run = read_run(run.path)
+    sol = solve(run.robot, run).to_json()
+    write_solution(run.path, sol)
+    out = tmp_path / "irma.mcap"
+    assert main(["export", str(run.path), "--format", "mcap", "-o", str(out)]) == 0
+    messages, schemas, _ = read_mcap(out)
+    robot = run.robot
+    scenes = [m for _, m in messages["/scene"]]
+    assert len(scenes) == len(run) and schemas["/scene"] == "foxglove.SceneUpdate"
+
+    def model_segments(poses):
+        kin = inverse_kinematics(robot, poses)
+        anchors = kin.poses[:, None, :3] + kin.a_rel  # A_i = p + R a_i'
+        return np.stack([anchors - kin.rho, anchors], 2)  # (k, n, 2, 3): B_i on the pulley, A_i
+
+    # the solve's initial pose, drawn from the reference sample on
+    ref = sol["reference_sample"]
+    assert all(e.id != "solution" for e in scenes[ref - 1].entities)
+    want = model_segments(np.array(sol["initial_pose"]))[0]
+    for update in (scenes[ref], scenes[-1]):
+        np.testing.assert_allclose(segment_points(entity(update, "solution").lines[0]), want, rtol=0, atol=1e-9)
+    # every sample: the platform at the direct statics of its measured tensions, its cables the model's there
+    pick = np.linspace(0, len(run) - 1, 40).astype(int)
+    statics = direct_statics(robot, run.tau[pick])
+    assert statics.converged.all()
+    want = model_segments(statics.poses)
+    for k, j in enumerate(pick):
+        got = segment_points(entity(scenes[j], "cables").lines[0])
+        np.testing.assert_allclose(got, want[k], rtol=0, atol=1e-9)
+        cube = entity(scenes[j], "platform").cubes[0].pose.position
+        np.testing.assert_allclose([cube.x, cube.y, cube.z], statics.poses[k, :3], rtol=0, atol=1e-9)
+        tf = messages["/tf"][j][1]
+        assert tf.child_frame_id == "platform" and abs(tf.translation.z - statics.poses[k, 2]) < 1e-9
+    # the ghosts are the planned poses (an imported run has none: the statics of its setpoints), one per setpoint
+    ghosts = entity(scenes[0], "ghosts").cubes
+    planned = direct_statics(robot, run.setpoints).poses
+    assert len(ghosts) == len(run.setpoints) == 8
+    np.testing.assert_allclose([[g.pose.position.x, g.pose.position.y, g.pose.position.z] for g in ghosts],
+                               planned[:, :3], rtol=0, atol=1e-9)
+    logs = [m.message for _, m in messages["/log"]]
+    assert sum("equilibrium window" in m for m in logs) == len(sol["windows"])
