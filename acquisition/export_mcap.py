@@ -68,10 +68,20 @@ def _windows(run: Run, solution: dict[str, Any] | None) -> tuple[list[tuple[int,
     return [(w.first, w.last) for w in wins], "signals"
 
 
-def view_messages(run: Run, solution: dict[str, Any] | None, base_ns: int) -> list[tuple[int, str, Any]]:
-    """(log time ns, topic, message) of the view channels of ``run`` (all but /samples and /solution), in
-    time order: per sample its scene, transform and log lines; the windows, events, estimates and the
-    supervisor's state at their times."""
+def window_setpoint(run: Run, first: int, last: int) -> int:
+    """The planned setpoint a window [first, last] holds: the one most of its samples are logged at (-1: none;
+    a solution's window may reach into the settling before the hold)."""
+    sp = np.asarray(run.setpoint[first:last + 1])
+    sp = sp[sp >= 0]
+    return int(np.bincount(sp).argmax()) if len(sp) else -1
+
+
+def view_messages(run: Run, solution: dict[str, Any] | None, base_ns: int, speed: float = 1.0,
+                  samples: bool = False, poses: np.ndarray | None = None) -> list[tuple[int, str, Any]]:
+    """(log time ns, topic, message) of the view channels of ``run`` (all but /solution; /samples, as the live
+    view sends them, when ``samples``), in time order: per sample its scene, transform and log lines; the
+    windows, events, estimates and the supervisor's state at their times. Sample time t is at
+    ``base_ns + t / speed``; ``poses`` (N, 6): the platform's (default: the statics of the measured tensions)."""
     from acquisition.live import Frame, RunView
     from acquisition.safety import SafetyLimits
     from acquisition.scene import static_poses
@@ -86,20 +96,21 @@ def view_messages(run: Run, solution: dict[str, Any] | None, base_ns: int) -> li
     N = len(run)
 
     def ns(t: float) -> int:
-        return base_ns + max(int(round(float(t) * 1e9)), 0)
+        return base_ns + max(int(round(float(t) * 1e9 / speed)), 0)
 
-    poses = static_poses(robot, run.tau) if N else np.empty((0, 6))
+    if poses is None:
+        poses = static_poses(robot, run.tau) if N else np.empty((0, 6))
     solved = np.asarray(solution["initial_pose"], float) if solution and solution.get("initial_pose") else None
     ref = int(solution.get("reference_sample", 0)) if solved is not None else N
     out: list[tuple[int, int, str, Any]] = []  # (time, order, topic, message)
     wins, source = _windows(run, solution) if N else ([], "signals")
     for a, b in wins:
-        sp = int(run.setpoint[(a + b) // 2])
+        sp = window_setpoint(run, a, b)
         out += [(ns(run.t[a]), 1, tp, m) for tp, m in view.window(ns(run.t[a]), a, b, run.t[a], run.t[b], sp, source)]
     for ev in run.events:
         out += [(ns(ev["t"]), 2, tp, m) for tp, m in view.event(ns(ev["t"]), ev)]
     seq = run.meta.get("sequential") or {}
-    ends = {int(run.setpoint[(a + b) // 2]): b for a, b in wins}
+    ends = {window_setpoint(run, a, b): b for a, b in wins}
     for est in seq.get("windows", []) if N else []:
         j = ends.get(int(est["pose"]), N - 1)
         out += [(ns(run.t[j]), 3, tp, m) for tp, m in view.estimate(
@@ -110,7 +121,8 @@ def view_messages(run: Run, solution: dict[str, Any] | None, base_ns: int) -> li
     for j in range(N):
         t = ns(run.t[j])
         f = Frame(t, float(run.t[j]), run.tau[j], run.tau_ref[j], run.dl[j], run.dsigma[j], float(run.roll[j]),
-                  float(run.pitch[j]), float(run.dyaw[j]), str(run.phase[j]), int(run.setpoint[j]), int(tick[j]), False)
+                  float(run.pitch[j]), float(run.dyaw[j]), str(run.phase[j]), int(run.setpoint[j]), int(tick[j]),
+                  samples)
         pose = poses[j] if np.all(np.isfinite(poses[j])) else None
         out += [(t, 0, tp, m) for tp, m in view.frame(f, pose, solved=solved if j >= ref else None)]
         state = "stopping" if run.phase[j] == "safe_stop" else "watching"

@@ -205,12 +205,27 @@ class RunView:
         return [("/estimate", msg), ("/log", log_message(t_ns, text))]
 
 
+class _Subscriptions:
+    """The server's listener: it only notes that a viewer subscribed (the server has no capability, so a
+    client's messages, service calls and parameters are refused before any listener would hear of them)."""
+
+    def __init__(self) -> None:
+        self.first = threading.Event()
+
+    def on_subscribe(self, client, channel) -> None:
+        self.first.set()
+
+    def on_unsubscribe(self, client, channel) -> None:
+        pass
+
+
 class LiveServer:
     """The SDK's WebSocket server with the view's channels, read-only (no capability); a context manager."""
 
     def __init__(self, address: LiveAddress, n: int, name: str = "cdpr", stream=None):
         import foxglove
 
+        self._subscriptions = _Subscriptions()
         self.context = foxglove.Context()
         self._channels = {}
         for topic, (sname, senc, sdata, menc) in channel_specs(_startup_kinds(n)).items():
@@ -219,7 +234,8 @@ class LiveServer:
                 context=self.context)
         try:
             self.server = foxglove.start_server(name=name, host=address.host, port=address.port,
-                                                capabilities=[], context=self.context)
+                                                capabilities=[], context=self.context,
+                                                server_listener=self._subscriptions)
         except Exception as exc:  # the SDK raises its own error type: say where it could not listen
             raise OSError(f"the live view cannot listen on {address.host}:{address.port} ({exc}).") from exc
         self.host, self.port = address.host, int(self.server.port)
@@ -229,6 +245,10 @@ class LiveServer:
 
     def publish(self, topic: str, msg: Any, t_ns: int) -> None:
         self._channels[topic].log(encode(msg), log_time=int(t_ns))
+
+    def wait_for_viewer(self, timeout: float | None = None) -> bool:
+        """Wait until a client has subscribed to a channel (at most ``timeout`` s); True if one has."""
+        return self._subscriptions.first.wait(timeout)
 
     def close(self) -> None:
         for ch in self._channels.values():

@@ -276,3 +276,45 @@ def _cell(v):
     if isinstance(v, np.floating) and float(v).is_integer():
         return int(v)
     return v.item() if isinstance(v, np.generic) else v
+
+
+@dataclass
+class LiveReplay:
+    """What ``cdpr replay RUN --live`` played: messages published, samples, run time (s) and the wall time (s)
+    from the first message to the last."""
+
+    messages: int
+    samples: int
+    run_time: float
+    wall_time: float
+
+
+def replay_live(path: Path, server, speed: float = 1.0, sleep=time.sleep, wait=None) -> LiveReplay:
+    """Play the run folder ``path`` to a live view (``server``: an ``acquisition.live.LiveServer``) at its real
+    pace times ``speed``: its samples, windows, events, estimates and the supervisor's state, with the scene
+    and transforms of the MCAP export (acquisition/export_mcap.py), each published when its time comes;
+    ``wait()`` is called before the play starts (e.g. until a viewer subscribes)."""
+    import json as _json
+
+    from acquisition.export_mcap import view_messages
+    from acquisition.scene import static_poses
+
+    run = read_run(path)
+    sol_path = Path(path) / "solution.json"
+    solution = _json.loads(sol_path.read_text()) if sol_path.is_file() else None
+    poses = static_poses(run.robot, run.tau)
+    c0 = time.perf_counter()  # building the messages takes a while: timed once, to stamp them ahead of it
+    view_messages(run, solution, 0, speed, samples=True, poses=poses)
+    build = time.perf_counter() - c0
+    if wait is not None:
+        wait()
+    # stamped with the wall time each is sent at (a late one goes at once)
+    msgs = view_messages(run, solution, time.time_ns() + int((0.3 + 1.3 * build) * 1e9), speed, samples=True,
+                         poses=poses)
+    for t_ns, topic, msg in msgs:
+        wait = (t_ns - time.time_ns()) / 1e9
+        if wait > 0:
+            sleep(wait)
+        server.publish(topic, msg, t_ns)
+    span = float(run.t[-1] - run.t[0]) if len(run) else 0.0
+    return LiveReplay(len(msgs), len(run), span, (time.time_ns() - msgs[0][0]) / 1e9 if msgs else 0.0)

@@ -1,0 +1,193 @@
+"""The live view (`cdpr startup --live`, `cdpr replay --live`): a real WebSocket client speaking the Foxglove
+WebSocket protocol (subprotocol foxglove.sdk.v1, the SDK's name for foxglove.websocket.v1) subscribes, decodes
+the tensions (JSON) and the 3D scene (protobuf, from the schema the server advertises), tries what a
+read-only server must refuse, and vanishes mid-run; the run's samples.csv is the one of a run without --live."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_export_mcap import protobuf_class
+from websockets.sync.client import connect
+
+from acquisition.cli import main
+from acquisition.live import LiveAddress
+from acquisition.runlog import read_run
+from acquisition.safety import SafetyLimits
+from calib.robot import load_robot
+from calib.scene import frame_bounds
+
+ROOT = Path(__file__).resolve().parents[1]
+CDPR = [sys.executable, "-c", "import sys; from acquisition.cli import main; sys.exit(main(sys.argv[1:]))"]
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+# a short startup: 8 poses, 1 s windows
+STARTUP = ["startup", "--backend", "sim", "--grid", "2", "--hold", "1", "--no-html", "--seed", "5"]
+
+
+class Client:
+    """A Foxglove WebSocket protocol client: serverInfo, advertise, subscribe, binary message data."""
+
+    def __init__(self, port: int):
+        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=60).__enter__()
+        self.channels: dict[str, dict] = {}
+        self.info: dict = {}
+        self.status: list[dict] = []
+        self.subs: dict[int, str] = {}
+        self.classes: dict[str, type] = {}
+
+    def handshake(self, topics: list[str]) -> None:
+        while set(topics) - set(self.channels) or not self.info:
+            self._text(json.loads(self.ws.recv(timeout=60)))
+        self.subs = {i: t for i, t in enumerate(topics)}
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": i, "channelId": self.channels[t]["id"]} for i, t in self.subs.items()]}))
+
+    def _text(self, msg: dict) -> None:
+        if msg["op"] == "serverInfo":
+            self.info = msg
+        elif msg["op"] == "advertise":
+            self.channels.update({c["topic"]: c for c in msg["channels"]})
+        elif msg["op"] in ("status", "serviceCallFailure"):
+            self.status.append(msg)
+
+    def decode(self, topic: str, payload: bytes):
+        ch = self.channels[topic]
+        if ch["encoding"] == "json":
+            return json.loads(payload)
+        if topic not in self.classes:
+            self.classes[topic] = protobuf_class(ch["schemaName"], base64.b64decode(ch["schema"]))
+        return self.classes[topic].FromString(payload)
+
+    def receive(self, until, timeout: float = 120.0) -> dict[str, list]:
+        """{topic: [message]} in arrival order until ``until(got)`` holds."""
+        got: dict[str, list] = {}
+        end = time.monotonic() + timeout
+        while not until(got) and time.monotonic() < end:
+            data = self.ws.recv(timeout=max(end - time.monotonic(), 0.1))
+            if isinstance(data, str):
+                self._text(json.loads(data))
+                continue
+            assert data[0] == 0x01  # MessageData: opcode, subscription id, receive time, payload
+            sub, _ = struct.unpack_from("<IQ", data, 1)
+            topic = self.subs[sub]
+            got.setdefault(topic, []).append(self.decode(topic, data[13:]))
+        return got
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def start_cdpr(args: list[str]) -> tuple[subprocess.Popen, int]:
+    """`cdpr ARGS` in a child process; the port its live view says it listens on."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    proc = subprocess.Popen([*CDPR, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    line = proc.stderr.readline()
+    assert line.startswith("cdpr: live view on ws://127.0.0.1:"), line + proc.stderr.read()
+    return proc, int(line.split("ws://127.0.0.1:")[1].split()[0])
+
+
+@pytest.fixture(scope="module")
+def plain_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("live") / "plain"
+    assert main([*STARTUP, "--out", str(out), "--json"]) == 0
+    return out
+
+
+def test_a_live_startup_reaches_its_viewers_in_order_refuses_what_they_send_and_changes_nothing(plain_run, tmp_path):
+    """Two viewers of one live startup: one subscribes to the tensions and the scene and vanishes mid-run, the
+    other advertises a channel, publishes on it, calls a service, sets and gets a parameter; the run's
+    samples.csv is, byte for byte, the one of the same startup without --live."""
+    robot = load_robot("irma4u")
+    limits = SafetyLimits.for_robot(robot)
+    out = tmp_path / "live"
+    proc, port = start_cdpr([*STARTUP, "--out", str(out), "--live", "0"])
+    try:
+        client, pushy = Client(port), Client(port)
+        client.handshake(["/samples", "/scene"])
+        assert client.ws.subprotocol in SUBPROTOCOLS and client.info["capabilities"] == []  # read-only
+        assert client.channels["/scene"]["schemaName"] == "foxglove.SceneUpdate"
+        pushy.handshake(["/supervisor"])
+        pushy.ws.send(json.dumps({"op": "advertise", "channels": [
+            {"id": 1, "topic": "/tension_setpoint", "encoding": "json", "schemaName": "cmd"}]}))
+        pushy.ws.send(b"\x01" + struct.pack("<I", 1) + json.dumps({"tau_1": 250.0}).encode())
+        pushy.ws.send(b"\x02" + struct.pack("<III", 1, 1, 4) + b"json" + b"{}")
+        pushy.ws.send(json.dumps({"op": "setParameters", "parameters": [{"name": "kp", "value": 5.0}]}))
+        pushy.ws.send(json.dumps({"op": "getParameters", "parameterNames": ["kp"]}))
+        got = client.receive(lambda g: len(g.get("/samples", [])) >= 60 and len(g.get("/scene", [])) >= 60)
+        client.close()  # gone mid-run: the startup goes on
+        pushy.receive(lambda g: len(pushy.status) >= 5, timeout=60)
+        pushy.close()
+        stdout, stderr = proc.communicate(timeout=900)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, stderr
+    assert stderr.count("safe stop") == 0
+    errors = [s for s in pushy.status if s.get("level") == 2 or s["op"] == "serviceCallFailure"]
+    text = " ".join(s["message"] for s in errors)
+    assert len(errors) >= 5 and "clientPublish" in text and "parameters" in text and "services" in text
+    samples, scenes = got["/samples"], got["/scene"]
+    t = np.array([s["t"] for s in samples])
+    assert len(t) >= 60 and np.all(np.diff(t) > 0)  # in order, none twice
+    tau = np.array([[s[f"tau_{i}"] for i in range(1, 5)] for s in samples])
+    assert np.all((tau > limits.slack) & (tau < limits.overload))  # within the supervisor's bounds
+    assert {s["phase"] for s in samples} <= {"pretension", "transition", "settle", "hold", "return"}
+    lo, hi = frame_bounds(robot)
+    stamps = []
+    for update in scenes:
+        ents = {e.id: e for e in update.entities}
+        assert {"frame", "pulleys", "ghosts"} <= set(ents)
+        assert len(ents["ghosts"].cubes) == 8
+        stamps.append(ents["frame"].timestamp.seconds * 10**9 + ents["frame"].timestamp.nanos)
+        if "platform" in ents:  # the platform inside the frame, its cables from the pulleys to it
+            p = ents["platform"].cubes[0].pose.position
+            assert np.all(lo < [p.x, p.y, p.z]) and np.all([p.x, p.y, p.z] < hi)
+            pts = np.array([[q.x, q.y, q.z] for q in ents["cables"].lines[0].points]).reshape(4, 2, 3)
+            assert np.all(np.linalg.norm(pts[:, 0] - robot.d, axis=1) < 3 * robot.r)  # exits on the pulleys
+    assert sum("platform" in {e.id for e in u.entities} for u in scenes) >= 0.9 * len(scenes)
+    assert np.all(np.diff(stamps) > 0)
+    # the run is the one without --live, byte for byte
+    assert (out / "samples.csv").read_bytes() == (plain_run / "samples.csv").read_bytes()
+
+
+def test_a_replay_plays_the_run_to_a_viewer_at_its_pace(plain_run):
+    run = read_run(plain_run)
+    speed = 25.0
+    proc, port = start_cdpr(["replay", str(plain_run), "--live", "0", "--speed", str(speed)])
+    try:
+        client = Client(port)
+        client.handshake(["/samples", "/windows", "/scene"])
+        t0 = time.monotonic()
+        got = client.receive(lambda g: len(g.get("/samples", [])) >= len(run))
+        wall = time.monotonic() - t0
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, stderr
+    assert [s["t"] for s in got["/samples"]] == run.t.tolist()
+    assert [s["tau_2"] for s in got["/samples"]] == run.tau[:, 1].tolist()
+    assert [w["setpoint"] for w in got["/windows"]] == list(range(8))
+    assert len(got["/scene"]) >= len(run) - 1
+    assert wall > 0.8 * (run.t[-1] - run.t[0]) / speed  # paced, not dumped
+
+
+@pytest.mark.parametrize("text", ["abc", "70000", "host:", ":-1"])
+def test_a_wrong_live_address_is_one_sentence(text, tmp_path, capsys):
+    with pytest.raises(ValueError, match=r"is not \[HOST:\]PORT"):
+        LiveAddress.parse(text)
+    assert main([*STARTUP, "--out", str(tmp_path / "x"), "--live", text]) == 2
+    assert "[HOST:]PORT" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def test_the_live_address_binds_localhost_unless_a_host_is_named():
+    assert LiveAddress.parse("8765") == LiveAddress("127.0.0.1", 8765)
+    assert LiveAddress.parse("0.0.0.0:9000") == LiveAddress("0.0.0.0", 9000)
