@@ -191,3 +191,23 @@ def test_a_wrong_live_address_is_one_sentence(text, tmp_path, capsys):
 def test_the_live_address_binds_localhost_unless_a_host_is_named():
     assert LiveAddress.parse("8765") == LiveAddress("127.0.0.1", 8765)
     assert LiveAddress.parse("0.0.0.0:9000") == LiveAddress("0.0.0.0", 9000)
+
+
+def test_the_shipped_layout_shows_only_channels_and_fields_the_view_publishes():
+    from acquisition.live import channel_specs
+    from acquisition.scene import startup_columns
+
+    layout = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
+    specs = channel_specs(startup_columns(4))
+    panels = layout["configById"]
+    paths = [p["value"] for c in panels.values() for p in c.get("paths", [])]
+    topics = {c["topicPath"] for c in panels.values() if "topicPath" in c} | {panels["Log!log"]["topicToRender"]}
+    topics |= set(panels["3D!cdpr"]["topics"])
+    assert topics <= set(specs) and {"/scene", "/tf", "/log", "/supervisor", "/estimate"} <= topics
+    assert len(paths) == 19 and all(p.split(".")[0] == "/samples" for p in paths)
+    assert {p.split(".")[1] for p in paths} <= set(startup_columns(4))
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
+    assert sorted(leaves(layout["layout"])) == sorted(panels)  # every panel placed, none twice
