@@ -306,7 +306,11 @@ class LiveTap:
             self.dropped += 1
 
     def close(self, timeout: float = 5.0) -> None:
-        """Tell the publisher the run is over (waits at most ``timeout`` s for room in the queue)."""
+        """Hand over what the routine recorded since its last tick (a stop's event), then tell the publisher the
+        run is over (waits at most ``timeout`` s for room in the queue)."""
+        r = self._routine
+        if r is not None and r._last is not None:
+            self.on_tick(r._last)
         try:
             self.queue.put(None, timeout=timeout)
         except queue.Full:

@@ -677,6 +677,8 @@ class StartupRoutine:
                 self.rig.command(self.controller.update(self._ref, meas, self.period))
                 if logging and tk.index % self.log_every == 0:
                     self._log(snap)
+                if self.on_tick is not None:  # the stop is watched too (a live view: acquisition/live.py)
+                    self.on_tick(snap)
             except Exception:  # the stop goes on with what still answers
                 continue
         self._disable()

@@ -159,6 +159,29 @@ def test_a_live_startup_reaches_its_viewers_in_order_refuses_what_they_send_and_
     assert (out / "samples.csv").read_bytes() == (plain_run / "samples.csv").read_bytes()
 
 
+def test_a_safe_stop_is_shown_live(tmp_path):
+    """Winch drive 2 faults at 20 s: the viewer sees the supervisor stop, the event and its sentence."""
+    out = tmp_path / "stopped"
+    proc, port = start_cdpr([*STARTUP, "--out", str(out), "--live", "0",
+                             "--sim-config", str(ROOT / "sim_backend/examples/fault_drive_fault.yaml")])
+    try:
+        client = Client(port)
+        client.handshake(["/supervisor", "/events", "/log", "/samples"])
+        got = client.receive(lambda g: any(s["state"] == "stopped" for s in g.get("/supervisor", [])))
+        client.close()
+        stdout, stderr = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 1 and "safe stop: winch drive 2" in stderr, stderr
+    states = [s["state"] for s in got["/supervisor"]]
+    assert states.index("watching") < states.index("stopping") < states.index("stopped")
+    stop = next(s for s in got["/supervisor"] if s["state"] == "stopping")
+    assert stop["stop"].startswith("winch drive 2") and stop["slack_N"] < stop["overload_N"]
+    assert [e["kind"] for e in got["/events"]] == ["drive_fault"] == [e["kind"] for e in read_run(out).events]
+    assert any(s["phase"] == "safe_stop" for s in got["/samples"])  # the ramp down is watched too
+    assert any(m.level == 4 and "drive_fault" in m.message for m in got["/log"])  # an error line (Log.ERROR)
+
+
 def test_a_replay_plays_the_run_to_a_viewer_at_its_pace(plain_run):
     run = read_run(plain_run)
     speed = 25.0
