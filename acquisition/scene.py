@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -148,28 +149,16 @@ class SceneModel:
             LinePrimitiveLineType,
             SceneEntity,
             SceneUpdate,
-            SpherePrimitive,
             TextPrimitive,
         )
 
         robot, stamp = self.robot, _stamp(t_ns)
-        grey, white = _colour((0.6, 0.6, 0.6, 1.0)), _colour((1.0, 1.0, 1.0, 1.0))
-        edges = frame_edges(robot).reshape(-1, 3)
-        entities = [
-            SceneEntity(timestamp=stamp, frame_id=WORLD, id="frame", lines=[LinePrimitive(
-                type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True, color=grey,
-                points=[_point(p) for p in edges])]),
-            SceneEntity(timestamp=stamp, frame_id=WORLD, id="pulleys", spheres=[SpherePrimitive(
-                pose=_pose(d, IDENTITY), size=_vec([2 * r] * 3), color=white) for d, r in zip(robot.d, robot.r,
-                                                                                                strict=True)]),
-        ]
-        if len(self.ghosts):
-            q = quaternion(self.ghosts, robot.orientation)
-            entities.append(SceneEntity(timestamp=stamp, frame_id=WORLD, id="ghosts", cubes=[CubePrimitive(
-                pose=_pose(g[:3], qk), size=_vec(self.platform_size), color=_colour((0.5, 0.7, 1.0, 0.25)))
-                for g, qk in zip(self.ghosts, q, strict=True)], texts=[TextPrimitive(
-                    pose=_pose(g[:3] + [0, 0, 0.08], IDENTITY), billboard=True, font_size=12.0, scale_invariant=True,
-                    color=_colour((0.5, 0.7, 1.0, 0.8)), text=str(j)) for j, g in enumerate(self.ghosts)]))
+        frame, pulleys, ghosts = self._fixed
+        entities = [SceneEntity(timestamp=stamp, frame_id=WORLD, id="frame", lines=frame),
+                    SceneEntity(timestamp=stamp, frame_id=WORLD, id="pulleys", spheres=pulleys)]
+        if ghosts is not None:
+            entities.append(SceneEntity(timestamp=stamp, frame_id=WORLD, id="ghosts", cubes=ghosts[0],
+                                        texts=ghosts[1]))
         if solved is not None:
             seg = cable_segments(robot, solved)
             green = _colour((0.3, 0.9, 0.4, 0.6))
@@ -200,11 +189,40 @@ class SceneModel:
                                      color=_colour((1.0, 0.75, 0.2, 1.0)),
                                      points=[_point(p) for p in seg.anchors[0][ring]])]))
         if label:
+            white = _colour((1.0, 1.0, 1.0, 1.0))
             top = np.asarray(robot.d, float)
             entities.append(SceneEntity(timestamp=stamp, frame_id=WORLD, id="label", texts=[TextPrimitive(
                 pose=_pose([top[:, 0].mean(), top[:, 1].mean(), top[:, 2].max() + 0.2], IDENTITY), billboard=True,
                 font_size=14.0, scale_invariant=True, color=white, text=label)]))
         return SceneUpdate(entities=entities)
+
+    @cached_property
+    def _fixed(self) -> tuple[list, list, tuple[list, list] | None]:
+        """The primitives that never move, built once: the frame's lines, the pulleys, the ghosts (or None)."""
+        from foxglove.messages import (
+            CubePrimitive,
+            LinePrimitive,
+            LinePrimitiveLineType,
+            SpherePrimitive,
+            TextPrimitive,
+        )
+
+        robot = self.robot
+        grey, white = _colour((0.6, 0.6, 0.6, 1.0)), _colour((1.0, 1.0, 1.0, 1.0))
+        frame = [LinePrimitive(type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True, color=grey,
+                               points=[_point(p) for p in frame_edges(robot).reshape(-1, 3)])]
+        pulleys = [SpherePrimitive(pose=_pose(d, IDENTITY), size=_vec([2 * r] * 3), color=white)
+                   for d, r in zip(robot.d, robot.r, strict=True)]
+        if not len(self.ghosts):
+            return frame, pulleys, None
+        q = quaternion(self.ghosts, robot.orientation)
+        blue = (0.5, 0.7, 1.0)
+        cubes = [CubePrimitive(pose=_pose(g[:3], qk), size=_vec(self.platform_size), color=_colour((*blue, 0.25)))
+                 for g, qk in zip(self.ghosts, q, strict=True)]
+        texts = [TextPrimitive(pose=_pose(g[:3] + [0, 0, 0.08], IDENTITY), billboard=True, font_size=12.0,
+                               scale_invariant=True, color=_colour((*blue, 0.8)), text=str(j))
+                 for j, g in enumerate(self.ghosts)]
+        return frame, pulleys, (cubes, texts)
 
     def transform(self, t_ns: int, pose: np.ndarray):
         """``foxglove.FrameTransform`` world -> platform at ``pose`` (6,)."""
@@ -224,25 +242,39 @@ def log_message(t_ns: int, text: str, level: str = "Info"):
 
 
 class PoseTracker:
-    """The platform's estimated pose from the measured tensions: the direct statics (calib.equilibrium),
-    warm-started from the previous estimate with at most ``iterations`` Newton steps per update (a few at
-    rest, where it has converged; a transition is followed over successive updates)."""
+    """The platform's estimated pose from the measured tensions: the direct statics (calib.equilibrium). The
+    first update solves it to convergence; each later one takes one Newton step on the equilibrium equations
+    from the previous estimate (one residual and Jacobian evaluation: the tensions change little between two
+    updates, so the estimate converges at rest and follows a transition over successive updates)."""
 
-    def __init__(self, robot: Robot, start: np.ndarray | None = None, iterations: int = 2):
-        from calib.equilibrium import default_guess
+    MAX_STEP = (0.2, 0.3)  # m, rad: the largest step per update, as direct_statics limits its own
 
+    def __init__(self, robot: Robot):
         self.robot = robot
-        self.iterations = iterations
-        self.pose = default_guess(robot)[0] if start is None else np.asarray(start, dtype=float).copy()
+        self.pose: np.ndarray | None = None
 
     def update(self, tau: np.ndarray) -> np.ndarray | None:
-        """The estimate (6,) after the tensions (n,) N; None while a tension is missing."""
+        """The estimate (6,) after the tensions (n,) N; None while a tension is missing or before a first
+        converged solve."""
         from calib.equilibrium import direct_statics
+        from calib.statics import equilibrium_residual
 
         t = np.asarray(tau, dtype=float)
         if not np.all(np.isfinite(t)):
-            return None
-        z = direct_statics(self.robot, t, guess=self.pose, max_iter=self.iterations).poses[0]
+            return None if self.pose is None else self.pose.copy()
+        if self.pose is None:
+            res = direct_statics(self.robot, t)
+            if not res.converged[0]:
+                return None
+            self.pose = res.poses[0]
+            return self.pose.copy()
+        r, jac = equilibrium_residual(self.robot, self.pose[None], t[None])
+        try:
+            step = np.linalg.solve(jac[0], -r[0])
+        except np.linalg.LinAlgError:
+            return self.pose.copy()
+        scale = max(np.abs(step[:3]).max() / self.MAX_STEP[0], np.abs(step[3:]).max() / self.MAX_STEP[1], 1.0)
+        z = self.pose + step / scale
         if np.all(np.isfinite(z)):
             self.pose = z
         return self.pose.copy()
