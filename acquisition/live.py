@@ -279,7 +279,7 @@ class LiveTap:
         self.dropped = 0
         self.handed = 0
         self._routine = None
-        self._windows = self._events = self._means = 0
+        self._windows = self._events = self._estimates = 0  # seen so far
 
     def attach(self, routine) -> None:
         self._routine = routine
@@ -287,23 +287,25 @@ class LiveTap:
     def on_tick(self, snap) -> None:
         r = self._routine
         logged = r._log_open and snap.tick % r.log_every == 0
-        wins, means = len(r._windows), len(r._means)
+        wins, estimates = len(r._windows), len(r._history)
         events = len(r.writer.meta["events"]) if r.writer is not None else 0
-        news = (wins, events, means) != (self._windows, self._events, self._means)
+        news = (wins, events, estimates) != (self._windows, self._events, self._estimates)
         if not (logged or news or snap.tick % self.every == 0):
             return
         extra = None
         if news:
             extra = (r._windows[self._windows:], r.writer.meta["events"][self._events:] if events else [],
-                     [m.estimate for m in r._means[self._means:]], means)
-            self._windows, self._events, self._means = wins, events, means
+                     [est for _, est in r._history[self._estimates:]], self._estimates)
         item = (time.time_ns(), snap, r._ref, r._phase, r._setpoint, logged, r._t_run0, r._zero,
                 r.supervisor.requested, extra, r.plan.ideal_poses)
         try:
             self.queue.put_nowait(item)
-            self.handed += 1
-        except queue.Full:
+        except queue.Full:  # dropped; a window, event or estimate in it goes with the next tick handed over
             self.dropped += 1
+            return
+        self.handed += 1
+        if news:
+            self._windows, self._events, self._estimates = wins, events, estimates
 
     def close(self, timeout: float = 5.0) -> None:
         """Hand over what the routine recorded since its last tick (a stop's event), then tell the publisher the
@@ -363,9 +365,8 @@ class LivePublisher(threading.Thread):
         if len(ghosts) != self._ghosts:
             self.view.set_ghosts(ghosts)
             self._ghosts = len(ghosts)
-        t = snap.t - t_run0 if t_run0 is not None else math.nan
+        t = round(snap.t - t_run0, 9) if t_run0 is not None else math.nan  # the run log's time
         if logged:
-            t = round(t, 9)
             self._times.append(t)
         if zero:
             dl, ds, dyaw = snap.dl - zero["dl"], snap.dsigma - zero["dsigma"], snap.yaw - zero["yaw"]
@@ -376,7 +377,7 @@ class LivePublisher(threading.Thread):
         out += self.view.frame(f, pose)
         state = "stopping" if phase == "safe_stop" else "watching"
         if extra is not None:
-            wins, events, estimates, nmeans = extra
+            wins, events, estimates, first_pose = extra
             for first, last in wins:
                 j, self._nwin = self._nwin, self._nwin + 1
                 tf, tl = (self._times[first], self._times[last]) if last < len(self._times) else (math.nan, math.nan)
@@ -389,7 +390,7 @@ class LivePublisher(threading.Thread):
                     continue
                 sigma = None if est.covariance is None else np.sqrt(np.maximum(np.diag(est.covariance)[:6], 0))
                 ps = est.position_sigma if math.isfinite(est.position_sigma) else None
-                out += self.view.estimate(t_ns, nmeans - len(estimates) + k - 1, t, est.theta[:6], sigma, ps)
+                out += self.view.estimate(t_ns, first_pose + k, t, est.theta[:6], sigma, ps)
         out += self.view.supervisor(t_ns, t, state, self._stopped_by or requested)
         for topic, msg in out:
             self.server.publish(topic, msg, t_ns)

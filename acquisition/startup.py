@@ -343,6 +343,7 @@ class StartupRoutine:
         self._sequential: dict[str, Any] | None = None
         self._rehold = 0  # extra holds at poses whose window was only quasi (sequential plans)
         self._estimates = EstimateWorker(clock.lockstep)  # the run's own solve after each hold (sequential)
+        self._history: list = []  # sequential plan: (candidate, calib.design.OnlineEstimate) after each window
 
     # ---- the loop -------------------------------------------------------------------------------------
     def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
@@ -603,6 +604,7 @@ class StartupRoutine:
         # the run's solve takes the first pose's window as the reference (the rest under tau0 is left out)
         online = OnlineSolve(self.robot, seq.noise, self._means[0], cands.home_pose, first_is_reference=True)
         history: list = []
+        self._history = history  # (candidate, OnlineEstimate) after each window, for whoever watches the run
         steps = sequential_acquisition(seq.design, online, seq.tolerance, seq.max_poses, history)
         why, c = "exhausted", next(steps, None)
         while c is not None:

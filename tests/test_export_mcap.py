@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+import yaml
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
@@ -86,6 +87,11 @@ def small_run(tmp_path):
 
 def test_every_sample_value_the_windows_events_and_solution_round_trip(small_run, tmp_path, capsys):
     write_solution(small_run.path, SOLUTION)
+    meta = yaml.safe_load((small_run.path / "run.yaml").read_text())
+    meta["sequential"] = {"tolerance_m": 0.003, "stop": "tolerance", "windows": [  # a sequential startup's
+        {"pose": 0, "position_sigma_m": None, "initial_pose": [0.1, 0.2, 0.9, 0, 0, 0], "iterations": 0},
+        {"pose": 1, "position_sigma_m": 0.002, "initial_pose": [0.11, 0.21, 0.91, 0, 0, 0], "iterations": 3}]}
+    (small_run.path / "run.yaml").write_text(yaml.safe_dump(meta))
     out = tmp_path / "run.mcap"
     assert main(["export", str(small_run.path), "--format", "mcap", "-o", str(out)]) == 0
     assert "12 samples" in capsys.readouterr().out
@@ -104,6 +110,12 @@ def test_every_sample_value_the_windows_events_and_solution_round_trip(small_run
     assert [m for _, m in messages["/events"]] == run.events
     assert messages["/events"][0][0] - times[0] == 1_050_000_000
     assert [m for _, m in messages["/solution"]] == [SOLUTION]
+    # the online estimates, each at the end of its pose's window; the supervisor watched, then stopped
+    assert [(t, m["pose"], m["position_sigma_m"], m["initial_pose"][0]) for t, m in messages["/estimate"]] == [
+        (times[7], 0, None, 0.1), (times[11], 1, 0.002, 0.11)]
+    assert [m["state"] for _, m in messages["/supervisor"]][-1] == "stopped"
+    assert messages["/supervisor"][-1][1]["stop"] == "stopped by the operator (SIGINT)."
+    assert sum("online estimate" in m.message for _, m in messages["/log"]) == 2
     assert json.loads(meta["run.yaml"]["json"])["procedure"]["method"] == "equilibrium"
 
 
