@@ -40,6 +40,7 @@ from acquisition.scene import (
     log_message,
     number,
     sample_schema,
+    startup_columns,
 )
 from calib.robot import Robot
 
@@ -228,7 +229,7 @@ class LiveServer:
         self._subscriptions = _Subscriptions()
         self.context = foxglove.Context()
         self._channels = {}
-        for topic, (sname, senc, sdata, menc) in channel_specs(_startup_kinds(n)).items():
+        for topic, (sname, senc, sdata, menc) in channel_specs(startup_columns(n)).items():
             self._channels[topic] = foxglove.Channel(
                 topic, schema=foxglove.Schema(name=sname, encoding=senc, data=sdata), message_encoding=menc,
                 context=self.context)
@@ -262,12 +263,6 @@ class LiveServer:
         self.close()
 
 
-def _startup_kinds(n: int) -> dict[str, str]:
-    from acquisition.scene import startup_columns
-
-    return startup_columns(n)
-
-
 class LiveTap:
     """The control loop's side of the live view: ``on_tick`` (StartupRoutine's hook) hands every ``every``-th
     tick and every logged sample to a bounded queue, dropping what does not fit; never blocks, never writes
@@ -285,12 +280,15 @@ class LiveTap:
         self._routine = routine
 
     def on_tick(self, snap) -> None:
+        self._hand(snap)
+
+    def _hand(self, snap, final: bool = False) -> None:
         r = self._routine
-        logged = r._log_open and snap.tick % r.log_every == 0
+        logged = r._log_open and snap.tick % r.log_every == 0 and not final
         wins, estimates = len(r._windows), len(r._history)
         events = len(r.writer.meta["events"]) if r.writer is not None else 0
         news = (wins, events, estimates) != (self._windows, self._events, self._estimates)
-        if not (logged or news or snap.tick % self.every == 0):
+        if not (news or (not final and (logged or snap.tick % self.every == 0))):
             return
         extra = None
         if news:
@@ -312,7 +310,7 @@ class LiveTap:
         run is over (waits at most ``timeout`` s for room in the queue)."""
         r = self._routine
         if r is not None and r._last is not None:
-            self.on_tick(r._last)
+            self._hand(r._last, final=True)
         try:
             self.queue.put(None, timeout=timeout)
         except queue.Full:
@@ -403,8 +401,9 @@ class LiveView:
     :meth:`off` is the view of a startup without ``--live`` (no hook, nothing started)."""
 
     def __init__(self, server: LiveServer | None = None, tap: LiveTap | None = None,
-                 publisher: LivePublisher | None = None):
+                 publisher: LivePublisher | None = None, stream=None):
         self.server, self.tap, self.publisher = server, tap, publisher
+        self._stream = stream or sys.stderr
 
     @classmethod
     def off(cls) -> LiveView:
@@ -419,7 +418,7 @@ class LiveView:
         addr = address if isinstance(address, LiveAddress) else LiveAddress.parse(address)
         server = LiveServer(addr, robot.n, stream=stream)
         tap = LiveTap(int(round(rate / scene_rate)))
-        return cls(server, tap, LivePublisher(tap, server, robot, limits.slack, limits.overload))
+        return cls(server, tap, LivePublisher(tap, server, robot, limits.slack, limits.overload), stream)
 
     @property
     def hook(self):
@@ -441,3 +440,9 @@ class LiveView:
             self.publisher.stop()
         self.server.close()
         self.server = None
+        tap, pub = self.tap, self.publisher
+        if tap.dropped or pub.errors:
+            self._stream.write(f"cdpr: live view: {tap.dropped} of {tap.dropped + tap.handed} ticks dropped (the "
+                               f"publisher fell behind the loop; the run is not affected)"
+                               + (f"; {len(pub.errors)} publishing error(s), the first: {pub.errors[0]}" if pub.errors
+                                  else "") + "\n")
