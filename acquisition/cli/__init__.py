@@ -94,6 +94,17 @@ def _route_signals() -> dict:
     return {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so that Python's flush at exit does not raise BrokenPipeError again."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout is not a file descriptor (captured in tests)
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     previous = _route_signals()
     started: list[str] = []  # the command, once it runs
@@ -107,14 +118,19 @@ def main(argv: list[str] | None = None) -> int:
         when = f" during cdpr {started[0]}" if started else " before the command started; nothing was written"
         sys.stderr.write(f"cdpr: interrupted by the operator ({name}){when}.\n")
         return 1
+    except BrokenPipeError:  # the reader of stdout left (`cdpr poses --json | head`): end quietly, as Unix tools do
+        _silence_stdout()
+        return 141  # 128 + SIGPIPE, what a shell reports for a tool the pipe ended
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
 
 def _main(argv: list[str] | None, started: list[str]) -> int:
+    from acquisition.cli.args import join_signed_values
+
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_signed_values(sys.argv[1:] if argv is None else list(argv)))
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2

@@ -4,6 +4,7 @@ exit 2) and the CLI side of the output policy (acquisition/outputs.py)."""
 from __future__ import annotations
 
 import math
+import re
 import sys
 
 import numpy as np
@@ -25,6 +26,40 @@ def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | No
     return np.array(vals)
 
 
+LENGTH_UNITS = (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0))
+LENGTH_OPTIONS = ("--tolerance",)  # options whose value is a length: a leading '-' there is a sign, not an option
+
+
+def parse_length(text: str, option: str) -> float:
+    """A positive length with its unit (mm, cm or m), in metres; anything else is one sentence (UsageError)."""
+    t = text.strip().lower()
+    unit = next(((u, f) for u, f in LENGTH_UNITS if t.endswith(u)), None)
+    try:
+        value = float(t[: -len(unit[0])]) * unit[1] if unit else float(t)
+    except ValueError:
+        raise UsageError(f"{option} '{text}' is not a length: give a number and its unit, e.g. 3mm, 0.5cm "
+                         "or 0.003m.") from None
+    if unit is None:
+        raise UsageError(f"{option} '{text}' needs its unit: {text}mm, {text}cm or {text}m.")
+    if not (value > 0 and math.isfinite(value)):
+        raise UsageError(f"{option} '{text}' must be a positive length.")
+    return value
+
+
+def join_signed_values(argv: list[str]) -> list[str]:
+    """``--tolerance -3mm`` as ``--tolerance=-3mm``: argparse would read ``-3mm`` as an unknown option and say
+    only "expected one argument"; joined, the value reaches :func:`parse_length`, which says what is wrong."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in LENGTH_OPTIONS and i + 1 < len(argv) and re.match(r"-[\d.]", argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 GRID_POINTS = (2, 6)  # calibration grid points per axis that `cdpr startup` can acquire and solve
 
 
@@ -43,18 +78,20 @@ def add_force(parser) -> None:
     parser.add_argument("--force", action="store_true", help=FORCE_HELP)
 
 
-def check_output_option(path, force: bool, option: str) -> None:
-    """Refuse, before any work, an output that exists and may not be replaced (one sentence, exit 2)."""
+def check_output_option(path, force: bool, option: str, inputs=()) -> None:
+    """Refuse, before any work, an output that exists and may not be replaced, or that is, holds or is inside
+    one of the command's ``inputs`` (one sentence, exit 2)."""
     try:
-        check_output(path, force, option)
+        check_output(path, force, option, inputs)
     except OutputExistsError as exc:
         raise UsageError(str(exc)) from exc
 
 
-def claim_output_option(path, force: bool, option: str) -> None:
-    """Free an output path for writing; with --force what was there is moved aside and the user told where."""
+def claim_output_option(path, force: bool, option: str, inputs=()) -> None:
+    """Free an output path for writing (its missing folders made); with --force what was there is moved aside
+    and the user told where."""
     try:
-        replaced = claim_output(path, force, option)
+        replaced = claim_output(path, force, option, inputs)
     except OutputExistsError as exc:
         raise UsageError(str(exc)) from exc
     if replaced is not None:

@@ -101,7 +101,7 @@ def _diagnose(args) -> int:
     reference = parse_pose(args.reference)
     for option, path in (("--plots", args.plots), ("--html", args.html)):
         if path is not None:
-            check_output_option(path, args.force, option)
+            check_output_option(path, args.force, option, [args.run])
     classes = effect_classes(args.effects_from)
     included = parse_effects(args.effects, classes)
     run = _read(args.run)
@@ -120,13 +120,13 @@ def _diagnose(args) -> int:
 
         folder = args.plots if args.plots is not None else Path(tempfile.mkdtemp(prefix="cdpr-diagnose-"))
         if args.plots is not None:
-            claim_output_option(folder, args.force, "--plots")
+            claim_output_option(folder, args.force, "--plots", [args.run])
         try:
             pngs = plot_residuals(diag, folder)
         except OSError as exc:
             raise OperationError(f"{folder}: cannot write the plots ({exc.strerror}).") from exc
     if args.html is not None:
-        claim_output_option(args.html, args.force, "--html")
+        claim_output_option(args.html, args.force, "--html", [args.run])
         try:
             args.html.write_text(html_report(diag, pngs, f"cdpr diagnose {args.run}", units, args.run))
         except OSError as exc:

@@ -43,12 +43,13 @@ def _import_irma(args) -> int:
         raise UsageError(f"{args.file}: no such file.")
     if args.targets is not None and not args.targets.is_file():
         raise UsageError(f"{args.targets}: no such file (--targets).")
-    check_output_option(args.out, args.force, "-o")
+    inputs = [f for f in (args.file, args.targets) if f is not None]
+    check_output_option(args.out, args.force, "-o", inputs)
     try:
         run = irma_run(args.file, targets=args.targets)
     except (IrmaImportError, RunFormatError) as exc:
         raise UsageError(str(exc)) from exc
-    claim_output_option(args.out, args.force, "-o")
+    claim_output_option(args.out, args.force, "-o", inputs)
     try:
         write_run(args.out, run)
         run = read_run(args.out)
@@ -63,12 +64,12 @@ def _import_irma(args) -> int:
 
 
 def _export(args) -> int:
-    check_output_option(args.out, args.force, "-o")
+    check_output_option(args.out, args.force, "-o", [args.run])
     try:
         run = read_run(args.run)
     except RunFormatError as exc:
         raise UsageError(str(exc)) from exc
-    claim_output_option(args.out, args.force, "-o")
+    claim_output_option(args.out, args.force, "-o", [args.run])
     try:
         out = export_run(run, args.format, args.out)
     except ExportError as exc:

@@ -12,7 +12,6 @@ An existing RUN is refused, or with ``--force`` moved aside (acquisition/outputs
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import json
 import logging
@@ -22,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.cli import Interrupted
-from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option
+from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option, parse_length
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.clock import RealClock, SimClock
 from acquisition.equilibrium import DetectorConfig
@@ -56,9 +55,9 @@ def register(sub) -> None:
                         "sequential (the default with --tolerance)")
     p.add_argument("--poses", type=int, default=None,
                    help="optimal plan: number of poses (default 8); sequential: at most this many (default 27)")
-    p.add_argument("--tolerance", type=_length,
+    p.add_argument("--tolerance",
                    help="sequential acquisition: stop as soon as the 1-sigma of the initial position is below "
-                        "this (e.g. 3mm, 0.5cm, 0.002 = metres)")
+                        "this length, unit required (e.g. 3mm, 0.5cm, 0.002m)")
     p.add_argument("--step", type=float, default=0.1,
                    help="optimal and sequential plans: spacing of the candidate positions, m (default 0.1)")
     p.add_argument("--out", help="run folder to write (default: run-<UTC time>); an existing run or a folder "
@@ -100,24 +99,6 @@ def _config(args, robot) -> StartupConfig:
                              detector=DetectorConfig.for_robot(robot, timeout=args.settle_timeout))
     except ValueError as exc:
         raise UsageError(f"invalid option: {exc}") from exc
-
-
-def _length(text: str) -> float:
-    """A length with an optional unit (mm, cm, m; default m) in metres."""
-    t = text.strip().lower()
-    for unit, scale in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
-        if t.endswith(unit):
-            t, f = t[: -len(unit)], scale
-            break
-    else:
-        f = 1.0
-    try:
-        v = float(t) * f
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a length (give e.g. 3mm, 0.5cm or 0.003)") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"'{text}' must be a positive length")
-    return v
 
 
 def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None, poses: int | None = None,
@@ -199,7 +180,7 @@ def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | N
     argv = ["startup", "--backend", "sim", "--no-html", "--out", str(out), "--seed", str(seed), "--robot", robot,
             "--truth", str(out / "truth.json"), "--step", repr(float(step)), "--sim-plant", "inline"]
     argv += ["--plan", "grid", "--grid", plan[4:] or "2"] if plan.startswith("grid") else ["--plan", plan]
-    argv += [] if tolerance is None else ["--tolerance", repr(float(tolerance))]
+    argv += [] if tolerance is None else ["--tolerance", f"{float(tolerance)!r}m"]
     argv += [] if poses is None else ["--poses", str(poses)]
     argv += [] if sim_config is None else ["--sim-config", str(sim_config)]
     args = build_parser().parse_args(argv)
@@ -219,7 +200,8 @@ def _run(args, report: ReportRenderer) -> StartupSummary:
     except RobotDescriptionError as exc:
         raise UsageError(str(exc)) from exc
     cfg = _config(args, robot)
-    plan = make_plan(robot, cfg, args.grid, args.plan, args.poses, args.tolerance, args.step)
+    tolerance = None if args.tolerance is None else parse_length(args.tolerance, "--tolerance")
+    plan = make_plan(robot, cfg, args.grid, args.plan, args.poses, tolerance, args.step)
     plan.pauses = tuple(_pause(text, len(plan.setpoints)) for text in args.pause)
     meta = {}
     if args.offsets and Path(args.offsets).exists():  # the last calibration, for the record of this run
@@ -229,9 +211,10 @@ def _run(args, report: ReportRenderer) -> StartupSummary:
             raise UsageError(str(exc)) from exc
     args.run_meta = meta
     out = Path(args.out or f"run-{_dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
-    check_output_option(out, args.force, "--out")
+    inputs = [f for f in (args.sim_config, args.config, args.robot) if f and Path(f).exists()]
+    check_output_option(out, args.force, "--out", inputs)
     if args.truth:
-        check_output_option(args.truth, args.force, "--truth")
+        check_output_option(args.truth, args.force, "--truth", inputs)
     if args.backend == "hw":
         if not args.config:
             raise UsageError("--backend hw needs --config FILE (the device configuration YAML).")
@@ -239,7 +222,7 @@ def _run(args, report: ReportRenderer) -> StartupSummary:
             raise UsageError("--sim-config and --truth apply to --backend sim only.")
     elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
-    claim_output_option(out, args.force, "--out")
+    claim_output_option(out, args.force, "--out", inputs)
     args.run_folder = out
     if args.backend == "hw":
         return _run_hw(args, robot, plan, cfg, out, report)

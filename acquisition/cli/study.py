@@ -84,6 +84,10 @@ def run(args) -> int:
     plans = list(dict.fromkeys(args.plan))
     if args.tolerance is not None and "sequential" not in plans:
         raise UsageError("--tolerance applies to --plan sequential only.")
+    if args.tolerance is not None:
+        from acquisition.cli.args import parse_length
+
+        parse_length(args.tolerance, "--tolerance")
     try:
         robot = load_robot(args.robot)
         for plan in plans:
