@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from calib.quoting import quote
+
 ORIENTATIONS = ("xyz", "zyx")
 AXES = {"x": 0, "y": 1, "z": 2, "roll": 3, "pitch": 4, "yaw": 5}
 
@@ -201,7 +203,7 @@ class _Reader:
         self.origin = origin
 
     def fail(self, path: str, value: Any, why: str) -> RobotDescriptionError:
-        return RobotDescriptionError(f"{self.origin}: field '{path}' = {value!r} {why}.")
+        return RobotDescriptionError(f"{self.origin}: field '{path}' = {quote(value)} {why}.")
 
     def get(self, m: dict, key: str, path: str, default: Any = dataclasses.MISSING) -> Any:
         if not isinstance(m, dict):

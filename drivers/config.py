@@ -28,6 +28,8 @@ from typing import Any
 import can.interfaces
 import yaml
 
+from calib.quoting import quote
+
 CAN_BITRATES = (10_000, 20_000, 50_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
@@ -104,7 +106,7 @@ class _Fields:
         self.source = source
 
     def fail(self, fld: str, value: Any, why: str) -> DeviceConfigError:
-        return DeviceConfigError(f"{self.source}: field '{fld}' = {value!r} {why}")
+        return DeviceConfigError(f"{self.source}: field '{fld}' = {quote(value)} {why}")
 
     def mapping(self, value: Any, fld: str) -> dict:
         if not isinstance(value, dict):

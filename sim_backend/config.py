@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from calib.quoting import quote
 from calib.robot import Robot
 from sim_backend.physics import PhysicsParams, Sway, WinchParams, transmission_of
 
@@ -194,7 +195,7 @@ class _Check:
         self.origin = origin
 
     def fail(self, fld: str, value: Any, why: str) -> SimConfigError:
-        return SimConfigError(f"{self.origin}: field '{fld}' = {value!r} {why}.")
+        return SimConfigError(f"{self.origin}: field '{fld}' = {quote(value)} {why}.")
 
     def mapping(self, value: Any, fld: str, allowed: tuple[str, ...]) -> dict:
         if not isinstance(value, dict):

@@ -76,6 +76,21 @@ def _export(args) -> int:
         raise UsageError(str(exc)) from exc
     except OSError as exc:
         raise OperationError(f"{args.out}: cannot write the export ({exc.strerror}).") from exc
-    solved = "with its solution (absolute channels)" if (args.run / "solution.json").is_file() else "not solved"
+    solved = _which_solution(args.run / "solution.json")
     sys.stdout.write(f"{out}: {len(run)} samples of {args.run}, {solved}\n")
     return 0
+
+
+def _which_solution(path: Path) -> str:
+    """What `export` says of the solution it carried: the file and how it was solved, or 'not solved'."""
+    import json
+
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return "not solved"
+    effects = ", ".join(doc.get("effects") or {}) or "none"
+    noise = doc.get("noise")
+    noise = noise.get("source", "?") if isinstance(noise, dict) else noise
+    return (f"with its solution {path} (method {doc.get('method', '?')}, noise {noise}, effects {effects}; "
+            "absolute channels)")

@@ -1,4 +1,7 @@
-"""`cdpr solve RUN`: initial-pose self-calibration of a run (spec/cli.md); writes RUN/solution.json."""
+"""`cdpr solve RUN`: initial-pose self-calibration of a run (spec/cli.md).
+
+RUN/solution.json is the run's solution, what `cdpr export` carries: the first solve with the default options
+writes it, `--save` makes any solve the run's solution; every other solve explores and writes nothing."""
 
 from __future__ import annotations
 
@@ -33,6 +36,10 @@ def register(sub) -> None:
         help="a known initial pose (m, rad) to compare with: eps_p, eps_r (eq. 20) and the geodesic angle",
     )
     p.add_argument("--json", action="store_true", help="print the solution as JSON")
+    p.add_argument("--save", action="store_true",
+                   help="make this solve the run's solution (RUN/solution.json, what export carries); without it "
+                   "only the first solve with the default options writes it, and exploring (--effects, --noise, "
+                   "--method...) changes nothing")
     from acquisition.cli.diagnose import add_solve_options  # --effects, --effects-from (issue 7)
 
     add_solve_options(p)
@@ -92,15 +99,27 @@ def _solve(args) -> int:
     except SelfCalFailure as exc:
         raise OperationError(f"{args.run}: {exc}") from exc
     doc = sol.to_json()
-    try:
-        (Path(args.run) / SOLUTION_FILE).write_text(json.dumps(doc, indent=2) + "\n")
-    except OSError as exc:
-        raise OperationError(f"{args.run / SOLUTION_FILE}: cannot write the solution ({exc.strerror}).") from exc
+    path = Path(args.run) / SOLUTION_FILE
+    save = args.save or (not path.exists() and _default_options(args))
+    if save:
+        try:
+            path.write_text(json.dumps(doc, indent=2) + "\n")
+        except OSError as exc:
+            raise OperationError(f"{path}: cannot write the solution ({exc.strerror}).") from exc
     if args.json:
         sys.stdout.write(json.dumps(doc) + "\n")
     else:
-        sys.stdout.write(format_solution(sol) + table)
+        said = (f"saved as the run's solution: {path}" if save else
+                f"not saved: {path} stays the run's solution (--save to replace it)" if path.exists() else
+                "not saved: the run has no solution yet (--save to make this one, or solve with the default options)")
+        sys.stdout.write(format_solution(sol) + table + said + "\n")
     return 0
+
+
+def _default_options(args) -> bool:
+    """True for a solve with every option at its default: the solve `cdpr startup` makes, not an exploration."""
+    return (args.method == "tlse" and args.noise == "paper" and args.stride == 1 and args.reference_sample is None
+            and not getattr(args, "effects", None) and not getattr(args, "effects_from", None))
 
 
 def _too_few_windows_hint(run) -> str:
