@@ -120,7 +120,8 @@ def plot_before_after(diag: Diagnosis, path: str | Path) -> Path:
             x = np.where(res.row[m] < 0, 0, res.row[m] + 1) + (0.15 * j - 0.075 * (len(fits) - 1))
             ax.plot(x, res.r[m], "o" if j == 0 else "s", ms=4, alpha=0.8, label=label)
         ax.axhline(0.0, color="k", lw=0.6)
-        ax.set_xticks(range(k + 1), ticks, fontsize=7)
+        every = -(-(k + 1) // 12)  # at most 12 labels: 27 poses' labels would overlap
+        ax.set_xticks(range(0, k + 1, every), ticks[::every], fontsize=7)
         ax.set_title(c)
         ax.set_xlabel("pose")
         ax.set_ylabel("residual / sigma")
@@ -142,7 +143,9 @@ def plot_steps(steps: Sequence[dict[str, Any]], path: str | Path) -> Path:
     labels = ["base model"] + ["+ " + s["effects"][-1] for s in steps[1:]]
     fig, ax = plt.subplots(figsize=(6, 3.6))
     ax.plot(range(len(steps)), [max(s["chi2"], 1e-9) for s in steps], "o-", label="chi2")
-    ax.plot(range(len(steps)), [max(s["dof"], 1) for s in steps], "k--", lw=0.8, label="dof")
+    ax.plot(range(len(steps)), [max(s["dof"], 1) for s in steps], "k--", marker="_", ms=24, lw=0.8,
+            label="dof")  # the marker shows the dof of a single step (no effect added) too
+    ax.set_xlim(-0.5, len(steps) - 0.5)
     ax.set_yscale("log")
     ax.set_xticks(range(len(steps)), labels, rotation=15, fontsize=8)
     ax.set_ylabel("chi2")
@@ -199,7 +202,7 @@ def format_diagnosis(diag: Diagnosis, units: dict[str, str] | None = None, run: 
     """A readable report of a diagnosis; ``units`` maps parameter names to their units
     (:func:`parameter_units`)."""
     units = units or {}
-    lines = [f"chi2 {diag.chi2:.1f} on {diag.dof} dof (p = {diag.p_value:.3g}), noise {diag.noise_source}"]
+    lines = [f"chi2 {diag.chi2:.3g} on {diag.dof} dof (p = {diag.p_value:.3g}), noise {diag.noise_source}"]
     where = misfit_location(diag)
     if diag.p_value < diag.alpha:
         lines.append("where the model fails: " + "; ".join(where["channels"]))

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 
 from acquisition.cli.errors import UsageError
-from acquisition.outputs import OutputExistsError, check_output, claim_output
+from acquisition.outputs import OutputExistsError, Replaced, check_output, claim_output
 
 
 def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
@@ -87,7 +87,7 @@ def check_output_option(path, force: bool, option: str, inputs=()) -> None:
         raise UsageError(str(exc)) from exc
 
 
-def claim_output_option(path, force: bool, option: str, inputs=()) -> None:
+def claim_output_option(path, force: bool, option: str, inputs=()) -> Replaced | None:
     """Free an output path for writing (its missing folders made); with --force what was there is moved aside
     and the user told where."""
     try:
@@ -96,3 +96,4 @@ def claim_output_option(path, force: bool, option: str, inputs=()) -> None:
         raise UsageError(str(exc)) from exc
     if replaced is not None:
         sys.stderr.write(f"cdpr: note: {replaced.sentence()}\n")
+    return replaced

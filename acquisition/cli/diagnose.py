@@ -106,9 +106,12 @@ def _diagnose(args) -> int:
     included = parse_effects(args.effects, classes)
     run = _read(args.run)
     cands = [cls() for name, cls in classes.items() if name not in {e.name for e in included}]
+    from acquisition.cli.progress import Activity
+
     try:
-        diag = diagnose_run(run, noise=args.noise, candidates=cands, included=included,
-                            max_effects=args.max_effects, reference_pose=reference)
+        with Activity(f"diagnose: fitting the model and {len(cands)} candidate effects"):
+            diag = diagnose_run(run, noise=args.noise, candidates=cands, included=included,
+                                max_effects=args.max_effects, reference_pose=reference)
     except SelfCalInputError as exc:
         raise UsageError(f"{args.run}: {exc}") from exc
     except SelfCalFailure as exc:
@@ -153,7 +156,7 @@ def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: di
     :func:`calib.diagnose.effect_chain` (the diagnosis's own refits: same noise, device priors and start),
     each returned as a Solution. Returns the final Solution (its ``effects`` filled) and the before/after
     table; writes the plot RUN/effects_chi2.png."""
-    from acquisition.diagnose_report import plot_steps
+    from acquisition.diagnose_report import parameter_units, plot_steps
     from calib.diagnose import effect_chain, pose_error, run_rows
     from calib.selfcal import solve
 
@@ -181,25 +184,37 @@ def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: di
         plot_steps(steps, Path(args.run) / "effects_chi2.png")
     except OSError:
         pass
-    return sols[-1], effects_table(sols, effects, reference)
+    units = parameter_units(f.model.effects, rows.robot)  # the last fit's model: every effect, the devices' too
+    return sols[-1], effects_table(sols, effects, reference, units)
 
 
-def effects_table(sols, effects: list[Effect], reference: np.ndarray | None) -> str:
+def effects_table(sols, effects: list[Effect], reference: np.ndarray | None, units: dict[str, str] | None = None
+                  ) -> str:
     """Before/after: chi2, per-channel RMS (normalised), change of the initial pose, eps_p where known."""
     from calib.diagnose import pose_error
 
     chans = list(sols[0].residuals)
-    head = f"{'model':<36} {'chi2':>10} {'dof':>4} " + " ".join(f"{c[:6]:>7}" for c in chans)
+    widths = [max(len(c), 7) for c in chans]
+    head = f"{'model':<36} {'chi2':>10} {'dof':>4} " + " ".join(f"{c:>{w}}" for c, w in zip(chans, widths, strict=True))
     head += f" {'d zeta0 [mm]':>12}" + (f" {'eps_p [mm]':>10}" if reference is not None else "")
     lines = ["effects added one by one (rms/sigma per channel)", head]
     for j, s in enumerate(sols):
         name = "base model (device errors)" if j == 0 else "+ " + effects[j - 1].name
         row = f"{name:<36} {s.chi2:>10.1f} {s.dof:>4} " + " ".join(
-            f"{s.residuals.get(c, {}).get('rms_normalized', float('nan')):>7.2f}" for c in chans)
+            f"{s.residuals.get(c, {}).get('rms_normalized', float('nan')):>{w}.2f}"
+            for c, w in zip(chans, widths, strict=True))
         row += f" {1000 * pose_error(s.initial_pose, sols[0].initial_pose):>12.2f}"
         if reference is not None:
             row += f" {1000 * pose_error(s.initial_pose, reference):>10.2f}"
         lines.append(row)
+    units = units or {}
     for name, params in sols[-1].effects.items():
-        lines.append(f"  {name}: " + ", ".join(f"{k} = {v:.5g}" for k, v in params.items()))
+        lines.append(f"  {name}: " + ", ".join(_with_unit(k, v, units.get(k, "")) for k, v in params.items()))
     return "\n".join(lines) + "\n"
+
+
+def _with_unit(name: str, value: float, unit: str) -> str:
+    """'name = value unit' of a fitted parameter: angles in degrees, a dimensionless one bare."""
+    if unit == "rad":
+        return f"{name} = {math.degrees(value):.4g} deg"
+    return f"{name} = {value:.5g}" + ("" if unit in ("", "1") else f" {unit}")

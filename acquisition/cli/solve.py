@@ -140,20 +140,21 @@ def format_solution(sol: Solution) -> str:
     lines = [
         f"method {sol.method}, {len(sol.poses) + 1} poses, reference sample {sol.reference_sample}, "
         f"noise {sol.noise_source}, {sol.iterations} iterations, {sol.timing['solve_s'] * 1000:.1f} ms",
-        "initial pose       value        1-sigma" + (f"   x {k:.3g} (*)" if k > 1 else ""),
+        "initial pose       value         1-sigma" + (f"       x {k:.3g} (*)" if k > 1 else ""),
     ]
-    for j, name in enumerate(("x [m]", "y [m]", "z [m]")):
-        lines.append(f"  {name:<14} {z[j]:>10.4f}  {s[j]:>10.4f}" + (f"  {k * s[j]:>10.4f}" if k > 1 else ""))
-    for j, name in enumerate(("roll [deg]", "pitch [deg]", "yaw [deg]")):
-        scaled = f"  {math.degrees(k * s[3 + j]):>10.3f}" if k > 1 else ""
-        lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f}  {math.degrees(s[3 + j]):>10.3f}{scaled}")
+    for j, name in enumerate("xyz"):  # positions in m, their 1-sigma in mm (a tenth of a mm shows)
+        scaled = f"  {1000 * k * s[j]:>10.3f} mm" if k > 1 else ""
+        lines.append(f"  {name:<14} {z[j]:>10.4f} m   {1000 * s[j]:>10.3f} mm{scaled}")
+    for j, name in enumerate(("roll", "pitch", "yaw")):
+        scaled = f"  {math.degrees(k * s[3 + j]):>10.3f} deg" if k > 1 else ""
+        lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f} deg {math.degrees(s[3 + j]):>10.3f} deg{scaled}")
     off = sol.sensor_offsets
     lines.append("sensor offsets (absolute = offset + reading)")
     lines.append("  length [m]     " + "  ".join(f"{v:.4f}" for v in off["length"]))
     lines.append("  swivel [deg]   " + "  ".join(f"{math.degrees(v):.3f}" for v in off["swivel"]))
     lines.append(f"  yaw [deg]      {math.degrees(off['yaw']):.3f}")
     lines.extend(format_windows(sol))
-    lines.append(f"chi2 {sol.chi2:.1f} on {sol.dof} dof")
+    lines.append(f"chi2 {sol.chi2:.3g} on {sol.dof} dof")
     if sol.noise_source in ("estimate", "sensors") and k > 1:  # the chi2 test rejects the model (sigma_scale)
         lines.append(f"the model does not fit these readings within their own noise (p = "
                      f"{chi2_dist.sf(sol.chi2, sol.dof):.2g}): the 1-sigma bounds hold only for a model that does; "

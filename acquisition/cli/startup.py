@@ -222,7 +222,10 @@ def _run(args, report: ReportRenderer) -> StartupSummary:
             raise UsageError("--sim-config and --truth apply to --backend sim only.")
     elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
-    claim_output_option(out, args.force, "--out", inputs)
+    replaced = claim_output_option(out, args.force, "--out", inputs)
+    previous = meta.get("previous_offsets")
+    if replaced is not None and previous and Path(str(previous.get("run", ""))).absolute() == out.absolute():
+        previous["run"] = str(replaced.kept)  # the offsets came from the run just moved aside
     args.run_folder = out
     if args.backend == "hw":
         return _run_hw(args, robot, plan, cfg, out, report)
