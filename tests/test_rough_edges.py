@@ -238,3 +238,133 @@ def test_run_yaml_records_the_pauses_and_the_run_the_previous_offsets_came_from(
     assert meta["previous_offsets"]["run"] == str(kept) and "pauses" not in meta
     assert yaml.safe_load((kept / "run.yaml").read_text())["pauses"][0]["after"] == 0
     capsys.readouterr()
+
+
+# ---- 8: no numpy warning from the workspace ----------------------------------------------------------------
+
+
+def test_the_workspace_near_the_pulleys_leaks_no_numpy_warning(recwarn):
+    from calib.robot import load_robot
+    from calib.workspace import static_workspace
+
+    robot = load_robot("irma4u")
+    # around [-0.966, -1.155, 1.6], a position of the default grid (step 0.1) whose orientation search meets
+    # an anchor within a pulley's radius (no tangent: NaN): the warning `cdpr workspace` printed every time
+    centre = np.array([-0.966, -1.155, 1.55])
+    ws = static_workspace(robot, centre - [0.1, 0.1, 0.05], centre + [0.1, 0.1, 0.05], step=0.1)
+    assert len(ws.member) == 18 and ws.member.sum() < 18
+    assert [str(w.message) for w in recwarn if issubclass(w.category, RuntimeWarning)] == []
+
+
+# ---- 11: the README's certify example contracts the boxes ---------------------------------------------------
+
+
+def test_the_readme_certify_example_is_meaningful(tmp_path, capsys):
+    text = (REPO / "README.md").read_text()
+    commands = [line.split("#")[0].split() for line in text.splitlines() if line.startswith("cdpr certify")]
+    cwd = Path.cwd()
+    os.chdir(tmp_path)
+    try:
+        for c in commands:
+            assert main([*c[1:], "--json"] if c[2] == "anchors" else c[1:]) == 0, c
+    finally:
+        os.chdir(cwd)
+    doc = json.loads(capsys.readouterr().out.splitlines()[-1])
+    widths = np.array([[hi - lo for lo, hi in a["box"]] for a in doc["anchors"]])
+    assert widths.shape == (8, 3) and widths.max() < 0.011  # every 20 mm box contracts to 4-10 mm
+    assert (REPO / "docs" / "certify.md").is_file() and "OUTSIDE" in (REPO / "docs" / "certify.md").read_text()
+
+
+# ---- 12: display -------------------------------------------------------------------------------------------
+
+
+def test_the_solve_table_prints_the_position_sigma_in_mm_and_the_effects_with_units(run, capsys):
+    assert main(["solve", str(run), "--noise", "estimate"]) == 0
+    out = capsys.readouterr().out
+    x = next(line for line in out.splitlines() if line.strip().startswith("x "))
+    value, sigma = x.split()[1], x.split()[3:5]
+    assert float(value) != 0 and sigma[1] == "mm" and 0.01 < float(sigma[0]) < 10, x  # not "0.0000"
+    assert main(["solve", str(run), "--effects", "tension_offset"]) == 0
+    out = capsys.readouterr().out
+    head = next(line for line in out.splitlines() if line.startswith("model "))
+    assert " tension " in head and "orientation" in head
+    params = next(line for line in out.splitlines() if line.strip().startswith("tension_offset:"))
+    assert params.count(" N") == 4, params
+
+
+def test_the_startup_summary_puts_units_beside_their_numbers():
+    from acquisition.report import StartupSummary, render_html, render_text
+
+    sol = {"reference_sample": 3, "initial_pose": [0.4, 0.4, 1.2, 0.0, 0.0, 0.0], "initial_pose_sigma": [1e-4] * 6,
+           "sensor_offsets": {"length": [2.0] * 4, "swivel": [0.5] * 4, "yaw": 0.0}, "chi2": 0.0123, "dof": 63,
+           "residuals": {"tension": {"rms": 1.5, "rms_normalized": 0.15}, "length": {"rms": 2e-4,
+                                                                                  "rms_normalized": 0.02}}}
+    summary = StartupSummary("ok", "R", "equilibrium", 8, solution=sol,
+                             timing={"wall_s": 9.31234, "control_p99_ms": 0.4409810499805631})
+    text = render_text(summary)
+    assert "  tension              1.5 N        0.150" in text and "  length            0.0002 m        0.020" in text
+    html = render_html(summary, np.zeros(0), np.zeros((0, 4)), np.zeros((0, 4)))
+    assert "<td>control_p99_ms</td><td>0.441 ms</td>" in html and "0.4409810499805631" not in html
+
+
+def test_plots_label_what_they_show(monkeypatch, tmp_path):
+    import matplotlib.figure
+
+    from acquisition.diagnose_report import plot_steps
+    from calib.robot import load_robot
+    from calib.workspace import plot_workspace, static_workspace
+
+    figs = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: figs.append(fig))
+    plot_steps([{"effects": [], "chi2": 812.0, "dof": 57}], tmp_path / "c.png")  # no effect added
+    dof = next(line for line in figs[-1].axes[0].get_lines() if line.get_label() == "dof")
+    assert dof.get_marker() not in ("None", "", None) and figs[-1].axes[0].get_xlim() == (-0.5, 0.5)
+    robot = load_robot("irma4u")
+    plot_workspace(static_workspace(robot, step=0.4), robot, tmp_path / "w.png")
+    ax = figs[-1].axes[0]
+    assert ax.get_zlabel() == "z (m)" and ax.get_box_aspect() is not None
+    assert "calibration poses' bounds (eq. 19)" in [t.get_text() for t in ax.get_legend().get_texts()]
+
+
+# ---- 13: progress ------------------------------------------------------------------------------------------
+
+
+def test_long_commands_report_progress_in_plain_lines_when_redirected(capsys):
+    assert main(["workspace", "--step", "0.3"]) == 0
+    err = capsys.readouterr().err
+    assert err.endswith("cdpr: workspace: 432/432 positions (100%, " + err.rsplit("(100%, ", 1)[1]) and "\r" not in err
+
+
+def test_progress_is_a_tqdm_bar_on_a_terminal_and_lines_otherwise():
+    import io
+    import time
+
+    from acquisition.cli.progress import Activity, Progress
+
+    tty = io.StringIO()
+    with Progress(1, "workspace", "positions", stream=tty, tty=True) as bar:
+        bar._bar.mininterval = 0  # draw every update
+        for done in range(0, 1001, 250):
+            bar.update(done, 1000)
+    assert "workspace:" in tty.getvalue() and "1000/1000" in tty.getvalue() and "\r" in tty.getvalue()
+    plain = io.StringIO()
+    with Progress(20, "study", "runs", stream=plain, tty=False) as bar:
+        for done in range(1, 21):
+            bar.update(done)
+    lines = plain.getvalue().splitlines()
+    assert len(lines) == 10 and lines[0].startswith("cdpr: study: 2/20 runs (10%, ")
+    quiet, slow = io.StringIO(), io.StringIO()
+    with Activity("diagnose", stream=quiet, tty=False, every=5.0):
+        pass  # a step that ends sooner than its first line writes nothing
+    with Activity("diagnose", stream=slow, tty=False, every=0.05):
+        time.sleep(0.3)
+    assert quiet.getvalue() == "" and slow.getvalue().splitlines()[-1].startswith("cdpr: diagnose: done in ")
+
+
+# ---- 16: the README's times ---------------------------------------------------------------------------------
+
+
+def test_the_readme_gives_the_startup_time_idle_and_loaded():
+    quick = (REPO / "README.md").read_text().split("## What is in the box")[0]
+    assert "idle two-core machine" in quick and "load average" in quick
+    assert "about 10 s of wall time on two cores" not in quick
