@@ -196,12 +196,14 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     ahrs: dict[float, list[float]] = {}
     first_line: dict[float, int] = {}
     conflict: set[float] = set()
+    ahrs_lines = 0  # type-5 lines, damaged ones included: none at all is said plainly
     for k, line in enumerate(lines, start=1):
         line = line.strip()
         if not line:
             continue  # a blank line holds no reading: nothing is lost
         cells = line.split(",")
         kind = cells[0].strip()
+        ahrs_lines += kind == "5"
         if kind == "6":
             continue  # type 6: extras, not used
         if kind not in ("3", "5"):
@@ -244,7 +246,7 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     late = np.flatnonzero(appearance[1:] < np.maximum.accumulate(appearance)[:-1]) + 1 if complete else []
     if len(late):
         damage.add(ORDER, f"first: the cycle at line {appearance[late[0]]}", len(late))
-    if act and not ahrs:
+    if act and not ahrs_lines:
         raise IrmaImportError(
             f"{file}: the log has no AHRS line (type 5) at all, only cable lines, so it holds no roll, pitch or yaw "
             "and cannot be imported."
@@ -361,6 +363,8 @@ def segment_targets(
     pretension_band: float = 5.0,
     setpoints: np.ndarray | None = None,
     match_tol: float = 0.05,
+    bounds: tuple[float, float] = (0.0, math.inf),
+    measured: np.ndarray | None = None,
 ) -> SetpointSegmentation:
     """Find the setpoints of the target tensions (N, n), in order.
 
@@ -369,11 +373,13 @@ def segment_targets(
     hold. A move the controller left unfinished (the reference jumped to begin the next move while a target
     was still on its way, :func:`reference_jumps`) had a setpoint too: each target still moving is extended
     to where its quintic was heading (:func:`quintic_destination`); no sample of it is a hold. Such a
-    destination is in doubt, and dropped (``dropped``), when it lies outside the targets the run commanded or
-    less than ``pretension_band`` from where the move began (a restart of the reference, not a move). A
-    first steady segment entered by a jump of the reference straight from the pretension (the controller
-    holding the tensions it measured at power-on) is the rest before the sequence (``rest``, phase
-    ``rest``), not a setpoint. Without
+    destination is in doubt, and dropped (``dropped``), when it lies outside the tension ``bounds`` (N, the
+    robot's) or less than ``pretension_band`` from where the move began (a restart of the reference, not a
+    move). A
+    first steady segment entered by a jump of the reference straight from the pretension to within
+    ``pretension_band`` of the mean ``measured`` tensions (N, n) of the pretension (the controller holding
+    the tensions it measured at power-on) is the rest before the sequence (``rest``, phase ``rest``), not a
+    setpoint. Without
     ``setpoints``, these values (consecutive equal ones merged) are the setpoints; with them, each hold takes
     the index of the setpoint it equals within ``match_tol`` N (-1 if none).
     """
@@ -401,10 +407,14 @@ def segment_targets(
     # moves cut by a jump of the reference, their last sample not steady: (first, last, destination)
     cut: list[tuple[int, int, np.ndarray]] = []
     jumps = reference_jumps(T)
-    rest = plateaus.pop(0) if plateaus and plateaus[0][0] == pre_end and pre_end in jumps else None
+    rest = None
+    if measured is not None and plateaus and plateaus[0][0] == pre_end and pre_end in jumps:
+        held = np.asarray(measured, dtype=float)[:pre_end].mean(axis=0)
+        if np.max(np.abs(T[pre_end] - held)) < pretension_band:
+            rest = plateaus.pop(0)
     if rest is not None:
         phase[rest[0] : rest[1] + 1] = "rest"
-    lo, hi = T[pre_end:].min() - match_tol, T[pre_end:].max() + match_tol  # N, any cable
+    lo, hi = bounds
     dropped: list[tuple[int, int]] = []
     starts = np.r_[0, jumps]
     for a, b in zip(starts[:-1], starts[1:] - 1, strict=True):
@@ -550,7 +560,10 @@ def irma_run(file: str | Path, targets: str | Path | None = None) -> Run:
     kind = detect_irma_format(file)
     sig = read_irma_parsed(file) if kind == "parsed" else read_irma_log(file)
     planned = read_irma_targets(targets) if targets is not None else None
-    seg = segment_targets(sig.target, IRMA_SAMPLE_PERIOD, setpoints=None if planned is None else planned[0])
+    from calib.robot import load_robot
+
+    seg = segment_targets(sig.target, IRMA_SAMPLE_PERIOD, setpoints=None if planned is None else planned[0],
+                          bounds=(0.0, load_robot("irma4u").tau_max), measured=sig.tension)
     if len(seg.plateaus) < MIN_HOLDS:
         damaged = f"; damaged input: {sig.damage.summary()}" if sig.damage else ""
         raise IrmaImportError(

@@ -11,6 +11,7 @@ import numpy as np
 
 from acquisition.cli.errors import UsageError
 from acquisition.outputs import OutputExistsError, Replaced, check_output, claim_output
+from calib.quoting import quote
 
 
 def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
@@ -37,12 +38,12 @@ def parse_length(text: str, option: str) -> float:
     try:
         value = float(t[: -len(unit[0])]) * unit[1] if unit else float(t)
     except ValueError:
-        raise UsageError(f"{option} '{text}' is not a length: give a number and its unit, e.g. 3mm, 0.5cm "
+        raise UsageError(f"{option} {quote(text)} is not a length: give a number and its unit, e.g. 3mm, 0.5cm "
                          "or 0.003m.") from None
     if unit is None:
-        raise UsageError(f"{option} '{text}' needs its unit: {text}mm, {text}cm or {text}m.")
+        raise UsageError(f"{option} {quote(text)} needs its unit: {t}mm, {t}cm or {t}m.")
     if not (value > 0 and math.isfinite(value)):
-        raise UsageError(f"{option} '{text}' must be a positive length.")
+        raise UsageError(f"{option} {quote(text)} must be a positive length.")
     return value
 
 
