@@ -9,7 +9,8 @@ from under it).
 
 Files a command derives from a run and keeps inside it (``solution.json``, ``offsets.yaml``,
 ``report.html``, ``effects_chi2.png``) are not outputs in this sense: the command that owns them rewrites
-them, since the run they are computed from is kept.
+them, since the run they are computed from is kept (``solution.json`` only when asked: `cdpr solve --save`,
+or its first solve with the default options).
 """
 
 from __future__ import annotations

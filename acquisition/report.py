@@ -154,7 +154,7 @@ def render_text(summary: StartupSummary) -> str:
         lines.append(f"  yaw     {float(off.get('yaw', 0.0)):.4f} rad")
         res = sol.get("residuals", {})
         if res:
-            lines.append(f"residuals (chi2 {float(sol.get('chi2', float('nan'))):.2f}, dof {sol.get('dof')}):")
+            lines.append(f"residuals (chi2 {float(sol.get('chi2', float('nan'))):.3g}, dof {sol.get('dof')}):")
             lines.append(f"  {'channel':<12}{'rms':>12}     {'rms/noise':>10}")
             for ch in CHANNELS:
                 if ch in res:

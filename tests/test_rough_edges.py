@@ -302,6 +302,7 @@ def test_the_startup_summary_puts_units_beside_their_numbers():
     summary = StartupSummary("ok", "R", "equilibrium", 8, solution=sol,
                              timing={"wall_s": 9.31234, "control_p99_ms": 0.4409810499805631})
     text = render_text(summary)
+    assert "residuals (chi2 0.0123, dof 63):" in text
     assert "  tension              1.5 N        0.150" in text and "  length            0.0002 m        0.020" in text
     html = render_html(summary, np.zeros(0), np.zeros((0, 4)), np.zeros((0, 4)))
     assert "<td>control_p99_ms</td><td>0.441 ms</td>" in html and "0.4409810499805631" not in html
@@ -368,3 +369,14 @@ def test_the_readme_gives_the_startup_time_idle_and_loaded():
     quick = (REPO / "README.md").read_text().split("## What is in the box")[0]
     assert "idle two-core machine" in quick and "load average" in quick
     assert "about 10 s of wall time on two cores" not in quick
+
+
+def test_a_redirected_study_reports_its_runs_in_plain_lines(capsys):
+    from acquisition.cli.study import _StudyLines
+
+    progress = _StudyLines(4)
+    for done in range(1, 5):
+        progress.advance(done, failed=done // 4)
+    progress.close()
+    lines = capsys.readouterr().err.splitlines()
+    assert [line.split(" (")[0] for line in lines] == [f"cdpr: study: {k}/4 runs" for k in range(1, 5)]

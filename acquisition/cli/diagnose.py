@@ -200,7 +200,7 @@ def effects_table(sols, effects: list[Effect], reference: np.ndarray | None, uni
     lines = ["effects added one by one (rms/sigma per channel)", head]
     for j, s in enumerate(sols):
         name = "base model (device errors)" if j == 0 else "+ " + effects[j - 1].name
-        row = f"{name:<36} {s.chi2:>10.1f} {s.dof:>4} " + " ".join(
+        row = f"{name:<36} {s.chi2:>10.4g} {s.dof:>4} " + " ".join(
             f"{s.residuals.get(c, {}).get('rms_normalized', float('nan')):>{w}.2f}"
             for c, w in zip(chans, widths, strict=True))
         row += f" {1000 * pose_error(s.initial_pose, sols[0].initial_pose):>12.2f}"
