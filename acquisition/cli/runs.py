@@ -22,8 +22,10 @@ def register(sub) -> None:
     irma.add_argument(
         "--targets",
         type=Path,
-        metavar="MAT",
-        help="sc_control_target_*.mat of the same experiment: planned setpoints and ideal poses",
+        metavar="FILE",
+        help="the planned setpoints of the same experiment: sc_control_target_*.mat (with the ideal poses) or "
+        "the controller's tension_target_*.csv (docs/run-format.md); a file whose setpoints the run's holds "
+        "do not follow is refused",
     )
     add_force(irma)
     irma.set_defaults(func=_import_irma)
