@@ -125,7 +125,8 @@ def _diagnose(args) -> int:
         if args.plots is not None:
             claim_output_option(folder, args.force, "--plots", [args.run])
         try:
-            pngs = plot_residuals(diag, folder)
+            with Activity("diagnose: drawing the plots"):
+                pngs = plot_residuals(diag, folder)
         except OSError as exc:
             raise OperationError(f"{folder}: cannot write the plots ({exc.strerror}).") from exc
     if args.html is not None:
