@@ -86,16 +86,16 @@ def check_output(path: str | Path, force: bool, option: str, inputs: Iterable[st
     """Raise OutputExistsError when ``path`` (given with ``option``) exists and may not be replaced, overlaps
     one of the command's ``inputs``, or lies where no folder can be made."""
     path = Path(path)
+    if _is_run_file(path):
+        raise OutputExistsError(
+            f"{option} {path} is the log of the run in {path.parent}; write the output elsewhere."
+        )
     clash = _input_clash(path, inputs)
     if clash:
         raise OutputExistsError(f"{option} {path} {clash}; write the output elsewhere (even --force cannot).")
     why = _unwritable_parent(path)
     if why:
         raise OutputExistsError(f"{option} {path} cannot be written: {why}.")
-    if _is_run_file(path):
-        raise OutputExistsError(
-            f"{option} {path} is the log of the run in {path.parent}; write the output elsewhere."
-        )
     if not _occupied(path):
         return
     if not force:
