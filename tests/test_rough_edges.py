@@ -366,7 +366,7 @@ def test_progress_is_a_tqdm_bar_on_a_terminal_and_lines_otherwise():
 
 
 def test_the_readme_gives_the_startup_time_idle_and_loaded():
-    quick = (REPO / "README.md").read_text().split("## What is in the box")[0]
+    quick = " ".join((REPO / "README.md").read_text().split("## What is in the box")[0].split())
     assert "idle two-core machine" in quick and "load average" in quick
     assert "about 10 s of wall time on two cores" not in quick
 
