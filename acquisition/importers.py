@@ -52,6 +52,7 @@ from acquisition.runlog import (
     time_order,
     write_run,
 )
+from calib.errors import CdprError
 
 PARTIAL = "logging cycles lacking a cable or AHRS line"
 MISSING = "samples missing from a field"
@@ -80,7 +81,7 @@ LOG_EXTRA_FIELDS = ("motor_position", "motor_speed", "motor_torque", "cable_spee
 LOG_INT_FIELDS = ("op_mode", "motor_position", "motor_speed", "motor_torque", "aux_position", "state")
 
 
-class IrmaImportError(ValueError):
+class IrmaImportError(CdprError, ValueError):
     """An IRMA file that cannot be imported; the message names the file, the field or line, and the value."""
 
 

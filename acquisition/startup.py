@@ -46,13 +46,14 @@ from calib.design import (
     select_a_optimal,
     sequential_acquisition,
 )
+from calib.errors import CdprError
 from calib.robot import Robot
 
 METHODS = ("equilibrium", "kinematic")
 PLANS = ("grid", "optimal", "sequential")
 
 
-class StartupStopped(RuntimeError):
+class StartupStopped(CdprError, RuntimeError):
     """The routine ended in a safe stop; the message is one sentence, ``kind`` the event's kind."""
 
     def __init__(self, kind: str, message: str, run: Path | None):

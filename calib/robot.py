@@ -19,11 +19,13 @@ from typing import Any
 import numpy as np
 import yaml
 
+from calib.errors import CdprError
+
 ORIENTATIONS = ("xyz", "zyx")
 AXES = {"x": 0, "y": 1, "z": 2, "roll": 3, "pitch": 4, "yaw": 5}
 
 
-class RobotDescriptionError(ValueError):
+class RobotDescriptionError(CdprError, ValueError):
     """A robot description that cannot be used; the message names the file, field and value."""
 
 

@@ -28,10 +28,12 @@ from typing import Any
 import can.interfaces
 import yaml
 
+from calib.errors import CdprError
+
 CAN_BITRATES = (10_000, 20_000, 50_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
-class DeviceConfigError(ValueError):
+class DeviceConfigError(CdprError, ValueError):
     """A device configuration that cannot be used; the message names the file, field and value."""
 
 

@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from calib.errors import CdprError
 from calib.robot import Robot
 from sim_backend.physics import PhysicsParams, Sway, WinchParams, transmission_of
 
@@ -71,7 +72,7 @@ EFFECTS = (
 FAULTS = ("can_frames_lost", "drive_fault", "loadcell_stuck", "loadcell_disconnected", "ahrs_corrupt", "cable_slack")
 
 
-class SimConfigError(ValueError):
+class SimConfigError(CdprError, ValueError):
     """An unusable simulation configuration; the message names the file, field and value."""
 
 

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.errors import CdprError
 from calib.kinematics import rotation
 from calib.robot import Robot
 
@@ -64,7 +65,7 @@ def play(x: float, state: float, extreme: float, width: float) -> tuple[float, f
     return state, extreme
 
 
-class SimulationError(RuntimeError):
+class SimulationError(CdprError, RuntimeError):
     """The simulation cannot continue (diverged state); the message says when."""
 
 

@@ -20,7 +20,7 @@ import sys
 import threading
 import warnings
 
-from acquisition.cli.errors import OperationError, UsageError
+from calib.errors import CdprError
 
 COMMAND_MODULES = (
     "acquisition.cli.robot",
@@ -167,16 +167,11 @@ def _main(argv: list[str] | None, started: list[str]) -> int:
     started.append(str(args.command))
     try:
         return int(args.func(args) or 0)
-    except UsageError as exc:
+    except CdprError as exc:  # every error of the project, mapped here once
         if args.debug:
             raise
         sys.stderr.write(f"cdpr: {exc}\n")
-        return 2
-    except OperationError as exc:
-        if args.debug:
-            raise
-        sys.stderr.write(f"cdpr: {exc}\n")
-        return 1
+        return exc.exit_status
 
 
 if __name__ == "__main__":  # pragma: no cover

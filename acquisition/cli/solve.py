@@ -10,7 +10,7 @@ from pathlib import Path
 
 from acquisition.cli.args import parse_pose
 from acquisition.cli.errors import OperationError, UsageError
-from acquisition.runlog import RunFormatError, read_run
+from acquisition.runlog import read_run
 from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, solve
 from calib.selfcal.result import chi2_sf
 
@@ -59,10 +59,7 @@ def _solve(args) -> int:
     reference = parse_pose(args.reference)
     if args.stride < 1:
         raise UsageError(f"--stride {args.stride} must be a positive integer.")
-    try:
-        run = read_run(args.run)
-    except RunFormatError as exc:
-        raise UsageError(str(exc)) from exc
+    run = read_run(args.run)
     with_effects = bool(getattr(args, "effects", None))
     if getattr(args, "effects_from", None) and not with_effects:
         from acquisition.cli.diagnose import effect_classes

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from calib.errors import CdprError
 from calib.kinematics import rotation
 from calib.selfcal.windows import Window, WindowSearch
 
@@ -33,11 +34,11 @@ def sigma_scale(chi2: float, dof: int) -> float:
     return math.sqrt(chi2 / dof)
 
 
-class SelfCalInputError(ValueError):
+class SelfCalInputError(CdprError, ValueError):
     """A run or argument that cannot be solved as given (the message names the field and value)."""
 
 
-class SelfCalFailure(RuntimeError):
+class SelfCalFailure(CdprError, RuntimeError):
     """A valid problem whose solve failed (no equilibrium found, no convergence)."""
 
 
