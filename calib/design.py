@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.constants import EXPECTED_SETTLE, HOLD_TIME, MAX_TENSION_RATE, MIN_TRANSITION, QUINTIC_PEAK_RATE
 from calib.effects import EffectModel
 from calib.effects.builtin import DeviceAccuracy
 from calib.equilibrium import inverse_geometrico_static
@@ -44,7 +45,6 @@ from calib.robot import Robot
 from calib.selfcal import CHANNELS, MeasurementModel, Measurements, Problem, channel_width
 from calib.workspace import default_volume
 
-QUINTIC_PEAK_RATE = 15.0 / 8.0  # peak of the rest-to-rest quintic's rate over the mean rate
 # per-sample sigma of the IRMA4U's sensors in a still window (issue 19: load cells ~1 N, encoders ~0.2 mm,
 # AHRS ~0.02 deg; swivel encoders their 0.03 deg accuracy): N, m, rad
 SAMPLE_NOISE = {
@@ -131,10 +131,10 @@ LOOP_POSE_NOISE = PoseNoise(
 class TimeModel:
     """Robot time of a plan, s: transitions at the tension rate limit plus settling and holding per pose."""
 
-    max_tension_rate: float = 40.0  # N/s
-    min_transition: float = 1.0  # s
-    settle: float = 8.0  # s to come to rest at a setpoint (the startup's expected settling)
-    hold: float = 2.0  # s logged per window
+    max_tension_rate: float = MAX_TENSION_RATE  # N/s
+    min_transition: float = MIN_TRANSITION  # s
+    settle: float = EXPECTED_SETTLE  # s to come to rest at a setpoint (the startup's expected settling)
+    hold: float = HOLD_TIME  # s logged per window
 
     def transition(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Durations (s) of the moves from tensions a to b (..., n) N, broadcast."""
