@@ -105,11 +105,6 @@ class SafetySupervisor:
         if self.requested is None:
             self.requested = f"stopped by the operator ({name})"
 
-    def request_stop(self, why: str) -> None:
-        """Ask for a stop from outside the loop (e.g. the operator interface)."""
-        if self.requested is None:
-            self.requested = why
-
     def check(
         self,
         tau: np.ndarray,

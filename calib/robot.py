@@ -62,9 +62,6 @@ class NoiseLevels:
     swivel: float
     orientation: float
 
-    def as_dict(self) -> dict[str, float]:
-        return dataclasses.asdict(self)
-
 
 @dataclass(frozen=True, eq=False)
 class Robot:

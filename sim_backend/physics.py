@@ -335,9 +335,6 @@ class CablePhysics:
         self._th = [0.0] * self.n
         self._t = 0.0
 
-    def rotation_matrix(self) -> np.ndarray:
-        return np.array(_quat_to_matrix(self._q))
-
     def pose(self) -> np.ndarray:
         """The true pose (6,) [x, y, z, roll, pitch, yaw] of the platform frame, m and rad."""
         return np.array(pose_of(self._xg, self._q, self._com, self.robot.orientation))
