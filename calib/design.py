@@ -53,15 +53,10 @@ SAMPLE_NOISE = {
     "swivel": math.radians(0.03),
     "orientation": np.radians([0.02, 0.02, 0.02]),
 }
-# sigma of one window mean per channel (N, m, rad) the plans are chosen with: the startup loop's, measured on
-# LOOP_RUNS grid startups of the simulated prototype with realistic noise (sim_backend/examples/rigid_sway.yaml,
-# seeds 0..19, benchmarks/loop_runs.py, 2026-11-25): per channel group the median over the runs of the noise
-# the run's own solve weighs its window means with in the end (``cdpr solve --noise estimate``: pose-free
-# kinematic noise, variance components on the window means, docs/effects.md): tensions 0.247 N, lengths
-# 0.044 mm, swivels 6.6 urad, roll and pitch 0.091 mrad, yaw 0.177 mrad, times LOOP_SCALE, which makes the
-# grid's predicted 1-sigma equal the RMS error measured on those runs (0.156 mm; the median noise predicts
-# 0.129 mm: the planning model leaves out the reference window's own noise, and the devices' priors do not
-# scale with the noise; that solve's own printed 1-sigma: RMS 0.135 mm). Printed, and checked within 5 %, by
+# sigma of one window mean per channel (N, m, rad) the plans are chosen with: the startup loop's, the median
+# over LOOP_RUNS simulated grid startups of the noise each run's own solve ends with, times LOOP_SCALE, which
+# makes the grid's predicted 1-sigma the RMS error measured on those runs. How it is measured, and the figures:
+# docs/planning.md ("How the loop's noise constants are measured"); checked within 5 % by
 # ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
 LOOP_RUNS = 20
 LOOP_SCALE = 1.221
@@ -111,15 +106,11 @@ def lateral_stiffness(robot: Robot, poses: np.ndarray, tau: np.ndarray) -> np.nd
     return np.sum(np.atleast_2d(tau) / lengths, axis=1)
 
 
-# the startup loop's window-mean noise per pose (:class:`PoseNoise`), measured on the simulated prototype with
-# realistic noise (sim_backend/examples/rigid_sway.yaml, seeds 0..19, benchmarks/loop_runs.py, 2026-11-25):
-# floor and force per channel fitted to the median over the runs of the noise each run's own solve weighs its
-# window means with (``cdpr solve --noise estimate``) on the 20 grid startups (lateral stiffness 131 and
-# 345 N/m) and the 20 A-optimal startups: sigma^2 = floor^2 + force^2 / k^2 pooled over each plan's poses
-# (lengths: a 0.036 mm floor and 4.3 mN / k; swivels, roll, pitch and yaw: no floor); then ``scale`` makes the
-# grid's predicted 1-sigma (:func:`predict_loop`: the first pose's window is the reference, as in the run's
-# solve) equal the RMS error measured on its 20 startups (0.156 mm). The optimal plan's errors are not used.
-# Printed, and checked within 5 %, by ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
+# the startup loop's window-mean noise per pose (:class:`PoseNoise`): floor and force per channel fitted to the
+# noise the simulated grid and A-optimal startups' own solves end with, sigma^2 = floor^2 + force^2 / k^2, then
+# ``scale`` makes the grid's predicted 1-sigma (:func:`predict_loop`) its measured RMS error. How, and the
+# figures: docs/planning.md ("How the loop's noise constants are measured"); checked within 5 % by
+# ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
 LOOP_POSE_NOISE = PoseNoise(
     floor={"tension": 0.2062, "length": 3.611e-5, "swivel": 0.0, "orientation": np.zeros(3)},
     force={"tension": 23.39, "length": 4.29e-3, "swivel": 1.16e-3, "orientation": 0.02406},
