@@ -195,7 +195,7 @@ def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | N
     ``truth_window_mean``, the true pose averaged over the reference window; the plant runs in this process
     (``--sim-plant inline``). Raises
     UsageError or OperationError."""
-    from acquisition.cli import build_parser
+    from acquisition.cli import build_parser, modules_for
 
     out = Path(out)
     argv = ["startup", "--backend", "sim", "--no-html", "--out", str(out), "--seed", str(seed), "--robot", robot,
@@ -204,7 +204,7 @@ def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | N
     argv += [] if tolerance is None else ["--tolerance", repr(float(tolerance))]
     argv += [] if poses is None else ["--poses", str(poses)]
     argv += [] if sim_config is None else ["--sim-config", str(sim_config)]
-    args = build_parser().parse_args(argv)
+    args = build_parser(modules_for(argv)).parse_args(argv)  # the startup's module alone
     with ReportRenderer() as report:
         summary = _run(args, report)
     truth = json.loads((out / "truth.json").read_text())
