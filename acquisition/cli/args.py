@@ -4,14 +4,13 @@ exit 2) and the CLI side of the output policy (acquisition/outputs.py)."""
 from __future__ import annotations
 
 import math
-import re
 import sys
 
 import numpy as np
 
 from acquisition.cli.errors import UsageError
 from acquisition.outputs import OutputExistsError, Replaced, check_output, claim_output
-from calib.quoting import quote
+from calib.fields import quote
 
 
 def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
@@ -28,7 +27,6 @@ def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | No
 
 
 LENGTH_UNITS = (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0))
-LENGTH_OPTIONS = ("--tolerance",)  # options whose value is a length: a leading '-' there is a sign, not an option
 
 
 def parse_length(text: str, option: str) -> float:
@@ -45,20 +43,6 @@ def parse_length(text: str, option: str) -> float:
     if not (value > 0 and math.isfinite(value)):
         raise UsageError(f"{option} {quote(text)} must be a positive length.")
     return value
-
-
-def join_signed_values(argv: list[str]) -> list[str]:
-    """``--tolerance -3mm`` as ``--tolerance=-3mm``: argparse would read ``-3mm`` as an unknown option and say
-    only "expected one argument"; joined, the value reaches :func:`parse_length`, which says what is wrong."""
-    out, i = [], 0
-    while i < len(argv):
-        if argv[i] in LENGTH_OPTIONS and i + 1 < len(argv) and re.match(r"-[\d.]", argv[i + 1]):
-            out.append(f"{argv[i]}={argv[i + 1]}")
-            i += 2
-        else:
-            out.append(argv[i])
-            i += 1
-    return out
 
 
 GRID_POINTS = (2, 6)  # calibration grid points per axis that `cdpr startup` can acquire and solve

@@ -7,9 +7,9 @@ from pathlib import Path
 
 from acquisition.cli.args import add_force, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
-from acquisition.export import FORMATS, ExportError, export_run
-from acquisition.importers import IrmaImportError, irma_run
-from acquisition.runlog import RunFormatError, read_run, write_run
+from acquisition.export import FORMATS, export_run
+from acquisition.importers import irma_run
+from acquisition.runlog import read_run, write_run
 
 
 def register(sub) -> None:
@@ -47,10 +47,7 @@ def _import_irma(args) -> int:
         raise UsageError(f"{args.targets}: no such file (--targets).")
     inputs = [f for f in (args.file, args.targets) if f is not None]
     check_output_option(args.out, args.force, "-o", inputs)
-    try:
-        run = irma_run(args.file, targets=args.targets)
-    except (IrmaImportError, RunFormatError) as exc:
-        raise UsageError(str(exc)) from exc
+    run = irma_run(args.file, targets=args.targets)
     claim_output_option(args.out, args.force, "-o", inputs)
     try:
         write_run(args.out, run)
@@ -67,15 +64,10 @@ def _import_irma(args) -> int:
 
 def _export(args) -> int:
     check_output_option(args.out, args.force, "-o", [args.run])
-    try:
-        run = read_run(args.run)
-    except RunFormatError as exc:
-        raise UsageError(str(exc)) from exc
+    run = read_run(args.run)
     claim_output_option(args.out, args.force, "-o", [args.run])
     try:
         out = export_run(run, args.format, args.out)
-    except ExportError as exc:
-        raise UsageError(str(exc)) from exc
     except OSError as exc:
         raise OperationError(f"{args.out}: cannot write the export ({exc.strerror}).") from exc
     solved = _which_solution(args.run / "solution.json")
