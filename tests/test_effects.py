@@ -332,3 +332,33 @@ def test_reference_noise_shifts_every_row_of_a_relative_channel_by_one_value_per
     idx, _, sd = model.priors()
     assert idx.tolist() == list(range(6, 6 + 7 + 9))
     np.testing.assert_allclose(sd[7:], [rn.sd["length"]] * 4 + [rn.sd["swivel"]] * 4 + [rn.sd["yaw"]])
+
+
+def test_offsets_written_with_an_absent_effect_equal_the_plain_solves():
+    """Issue 28, point 7: the absolute readings behind the written offsets take the yaw in the AHRS's own
+    convention under effects too (the rigid model converts it; ``EffectModel`` once returned theta[5], the
+    yaw of the robot's convention: 1 deg off at this tilt). Every effect at its absent value writes the
+    plain solve's offsets, through the solve itself (the plain solution handed over, not iterated)."""
+    from calib.selfcal import solve
+    from calib.selfcal.problem import Measurements
+
+    zeta0 = np.r_[POSES[1, :3], 0.12, -0.1, 0.05]
+    rigid = MeasurementModel(ROBOT).absolute_readings(zeta0)
+    assert abs(rigid["yaw"] - zeta0[5]) > np.radians(0.5)  # the conversion matters at this tilt
+    poses = np.vstack([zeta0, POSES + [0, 0, 0, 0.05, -0.04, 0.03]])
+    pred = MeasurementModel(ROBOT).predict(poses[1:], zeta0, CHANNELS)
+    ref = MeasurementModel(ROBOT).predict(zeta0[None], zeta0, ("tension", "orientation"))
+    meas = Measurements(pred["tension"].value, pred["length"].value, pred["swivel"].value,
+                        pred["orientation"].value, ref["tension"].value[0], ref["orientation"].value[0, :2])
+    plain = solve(ROBOT, meas, guess=(zeta0, poses[1:]))
+    assert np.allclose(plain.initial_pose, zeta0, atol=1e-8)
+    for name in available_effects():
+        model = EffectModel(ROBOT, make_effects([name], available_effects()))
+        absolute = model.absolute_readings(model.initial_params(zeta0))
+        for c in ("length", "swivel", "yaw"):
+            np.testing.assert_allclose(absolute[c], rigid[c], atol=1e-12, err_msg=f"{name}: {c}")
+        sol = solve(ROBOT, meas, model=model, guess=(model.initial_params(plain.initial_pose), plain.poses),
+                    max_iter=0)
+        for c in ("length", "swivel", "yaw"):
+            np.testing.assert_allclose(sol.sensor_offsets[c], plain.sensor_offsets[c], atol=1e-12,
+                                       err_msg=f"{name}: {c}")

@@ -189,6 +189,12 @@ class AhrsMounting(Effect):
         cols[:, 2] -= d0ab[0, 2]
         pr.d_theta[..., ctx.cols] = cols
 
+    def absolute_yaw(self, robot: Robot, zeta0: np.ndarray, values: np.ndarray, yaw: float) -> float:
+        """The yaw the tilted AHRS shows at zeta_0: that of R(zeta_0) M in its own convention."""
+        meas, _, _ = self._read(robot.orientation, np.asarray(zeta0, float)[None, 3:6], float(values[0]),
+                                float(values[1]), robot.ahrs_convention)
+        return float(meas[0, 2])
+
 
 class AhrsYawDrift(Effect):
     """The AHRS yaw drifts at a constant rate: yaw reading = true yaw change + rate * t (rad/s), t the row's
