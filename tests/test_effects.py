@@ -71,12 +71,17 @@ def test_each_effect_jacobian_matches_finite_differences(name):
 def test_all_effects_composed_jacobian_matches_finite_differences():
     rng = np.random.default_rng(11)
     model = EffectModel(ROBOT, make_effects(list(BUILTIN)))
-    # pulley_position: 12 - 4 gauge modes; then pulley_friction (2), loadcell_hysteresis, cable_sag
-    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 1 + 3 + 1 + 8 + 2 + 1 + 1
+    # pulley_position: 12 - 4 gauge modes; then pulley_friction (2), loadcell_hysteresis, cable_sag; then
+    # swivel_tilt (2 per pulley), swivel_entry (2 per pulley), swivel_gain
+    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 1 + 3 + 1 + 8 + 2 + 1 + 1 + 8 + 8 + 4
     vals = _values(model, rng)
     # cable_sag's columns leave out rho times the change of the cable weights' tensions with the pulley
-    # geometry (second order, documented): its density is 0 here, its own columns are checked below
-    vals[-1] = 0.0
+    # geometry, swivel_entry's the change of its corrections with the robot effects' geometry (second order,
+    # documented): both are 0 here, their own columns are checked alone
+    names = model.param_names[6:]
+    for j, name in enumerate(names):
+        if name.startswith(("cable_sag.", "swivel_entry.")):
+            vals[j] = 0.0
     theta = model.initial_params(POSES[1] + 0.01 * rng.standard_normal(6), vals)
     _check_fd(model, theta, POSES[:3], rng.choice([-1.0, 0.0, 1.0], size=(3, ROBOT.n, 2)))
 

@@ -118,6 +118,9 @@ class Effect:
     order: int = 50
     description: str = ""
     fd_steps: float = 1e-6  # relative to each parameter's scale
+    # a reading effect that edits the physical quantities (``Context.at``/``ref``: L, sigma and their
+    # derivatives) rather than the readings: ``absolute_readings`` runs its transform at zeta_0
+    edits_physical: bool = False
 
     def params(self, robot: Robot) -> list[ParamSpec]:
         raise NotImplementedError
@@ -322,11 +325,19 @@ class EffectModel:
         AHRS's own convention (``robot.ahrs_convention``, as the rigid model's
         ``MeasurementModel.absolute_readings``: the yaw of zeta_0 is in ``robot.orientation``)."""
         robot, ref = self._physical(theta, theta[None, :6])
+        order = sorted(range(len(self.effects)), key=lambda i: self.effects[i].order)
+        for i in order:  # effects that edit the physical geometry act on it first (their order is lowest)
+            e, values = self.effects[i], np.asarray(theta[self.slices[i]])
+            if e.stage == "reading" and e.edits_physical:
+                at = dataclasses.replace(ref)
+                e.transform(Context(robot, theta[None, :6], theta, self.slices[i], at, dataclasses.replace(ref)),
+                            values, {})
+                ref = at
         lengths, swivel = ref.L[0], ref.sigma[0]
         yaw = float(convert_euler(theta[None, 3:6], robot.orientation, robot.ahrs_convention)[0][0, 2])
-        for i in sorted(range(len(self.effects)), key=lambda i: self.effects[i].order):
+        for i in order:
             e, values = self.effects[i], np.asarray(theta[self.slices[i]])
-            if e.stage == "reading":
+            if e.stage == "reading" and not e.edits_physical:
                 lengths = e.absolute_length(ref, values, lengths)
                 swivel = e.absolute_swivel(ref, values, swivel)
                 yaw = e.absolute_yaw(robot, theta[:6], values, yaw)
