@@ -5,9 +5,9 @@ and reads the swivel angle with an encoder "mounted directly on the swivel axes"
 Section 4). On the real runs the swivel channel keeps the largest misfit once the load cells and the AHRS
 are modelled (issue 28): three ways the pulleys can differ from that, each with exact Jacobian columns.
 
-* ``swivel_tilt`` (robot): the swivel axis of pulley i is tilted about its own i_i by a_i and then about
-  the tilted j_i by b_i: the local frame becomes (Rx(a_i) Ry(b_i))^T F_i. A tilt about k_i itself is a
-  swivel offset, which the relative encoders cannot see: it is left out.
+* ``swivel_tilt`` (robot): the swivel axis of pulley i is tilted about its own i_i by a_i (``tilt_i_<i>``)
+  and then about the tilted j_i by b_i (``tilt_j_<i>``): the local frame becomes (Rx(a_i) Ry(b_i))^T F_i.
+  A tilt about k_i itself is a swivel offset, which the relative encoders cannot see: it is left out.
 * ``swivel_entry`` (reading of the geometry): the groove entry point sits e_i off the swivel axis along the
   pulley's radius u_i and the pulley plane f_i off the axis along w_i. The anchor then lies in the offset
   plane: the swivel angle is atan2(q.j, q.i) - asin(f / rho_u), and the in-plane geometry of eq. 4-5 sees
@@ -36,7 +36,8 @@ def _tilt_matrices(values: np.ndarray, n: int) -> np.ndarray:
 
 
 class SwivelTilt(Effect):
-    """Swivel-axis tilt per pulley (rad): the local frame F_i becomes S_i^T F_i, S_i = Rx(a_i) Ry(b_i)."""
+    """Swivel-axis tilt per pulley (rad): the local frame F_i becomes S_i^T F_i, S_i = Rx(a_i) Ry(b_i);
+    parameters tilt_i_<i> = a_i, tilt_j_<i> = b_i."""
 
     name = "swivel_tilt"
     stage = "robot"
@@ -48,8 +49,8 @@ class SwivelTilt(Effect):
         # (35 mm over a metre) is what a frame member bent or a housing shimmed by eye can leave unnoticed;
         # a spirit level (about 0.06 deg per division) would find more. No measurement of the axes exists.
         ok = (-math.radians(2.0), math.radians(2.0))
-        return [ParamSpec(f"{ax}_{i + 1}", "rad", 0.0, -0.3, 0.3, 0.01, plausible=ok)
-                for i in range(robot.n) for ax in ("a", "b")]
+        return [ParamSpec(f"tilt_{ax}_{i + 1}", "rad", 0.0, -0.3, 0.3, 0.01, plausible=ok)
+                for i in range(robot.n) for ax in ("i", "j")]
 
     def modify(self, robot: Robot, values: np.ndarray) -> Robot:
         S = _tilt_matrices(values, robot.n)
