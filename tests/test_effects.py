@@ -367,3 +367,54 @@ def test_offsets_written_with_an_absent_effect_equal_the_plain_solves():
         for c in ("length", "swivel", "yaw"):
             np.testing.assert_allclose(sol.sensor_offsets[c], plain.sensor_offsets[c], atol=1e-12,
                                        err_msg=f"{name}: {c}")
+
+
+def test_swivel_geometry_changes_readings_as_its_physics_says():
+    """The swivel family (issue 28), against geometry computed independently: a pulley plane 4 mm off the
+    swivel axis turns the swivel angle by -asin(f / rho_u), rho_u the anchor's distance from the axis; a
+    radial entry offset e shortens the in-plane distance, as a robot whose anchors sit e closer to the axis
+    along u would; a tilted axis reads what the rigid model of the tilted frames reads; the gain scales."""
+    from calib.effects.swivel import SwivelTilt
+    from calib.kinematics import inverse_kinematics
+
+    zeta0 = POSES[0]
+    rigid = MeasurementModel(ROBOT).predict(POSES, zeta0, CHANNELS)
+    kin, kin0 = inverse_kinematics(ROBOT, POSES), inverse_kinematics(ROBOT, zeta0[None])
+    entry = EffectModel(ROBOT, make_effects(["swivel_entry"]))
+    f = np.zeros(8)
+    f[1] = 0.004  # f_1
+    got = entry.predict(POSES, entry.initial_params(zeta0, f), CHANNELS)
+    turn = -np.arcsin(0.004 / kin.rho_u[:, 0]) + np.arcsin(0.004 / kin0.rho_u[0, 0])
+    np.testing.assert_allclose(got["swivel"].value[:, 0] - rigid["swivel"].value[:, 0], turn, atol=1e-12)
+    np.testing.assert_allclose(got["swivel"].value[:, 1:], rigid["swivel"].value[:, 1:], atol=1e-12)
+    assert np.abs(turn).max() > np.radians(0.01)  # visible to a 0.03 deg encoder's window mean
+    absolute = entry.absolute_readings(entry.initial_params(zeta0, f))
+    assert absolute["swivel"][0] == pytest.approx(kin0.swivel[0, 0] - np.arcsin(0.004 / kin0.rho_u[0, 0]))
+    # a radial offset: the lengths of a pulley whose centre sits e farther out, i.e. anchors e nearer along u
+    e = np.zeros(8)
+    e[0] = 0.003
+    got = entry.predict(POSES, entry.initial_params(zeta0, e), ("length",))["length"].value
+    r = ROBOT.r[0]
+
+    def plane_length(ru, rk):  # the wrap of eq. 4-5 by direct search of the tangent point
+        phi = np.linspace(0.0, np.pi, 200001)
+        bx, bz = r - r * np.cos(phi), r * np.sin(phi)  # groove points from the entry, centre at (r, 0)
+        tx, tz = np.sin(phi), np.cos(phi)  # the groove's tangent there, continuing the wrap
+        cross_ = (ru - bx) * tz - (rk - bz) * tx
+        j = int(np.argmin(np.abs(cross_) + 1e9 * ((ru - bx) * tx + (rk - bz) * tz < 0)))
+        return r * phi[j] + np.hypot(ru - bx[j], rk - bz[j])
+
+    want = [plane_length(kin.rho_u[k, 0] - 0.003, kin.rho_k[k, 0]) for k in range(len(POSES))]
+    want0 = plane_length(kin0.rho_u[0, 0] - 0.003, kin0.rho_k[0, 0])
+    np.testing.assert_allclose(got[:, 0], np.array(want) - want0, atol=2e-6)
+    # a tilted axis: exactly the rigid model of the tilted frames
+    tilt = np.radians([1.5, -1.0, 0, 0, 0, 0, 0.5, 0.5])
+    model = EffectModel(ROBOT, make_effects(["swivel_tilt"]))
+    tilted = MeasurementModel(SwivelTilt().modify(ROBOT, tilt)).predict(POSES, zeta0, CHANNELS)
+    got = model.predict(POSES, model.initial_params(zeta0, tilt), CHANNELS)
+    for c in CHANNELS:
+        np.testing.assert_allclose(got[c].value, tilted[c].value, atol=1e-12)
+    assert np.abs(tilted["swivel"].value - rigid["swivel"].value).max() > np.radians(0.05)
+    gain = EffectModel(ROBOT, make_effects(["swivel_gain"]))
+    got = gain.predict(POSES, gain.initial_params(zeta0, [0.01, 0, 0, -0.02]), ("swivel",))["swivel"].value
+    np.testing.assert_allclose(got, rigid["swivel"].value * [1.01, 1, 1, 0.98], atol=1e-15)
