@@ -26,12 +26,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
 from calib.diagnose import RunRows, residuals
 from calib.effects import Effect, EffectModel, ParamSpec, Projected
-from calib.effects.builtin import AhrsYawDrift, DeviceAccuracy
+from calib.effects.builtin import AhrsYawDrift, DeviceAccuracy, ReferenceNoise
 from calib.selfcal.model import CHANNELS
 from calib.selfcal.problem import Problem
 
@@ -42,6 +43,7 @@ PIN = 1e-6  # a device prior that steps aside is pinned at its absent value: sd 
 # which device priors a shared effect overlaps (the same columns): they step aside while it is fitted
 OVERLAPS = {"tension_offset": ("b_",), "ahrs_mounting": ("b_roll", "b_pitch")}
 PER_RUN = ("ahrs_yaw_drift",)  # library effects that are a run's own unknown, never shared
+NOT_CANDIDATES = (*PER_RUN, DeviceAccuracy.name, ReferenceNoise.name)  # in every fit of a run, never selected
 
 
 class DeviceBase(DeviceAccuracy):
@@ -167,7 +169,7 @@ class JointFit:
     iterations: int
     n_residuals: int = 0
     n_free: int = 0
-    history: list[dict[str, dict[str, list[float]]]] = field(default_factory=list)
+    history: list[dict[str, Any]] = field(default_factory=list)  # per weighting round: run -> weights, pose
 
     @property
     def names(self) -> list[str]:
@@ -361,11 +363,13 @@ def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, 
     runs = start_runs(items, shared, starts, sigmas)
     robot = runs[0].rows.robot
     floor = sensor_noise(robot)
-    history = [{rf.name: {c: [float(v) for v in s] for c, s in rf.sigma.items()} for rf in runs}]
+    history = []
     it_total, conv = 0, False
     for rnd in range(rounds + 1):
         runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, max_iter)
         it_total += it
+        history.append({rf.name: {"weights": {c: [float(v) for v in s] for c, s in rf.sigma.items()},
+                                  "initial_pose": [float(v) for v in rf.theta[:6]]} for rf in runs})
         m = sum(residuals(rf.problem, rf.theta, rf.poses, jacobian=False).r.shape[0] for rf in runs)
         if rnd == rounds:
             break
@@ -375,7 +379,6 @@ def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, 
             sig = components(rf, red, floor)
             new.append(replace(rf, sigma=sig, problem=Problem(rf.problem.model, rf.rows.meas, sig)))
         runs = new
-        history.append({rf.name: {c: [float(v) for v in s] for c, s in rf.sigma.items()} for rf in runs})
     q = _layout(shared, robot)[0]
     values = runs[0].theta[runs[0].theta.shape[0] - q:] if q else np.zeros(0)
     return JointFit(shared, values.copy(), cov, runs, cost, conv, it_total, m, rank, history)

@@ -257,11 +257,13 @@ def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Sel
                                 "confused": []}
         steps.append(step)
         best = min(options, key=lambda t: t.score)
-        if not best.plausible and current.score - best.score > MIN_GAIN:
-            finding = best  # the option that predicts best is out of its range: a finding, stop here
-            break
         ok = [t for t in options if t.plausible and current.score - t.score > MIN_GAIN
               and _better_on_most(t, current)]
+        margin = max(MIN_GAIN, CONFUSED * (current.score - best.score))
+        if not best.plausible and current.score - best.score > MIN_GAIN and (
+                not ok or min(t.score for t in ok) > best.score + margin):
+            finding = best  # the option that predicts clearly best is out of its range: a finding, stop here
+            break
         if not ok:
             break
         top_gain = max(current.score - t.score for t in ok)
