@@ -28,13 +28,13 @@ RATIO, GROWTH, CPU = 0.35, 1.20, 10.0
 
 
 def import_runs(data: Path, out: Path) -> list[Path]:
-    from acquisition.importers import import_irma_parsed
+    from acquisition.importers import import_irma
 
     paths = []
     for name, targets in RUNS.items():
         dst = out / name
         if not dst.exists():
-            import_irma_parsed(data / f"{name}_parsed.mat", dst, targets=data / targets)
+            import_irma(data / f"{name}_parsed.mat", dst, targets=data / targets)
         paths.append(dst)
     return paths
 

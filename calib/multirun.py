@@ -47,9 +47,10 @@ NOT_CANDIDATES = (*PER_RUN, DeviceAccuracy.name, ReferenceNoise.name)  # in ever
 
 
 class DeviceBase(DeviceAccuracy):
-    """The devices' datasheet errors (``DeviceAccuracy``) with the priors named in ``aside`` (name prefixes)
-    pinned at zero: a shared effect that explains the same readings takes them instead. The yaw drift rate
-    is always aside: every run fits its own (``ahrs_yaw_drift``)."""
+    """The devices' datasheet errors (``DeviceAccuracy``) with the priors named in ``aside`` (names, or a
+    prefix ending in '_' for the numbered ones: 'b_' is the cells b_1..b_n) pinned at zero: a shared effect
+    that explains the same readings takes them instead. The yaw drift rate is always aside: every run fits
+    its own (``ahrs_yaw_drift``)."""
 
     def __init__(self, aside: Sequence[str] = ()):
         self.aside = ("yaw_rate", *aside)
@@ -57,7 +58,8 @@ class DeviceBase(DeviceAccuracy):
     def params(self, robot) -> list[ParamSpec]:
         out = []
         for s in super().params(robot):
-            if any(s.name == a or (a.endswith("_") and s.name.startswith(a)) for a in self.aside):
+            if any(s.name == a or (a.endswith("_") and s.name.startswith(a) and s.name[len(a):].isdigit())
+                   for a in self.aside):
                 s = replace(s, prior=PIN * s.scale)
             out.append(s)
         return out
@@ -289,10 +291,10 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     inverse normal matrix's shared block (covariance of the shared values) and the rank."""
     robot = runs[0].rows.robot
     q, _, lo, hi = _layout(shared, robot)
-    lam, it, converged = 1e-5, 0, False
+    lam, iterations, converged = 1e-5, 0, False
     r, A, cols = stack(runs, q, fixed_shared)
     cost = float(r @ r)
-    for it in range(1, max_iter + 1):
+    for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         scale = np.linalg.norm(A, axis=0)
         scale[scale == 0] = 1.0
         As = A / scale
@@ -332,7 +334,7 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
         mm = residuals(rf.problem, rf.theta, rf.poses, jacobian=False).r
         rf.chi2 = float(mm @ mm)
         start += mm.shape[0]
-    return runs, cost, converged, it, cov, int(keep.sum())
+    return runs, cost, converged, iterations, cov, int(keep.sum())
 
 
 def components(rf: RunFit, redundancy: float, floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -28,21 +28,17 @@ from typing import Any
 
 import numpy as np
 
-from scipy import stats
-
-from calib.diagnose import RunRows, observable_basis, orthonormal_columns, residuals
+from calib.diagnose import RunRows, residuals
 from calib.effects import Effect, Implausible
 from calib.multirun import (
+    GROUPS,
     JointFit,
     RunFit,
     fit_runs,
     held_out_score,
-    learned_effects,
-    GROUPS,
     misfit_j,
     score_of,
     stack,
-    start_runs,
 )
 from calib.prediction import leave_one_pose_out
 from calib.selfcal.problem import Problem
@@ -153,27 +149,6 @@ class Judge:
         f = fit_runs(self.items, eff, starts=_starts(current, range(len(self.items))),
                      sigmas=[rf.sigma for rf in current.runs], rounds=0, max_iter=QUICK_ITER)
         return sum(held_out_score(rf) for rf in f.runs), f
-
-    def score(self, current: JointFit, names: Sequence[str]) -> float:
-        """Score (Lagrange multiplier) test of adding the last of ``names`` to ``current`` (whose effects are
-        the others), no refit: log p-value of |P r|^2, P the projector on the candidate's columns with the
-        other unknowns projected out (chi2 with the observable directions as dof); 0 when none."""
-        eff = self.effects(names)
-        runs = start_runs(self.items, eff, _starts(current, range(len(self.items))),
-                          [rf.sigma for rf in current.runs])
-        q_old, q_new = current.values.shape[0], _n_params(eff, self.robot) 
-        r, A, _ = stack(runs, q_new)
-        scale = np.linalg.norm(A, axis=0)
-        scale[scale == 0] = 1.0
-        C = A[:, q_old:q_new]
-        N = np.delete(A, np.s_[q_old:q_new], axis=1)
-        Q = orthonormal_columns(N)
-        specs = eff[-1].params(self.robot)
-        _, U, _ = observable_basis(C - Q @ (Q.T @ C), np.array([sp.scale for sp in specs]))
-        if U.shape[1] == 0:
-            return 0.0
-        lm = float(np.sum((U.T @ r) ** 2))
-        return float(stats.chi2.logsf(lm, U.shape[1]))
 
     def judge(self, t: Trial) -> Trial:
         """Fill the trial's prediction score and folds."""

