@@ -431,14 +431,15 @@ def test_solve_with_effects_is_the_diagnosis_refit_on_a_full_simulated_run(full_
 
 def test_an_implausibly_large_effect_is_never_recommended():
     """Load-cell offsets of 40 N (beyond the 2 % of full scale a cell's zero can be off): the offsets
-    explain the misfit but are rejected as implausible, and the verdict says something outside the library
-    acts; offsets within the range are recommended, the score test's expected change close to the refit."""
+    explain the misfit but are not recommended, and the verdict names them first as a likely setup error
+    (issue 28); offsets within the range are recommended, the score test's expected change close to the refit."""
     d = _rows({"tension_offset": {"offset": [40.0, -30.0, 0.0, 25.0]}})
     diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=1)
     cand = next(c for c in diag.ranking if c.effect == "tension_offset")
     assert cand.significant and not cand.plausible and "tension_offset" not in diag.selected
-    assert cand.params["o_1"] > 19.62 and cand.decision.startswith("rejected: implausibly large")
-    assert "implausibly large" in diag.verdict and "outside the library" in diag.verdict
+    # issue 28: what explains the most out of its range is a finding (a setup error: a cell's zero 40 N off)
+    assert cand.params["o_1"] > 19.62 and cand.decision.startswith("FINDING")
+    assert diag.verdict.startswith("FINDING: tension_offset") and "robot description or the setup" in diag.verdict
     d = _rows(HIDDEN["tension_offset"])
     diag = diagnose(ROBOT, d.meas, d.sigma, d.guess_zeta0, d.guess_poses, refits=2, max_effects=1)
     cand = diag.ranking[0]
