@@ -235,14 +235,19 @@ def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(r
     for name in diag.selected:
         assert by[name].plausible and by[name].cv_gain > 0
     followed = diag.steps[-1]["eps_p"] if diag.selected else plain
-    # zeta_0_real is uncertain by several mm (README; issue 28): the raw log's tension_offset,length_scale
-    # lands 11.6 mm from it (plain 10.0 mm); the parsed run's tension_offset 8.6 mm (plain 8.65 mm)
-    assert followed <= plain + 2e-3
+    # issue 28: with the model-error weights of --noise estimate the parsed run recommends tension_offset
+    # (5.6 mm from zeta_0_real, plain 8.65 mm). The raw log recommends tension_offset,length_scale (its
+    # controller's transmission ratios are 1.4-2.6 % off the parser's), but the refits keep the base model's
+    # weights, in which the rigid model's length misfit set the lengths' sigma to 8 mm: 11.6 mm against
+    # 9.97 mm; with that model's own weights it lands 3.8 mm away (docs/effects.md). Weighing each
+    # candidate by its own residuals is issue 28's point 2: until then the raw log is allowed 2 mm.
+    assert followed <= plain + (0.002 if read_run(run).source == "import:irma-log" else 1e-9)
     # the verdict names what only an implausibly large effect would explain
     assert not by["mass_scale"].plausible and by["mass_scale"].params["s"] > 0.05
     assert not by["tension_gain"].plausible and max(by["tension_gain"].params.values()) > 0.05
+    assert diag.selected and diag.selected[0] == "tension_offset"  # issue 28: no longer "nothing"
     # issue 28: the recommendation is a command; an implausible candidate that explains the most is said first
-    assert not diag.selected or f"--effects {','.join(diag.selected)}" in diag.verdict
+    assert f"--effects {','.join(diag.selected)}" in diag.verdict
     assert diag.finding is None or diag.verdict.startswith("FINDING")
     assert "reference pose" in [r["label"] for r in diag.rows]
     # issue 17's cable effects (measured, parsed / raw log): the cells read ~10 N above the model whichever
@@ -250,8 +255,11 @@ def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(r
     # follows the direction, fits only by trading its two parts (mu 6.1 % / 5.9 %, f -2.9 N / -2.7 N:
     # negative, implausible) and predicts the left-out poses worse; the cables would have to weigh
     # 0.34 / 0.52 kg/m (plausible: 0.07); the hysteresis is not significant
-    # (issue 28: with the estimate noise carrying the model error, friction is no longer significant)
     assert not by["cable_sag"].plausible and by["cable_sag"].params["density"] > 0.2
+    # issue 28: weighed by the model's own scatter (model-error rule of --noise estimate) friction is no
+    # longer significant (score p 0.02-0.04); when it is, it fits only implausibly and predicts worse
+    fr = by["pulley_friction"]
+    assert not fr.significant or (not fr.plausible and fr.params["f"] < 0 and fr.cv_gain < 0)
     assert not {"pulley_friction", "loadcell_hysteresis", "cable_sag"} & set(diag.selected)
     # the rows carry the directions the cables moved into each window, from the run's signals
     meas = diag.fit.problem.meas
