@@ -23,8 +23,15 @@ from calib.effects import Effect, EffectLoadError, available_effects, make_effec
 
 def register(sub) -> None:
     p = sub.add_parser("diagnose", help="compare model and measurements, rank the candidate physical effects")
-    p.add_argument("run", type=Path, metavar="RUN", help="run folder")
+    p.add_argument("run", type=Path, nargs="+", metavar="RUN",
+                   help="run folder; several runs of one robot: its effects shared, each run's own unknowns, "
+                   "effects chosen by leave-one-run-out prediction (issue 28)")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON (spec/cli.md)")
+    p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
+                   help="a learned robot model (docs/robot-model.md): its effects enter every fit as priors")
+    p.add_argument("--model-out", type=Path, default=None, metavar="MODEL.yaml",
+                   help="write the learned robot model (effects kept, values, 1-sigma, runs and weights); "
+                   "diagnoses the runs jointly; an existing file is refused unless --force")
     p.add_argument(
         "--noise", choices=("estimate", "accuracy", "paper"), default="estimate",
         help="noise units: estimate (scatter inside the equilibrium windows, default), accuracy (that scatter "
@@ -98,6 +105,11 @@ def _diagnose(args) -> int:
 
     if args.max_effects < 0:
         raise UsageError(f"--max-effects {args.max_effects} must be 0 or more.")
+    if len(args.run) > 1 or args.model is not None or args.model_out is not None:
+        from acquisition.cli.diagnose_runs import diagnose_runs
+
+        return diagnose_runs(args)
+    args.run = args.run[0]
     reference = parse_pose(args.reference)
     for option, path in (("--plots", args.plots), ("--html", args.html)):
         if path is not None:

@@ -42,6 +42,9 @@ def register(sub) -> None:
     from acquisition.cli.diagnose import add_solve_options  # --effects, --effects-from (issue 7)
 
     add_solve_options(p)
+    p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
+                   help="a learned robot model (cdpr diagnose --model-out): its effects as priors, this run's own "
+                   "unknowns refitted, weights by variance components (docs/robot-model.md)")
     p.set_defaults(func=_solve)
 
 
@@ -77,7 +80,14 @@ def _solve(args) -> int:
     model = None if with_effects else _effects_model(run.robot, getattr(args, "effects", None))
     table = ""
     try:
-        if with_effects:  # effects added one by one, with the before/after table (issue 7)
+        if getattr(args, "model", None) is not None:  # a learned robot model as priors (issue 28)
+            from acquisition.cli.diagnose_runs import solve_with_model_file
+
+            if with_effects:
+                raise UsageError("--model and --effects: put the effects in the model (cdpr diagnose --model-out).")
+            kw = dict(method=args.method, stride=args.stride, reference_sample=args.reference_sample)
+            sol, table = solve_with_model_file(args, run, reference, kw)
+        elif with_effects:  # effects added one by one, with the before/after table (issue 7)
             from acquisition.cli.diagnose import solve_with_effects
 
             kw = dict(method=args.method, noise=args.noise, stride=args.stride,

@@ -86,6 +86,9 @@ def register(sub) -> None:
                    help="format of the raw CAN record RUN/bus.<fmt> (python-can's loggers; default blf)")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
+                   help="a learned robot model (cdpr diagnose --model-out): the run's solve takes its effects as "
+                   "priors (docs/robot-model.md)")
     add_force(p)
     p.set_defaults(func=run)
 
@@ -149,6 +152,13 @@ def _pause(text: str, k: int) -> Pause:
 
 
 def run(args) -> int:
+    if getattr(args, "model", None) is not None:  # a bad model file is refused before the robot moves
+        from calib.robot_model import ModelFileError, read_model
+
+        try:
+            read_model(args.model)
+        except ModelFileError as exc:
+            raise UsageError(f"--model {exc}") from exc
     try:
         with ReportRenderer() as report:
             if not args.no_html:
@@ -376,7 +386,13 @@ def _solve_and_report(args, robot, cfg, result, out: Path, report: ReportRendere
     method = "tlse" if cfg.method == "equilibrium" else "lse"
     t0 = time.perf_counter()
     try:
-        sol = solve(robot, run, method=method)
+        if getattr(args, "model", None) is not None and method == "tlse":  # a learned model as priors (issue 28)
+            from acquisition.cli.diagnose_runs import solve_with_model_file
+
+            args.run, args.effects_from = out, []
+            sol, _ = solve_with_model_file(args, run, None, {"method": method})
+        else:
+            sol = solve(robot, run, method=method)
     except (SelfCalFailure, SelfCalInputError) as exc:
         raise OperationError(f"the acquisition finished but the solve failed: {exc}") from exc
     solve_s = time.perf_counter() - t0
