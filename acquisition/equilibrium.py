@@ -115,8 +115,3 @@ class EquilibriumDetector:
         settled = self._run >= self.needed and elapsed >= self.config.min_wait
         timed_out = not settled and elapsed > self.timeout
         return DetectorState(settled, timed_out, elapsed, still, scores)
-
-    @property
-    def window_samples(self) -> int:
-        """Samples the detector needs at rest after start: the span and then a window's length of spans."""
-        return self.span - 1 + self.needed
