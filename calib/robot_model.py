@@ -19,13 +19,14 @@ import numpy as np
 import yaml
 
 from calib.effects import Effect, EffectModel
+from calib.errors import CdprError
 from calib.multirun import JointFit, Learned, RunFit, fit_runs
 
 FORMAT = "cdpr-robot-model"
 VERSION = 1
 
 
-class ModelFileError(ValueError):
+class ModelFileError(CdprError, ValueError):
     """A model file that cannot be used (the message names the file, the field and the value)."""
 
 
