@@ -71,12 +71,17 @@ def test_each_effect_jacobian_matches_finite_differences(name):
 def test_all_effects_composed_jacobian_matches_finite_differences():
     rng = np.random.default_rng(11)
     model = EffectModel(ROBOT, make_effects(list(BUILTIN)))
-    # pulley_position: 12 - 4 gauge modes; then pulley_friction (2), loadcell_hysteresis, cable_sag
-    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 1 + 3 + 1 + 8 + 2 + 1 + 1
+    # pulley_position: 12 - 4 gauge modes; then pulley_friction (2), loadcell_hysteresis, cable_sag; then
+    # swivel_tilt (2 per pulley), swivel_entry (2 per pulley), swivel_gain
+    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 1 + 3 + 1 + 8 + 2 + 1 + 1 + 8 + 8 + 4
     vals = _values(model, rng)
     # cable_sag's columns leave out rho times the change of the cable weights' tensions with the pulley
-    # geometry (second order, documented): its density is 0 here, its own columns are checked below
-    vals[-1] = 0.0
+    # geometry, swivel_entry's the change of its corrections with the robot effects' geometry (second order,
+    # documented): both are 0 here, their own columns are checked alone
+    names = model.param_names[6:]
+    for j, name in enumerate(names):
+        if name.startswith(("cable_sag.", "swivel_entry.")):
+            vals[j] = 0.0
     theta = model.initial_params(POSES[1] + 0.01 * rng.standard_normal(6), vals)
     _check_fd(model, theta, POSES[:3], rng.choice([-1.0, 0.0, 1.0], size=(3, ROBOT.n, 2)))
 
@@ -332,3 +337,84 @@ def test_reference_noise_shifts_every_row_of_a_relative_channel_by_one_value_per
     idx, _, sd = model.priors()
     assert idx.tolist() == list(range(6, 6 + 7 + 9))
     np.testing.assert_allclose(sd[7:], [rn.sd["length"]] * 4 + [rn.sd["swivel"]] * 4 + [rn.sd["yaw"]])
+
+
+def test_offsets_written_with_an_absent_effect_equal_the_plain_solves():
+    """Issue 28, point 7: the absolute readings behind the written offsets take the yaw in the AHRS's own
+    convention under effects too (the rigid model converts it; ``EffectModel`` once returned theta[5], the
+    yaw of the robot's convention: 1 deg off at this tilt). Every effect at its absent value writes the
+    plain solve's offsets, through the solve itself (the plain solution handed over, not iterated)."""
+    from calib.selfcal import solve
+    from calib.selfcal.problem import Measurements
+
+    zeta0 = np.r_[POSES[1, :3], 0.12, -0.1, 0.05]
+    rigid = MeasurementModel(ROBOT).absolute_readings(zeta0)
+    assert abs(rigid["yaw"] - zeta0[5]) > np.radians(0.5)  # the conversion matters at this tilt
+    poses = np.vstack([zeta0, POSES + [0, 0, 0, 0.05, -0.04, 0.03]])
+    pred = MeasurementModel(ROBOT).predict(poses[1:], zeta0, CHANNELS)
+    ref = MeasurementModel(ROBOT).predict(zeta0[None], zeta0, ("tension", "orientation"))
+    meas = Measurements(pred["tension"].value, pred["length"].value, pred["swivel"].value,
+                        pred["orientation"].value, ref["tension"].value[0], ref["orientation"].value[0, :2])
+    plain = solve(ROBOT, meas, guess=(zeta0, poses[1:]))
+    assert np.allclose(plain.initial_pose, zeta0, atol=1e-8)
+    for name in available_effects():
+        model = EffectModel(ROBOT, make_effects([name], available_effects()))
+        absolute = model.absolute_readings(model.initial_params(zeta0))
+        for c in ("length", "swivel", "yaw"):
+            np.testing.assert_allclose(absolute[c], rigid[c], atol=1e-12, err_msg=f"{name}: {c}")
+        sol = solve(ROBOT, meas, model=model, guess=(model.initial_params(plain.initial_pose), plain.poses),
+                    max_iter=0)
+        for c in ("length", "swivel", "yaw"):
+            np.testing.assert_allclose(sol.sensor_offsets[c], plain.sensor_offsets[c], atol=1e-12,
+                                       err_msg=f"{name}: {c}")
+
+
+def test_swivel_geometry_changes_readings_as_its_physics_says():
+    """The swivel family (issue 28), against geometry computed independently: a pulley plane 4 mm off the
+    swivel axis turns the swivel angle by -asin(f / rho_u), rho_u the anchor's distance from the axis; a
+    radial entry offset e shortens the in-plane distance, as a robot whose anchors sit e closer to the axis
+    along u would; a tilted axis reads what the rigid model of the tilted frames reads; the gain scales."""
+    from calib.effects.swivel import SwivelTilt
+    from calib.kinematics import inverse_kinematics
+
+    zeta0 = POSES[0]
+    rigid = MeasurementModel(ROBOT).predict(POSES, zeta0, CHANNELS)
+    kin, kin0 = inverse_kinematics(ROBOT, POSES), inverse_kinematics(ROBOT, zeta0[None])
+    entry = EffectModel(ROBOT, make_effects(["swivel_entry"]))
+    f = np.zeros(8)
+    f[1] = 0.004  # f_1
+    got = entry.predict(POSES, entry.initial_params(zeta0, f), CHANNELS)
+    turn = -np.arcsin(0.004 / kin.rho_u[:, 0]) + np.arcsin(0.004 / kin0.rho_u[0, 0])
+    np.testing.assert_allclose(got["swivel"].value[:, 0] - rigid["swivel"].value[:, 0], turn, atol=1e-12)
+    np.testing.assert_allclose(got["swivel"].value[:, 1:], rigid["swivel"].value[:, 1:], atol=1e-12)
+    assert np.abs(turn).max() > np.radians(0.01)  # visible to a 0.03 deg encoder's window mean
+    absolute = entry.absolute_readings(entry.initial_params(zeta0, f))
+    assert absolute["swivel"][0] == pytest.approx(kin0.swivel[0, 0] - np.arcsin(0.004 / kin0.rho_u[0, 0]))
+    # a radial offset: the lengths of a pulley whose centre sits e farther out, i.e. anchors e nearer along u
+    e = np.zeros(8)
+    e[0] = 0.003
+    got = entry.predict(POSES, entry.initial_params(zeta0, e), ("length",))["length"].value
+    r = ROBOT.r[0]
+
+    def plane_length(ru, rk):  # the wrap of eq. 4-5 by direct search of the tangent point
+        phi = np.linspace(0.0, np.pi, 200001)
+        bx, bz = r - r * np.cos(phi), r * np.sin(phi)  # groove points from the entry, centre at (r, 0)
+        tx, tz = np.sin(phi), np.cos(phi)  # the groove's tangent there, continuing the wrap
+        cross_ = (ru - bx) * tz - (rk - bz) * tx
+        j = int(np.argmin(np.abs(cross_) + 1e9 * ((ru - bx) * tx + (rk - bz) * tz < 0)))
+        return r * phi[j] + np.hypot(ru - bx[j], rk - bz[j])
+
+    want = [plane_length(kin.rho_u[k, 0] - 0.003, kin.rho_k[k, 0]) for k in range(len(POSES))]
+    want0 = plane_length(kin0.rho_u[0, 0] - 0.003, kin0.rho_k[0, 0])
+    np.testing.assert_allclose(got[:, 0], np.array(want) - want0, atol=2e-6)
+    # a tilted axis: exactly the rigid model of the tilted frames
+    tilt = np.radians([1.5, -1.0, 0, 0, 0, 0, 0.5, 0.5])
+    model = EffectModel(ROBOT, make_effects(["swivel_tilt"]))
+    tilted = MeasurementModel(SwivelTilt().modify(ROBOT, tilt)).predict(POSES, zeta0, CHANNELS)
+    got = model.predict(POSES, model.initial_params(zeta0, tilt), CHANNELS)
+    for c in CHANNELS:
+        np.testing.assert_allclose(got[c].value, tilted[c].value, atol=1e-12)
+    assert np.abs(tilted["swivel"].value - rigid["swivel"].value).max() > np.radians(0.05)
+    gain = EffectModel(ROBOT, make_effects(["swivel_gain"]))
+    got = gain.predict(POSES, gain.initial_params(zeta0, [0.01, 0, 0, -0.02]), ("swivel",))["swivel"].value
+    np.testing.assert_allclose(got, rigid["swivel"].value * [1.01, 1, 1, 0.98], atol=1e-15)

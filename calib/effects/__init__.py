@@ -19,12 +19,13 @@ from collections.abc import Iterable, Sequence
 from importlib.metadata import entry_points
 from pathlib import Path
 
-from calib.effects import builtin, cable
+from calib.effects import builtin, cable, swivel
 from calib.effects.base import Context, Effect, EffectModel, Implausible, ParamSpec, Physical, Projected
 
 ENTRY_POINT_GROUP = "cdpr.effects"
-# the library: the rigid-model corrections of issue 7, then the cable-transmission effects of issue 17
-BUILTIN: dict[str, type[Effect]] = {**builtin.BUILTIN, **cable.CABLE}
+# the library: the rigid-model corrections of issue 7, the cable-transmission effects of issue 17, then the
+# swivel-pulley geometry of issue 28
+BUILTIN: dict[str, type[Effect]] = {**builtin.BUILTIN, **cable.CABLE, **swivel.SWIVEL}
 
 __all__ = [
     "BUILTIN",

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.kinematics import inverse_kinematics, kinematic_jacobians
+from calib.kinematics import convert_euler, inverse_kinematics, kinematic_jacobians
 from calib.robot import Robot
 from calib.selfcal.model import CHANNELS, ChannelPrediction, orientation_prediction
 from calib.statics import tension_model
@@ -118,6 +118,9 @@ class Effect:
     order: int = 50
     description: str = ""
     fd_steps: float = 1e-6  # relative to each parameter's scale
+    # a reading effect that edits the physical quantities (``Context.at``/``ref``: L, sigma and their
+    # derivatives) rather than the readings: ``absolute_readings`` runs its transform at zeta_0
+    edits_physical: bool = False
 
     def params(self, robot: Robot) -> list[ParamSpec]:
         raise NotImplementedError
@@ -154,6 +157,16 @@ class Effect:
         """Reading stage: the absolute length (n,) the encoders count at zeta_0, given the geometric (or
         previously transformed) one; default unchanged."""
         return lengths
+
+    def absolute_swivel(self, ref: Physical, values: np.ndarray, swivel: np.ndarray) -> np.ndarray:
+        """Reading stage: the absolute swivel angles (n,) rad the encoders show at zeta_0, given the geometric
+        (or previously transformed) ones; default unchanged."""
+        return swivel
+
+    def absolute_yaw(self, robot: Robot, zeta0: np.ndarray, values: np.ndarray, yaw: float) -> float:
+        """Reading stage: the absolute yaw (rad, the AHRS's convention) the AHRS shows at zeta_0, given the one
+        of the platform's own orientation; default unchanged."""
+        return yaw
 
     def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
         """Reported parameters, e.g. ``{"EA": 15020.0}`` (default: the parameters by name)."""
@@ -308,13 +321,27 @@ class EffectModel:
 
     def absolute_readings(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         """Absolute values of the relative sensors at the reference pose: cable lengths (n,) m as the
-        encoders count them (e.g. unstretched, with cable elasticity), swivel angles (n,) rad, yaw rad."""
-        _, ref = self._physical(theta, theta[None, :6])
-        lengths = ref.L[0]
-        for i in sorted(range(len(self.effects)), key=lambda i: self.effects[i].order):
-            if self.effects[i].stage == "reading":
-                lengths = self.effects[i].absolute_length(ref, np.asarray(theta[self.slices[i]]), lengths)
-        return {"length": lengths, "swivel": ref.sigma[0], "yaw": float(theta[5])}
+        encoders count them (e.g. unstretched, with cable elasticity), swivel angles (n,) rad, yaw rad in the
+        AHRS's own convention (``robot.ahrs_convention``, as the rigid model's
+        ``MeasurementModel.absolute_readings``: the yaw of zeta_0 is in ``robot.orientation``)."""
+        robot, ref = self._physical(theta, theta[None, :6])
+        order = sorted(range(len(self.effects)), key=lambda i: self.effects[i].order)
+        for i in order:  # effects that edit the physical geometry act on it first (their order is lowest)
+            e, values = self.effects[i], np.asarray(theta[self.slices[i]])
+            if e.stage == "reading" and e.edits_physical:
+                at = dataclasses.replace(ref)
+                e.transform(Context(robot, theta[None, :6], theta, self.slices[i], at, dataclasses.replace(ref)),
+                            values, {})
+                ref = at
+        lengths, swivel = ref.L[0], ref.sigma[0]
+        yaw = float(convert_euler(theta[None, 3:6], robot.orientation, robot.ahrs_convention)[0][0, 2])
+        for i in order:
+            e, values = self.effects[i], np.asarray(theta[self.slices[i]])
+            if e.stage == "reading" and not e.edits_physical:
+                lengths = e.absolute_length(ref, values, lengths)
+                swivel = e.absolute_swivel(ref, values, swivel)
+                yaw = e.absolute_yaw(robot, theta[:6], values, yaw)
+        return {"length": lengths, "swivel": swivel, "yaw": yaw}
 
 
 class Projected(Effect):

@@ -13,7 +13,7 @@ from calib.equilibrium import default_guess, direct_statics
 from calib.robot import NoiseLevels, Robot
 from calib.selfcal.lm import levenberg_marquardt, solve_poses
 from calib.selfcal.model import CHANNELS, MeasurementModel
-from calib.selfcal.noise import pose_free_noise, shrunk_sigma, variance_factors, window_mean_noise
+from calib.selfcal.noise import pose_free_noise, rescaled_sigma, variance_factors, window_mean_noise
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, compare_pose
 from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_windows
@@ -21,7 +21,7 @@ from calib.selfcal.windows import Window, WindowOptions, WindowSearch, search_wi
 METHODS = ("tlse", "lse", "hybrid")
 NOISE = ("paper", "estimate", "sensors")
 REFINE = 2  # estimate-noise solves: pose-free kinematic noise at the solution, then the solve again, twice
-VCE_ROUNDS_ROWS = 4  # then variance-component rounds on the window means (noise.shrunk_sigma; settles in 2-3)
+VCE_ROUNDS_ROWS = 4  # then variance-component rounds on the window means (noise.rescaled_sigma; settles in 2-3)
 SIGNALS = ("t", "tau", "dl", "dsigma", "roll", "pitch", "dyaw")
 # the smallest motion that sets a direction: a cable's friction in its pulleys reverses once the rope has
 # slid, i.e. after more than its elastic pre-sliding stretch (a few N of friction over EA / l ~ 20 kN/m:
@@ -477,7 +477,7 @@ def solve_run(
         # reference's noise keeps its within-window prior (the fit cannot see the reference's own error)
         within = noise.sigma
         for _ in range(VCE_ROUNDS_ROWS):
-            shrunk = shrunk_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses))
+            shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses), sensor_noise(robot))
             if shrunk is None:
                 break
             model, theta = _with_reference_noise(robot, model, res.theta, within, meas.windows, ref_win.size)

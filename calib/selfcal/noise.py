@@ -273,6 +273,11 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
 VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")
 VCE_MIN_REDUNDANCY = 5.0  # a group with fewer degrees of freedom keeps its within-window sigma
 VCE_SETTLED = 0.98  # a factor above this is 1: nothing left to shrink
+# a factor above this: the group's rows scatter around the fit by more than ~3 times the noise of a window mean
+# (far beyond what a mis-estimated noise does: the within-window estimate is within ~1.6x of the scatter of
+# window means on effect-free runs, tests/test_noise.py): the misfit is model error, the window scatter no
+# longer weighs the group
+MISFIT_FACTOR = 10.0
 
 
 def variance_factors(problem, theta: np.ndarray, poses: np.ndarray) -> dict[str, tuple[float, float]]:
@@ -318,22 +323,42 @@ def variance_factors(problem, theta: np.ndarray, poses: np.ndarray) -> dict[str,
     return out
 
 
-def shrunk_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float, float]]) -> dict[str, np.ndarray] | None:
-    """The sigmas with every group whose rows scatter less than its sigma says (factor < VCE_SETTLED, with at
-    least VCE_MIN_REDUNDANCY degrees of freedom) scaled by sqrt(factor); never scaled up: a group that
-    scatters more keeps its within-window sigma, so that a misfit shows in chi2 instead of being taken for
-    noise. None when nothing changes."""
+def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float, float]],
+                   floor: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray] | None:
+    """The sigmas rescaled by the groups' variance factors (groups with at least VCE_MIN_REDUNDANCY degrees
+    of freedom): a group whose rows scatter less than its sigma says (factor < VCE_SETTLED) is scaled by
+    sqrt(factor); a group whose rows scatter by more than sqrt(MISFIT_FACTOR) times its sigma is dominated by
+    model error, not noise, and gets the sigma its rows scatter by (sqrt(factor) times), so that it weighs
+    what the model explains of it instead of pulling the pose to its own misfit; in between nothing changes
+    (a moderate misfit stays in chi2, where the sigma_scale rule sees it). Once a group is found dominated
+    by model error, the groups the fit cannot judge (too few degrees of freedom: the rows' own poses take
+    their readings whole, e.g. the AHRS angles weighed by their window scatter) are floored at ``floor``
+    (the sensors' specifications): their window scatter says nothing of the model's error there, and would
+    let them dictate the poses. None when nothing changes."""
     out = {c: np.array(v, float) for c, v in sigma.items()}
     changed = False
-    for c, (f, red) in factors.items():
-        if red < VCE_MIN_REDUNDANCY or f >= VCE_SETTLED:
-            continue
-        s = math.sqrt(max(f, 1e-6))
+
+    def scale(c: str, s: float) -> None:
         if c == "tilt":
             out["orientation"][:2] *= s
         elif c == "yaw":
             out["orientation"][2] *= s
         else:
             out[c] = out[c] * s
+
+    misfit = any(red >= VCE_MIN_REDUNDANCY and f > MISFIT_FACTOR for f, red in factors.values())
+    for c, (f, red) in factors.items():
+        if red < VCE_MIN_REDUNDANCY:
+            if misfit and floor is not None:
+                ch, sl = ("orientation", slice(0, 2)) if c == "tilt" else ("orientation", slice(2, 3)) \
+                    if c == "yaw" else (c, slice(None))
+                low = out[ch][sl] < np.asarray(floor[ch], float)[sl]
+                if low.any():
+                    out[ch][sl] = np.maximum(out[ch][sl], np.asarray(floor[ch], float)[sl])
+                    changed = True
+            continue
+        if VCE_SETTLED <= f <= MISFIT_FACTOR:
+            continue
+        scale(c, math.sqrt(max(f, 1e-6)))
         changed = True
     return out if changed else None
