@@ -37,7 +37,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
+from bench_noise import chi2_band
 
 REST_TARGET = 0.05e-3  # m
 
@@ -99,10 +99,8 @@ def one(seed: int, config: str, grid: int) -> dict | None:
 def summarise(rs: list[dict], failed: int) -> bool:
     """Print the three figures against their targets; True when all hold."""
     worst = np.array([max(r["rest"]) for r in rs])
-    below = sum(r["chi2"] < stats.chi2.ppf(0.005, r["dof"]) for r in rs)
-    above = sum(r["chi2"] > stats.chi2.ppf(0.995, r["dof"]) for r in rs)
+    below, above, zs = chi2_band(rs)
     inside = len(rs) - below - above
-    zs = np.array([np.divide(r["err"], r["sigma"]) for r in rs])
     rms = float(np.sqrt(np.mean(zs**2)))
     axes = np.sqrt(np.mean(zs**2, axis=0))
     rest_ok = float(np.median(worst)) <= REST_TARGET
