@@ -32,6 +32,8 @@ from typing import Any
 
 import can
 
+from calib.errors import CdprError
+
 SERIAL_RECORD = "serial.rec"
 SERIAL_FORMAT = "cdpr-serial-record/1"
 CAN_FORMATS = ("blf", "asc")
@@ -39,7 +41,7 @@ SERIAL_DEVICES = ("loadcells", "ahrs")
 BLF_CONTAINER = 16 * 1024  # bytes of frames per compressed BLF container
 
 
-class RecordError(ValueError):
+class RecordError(CdprError, ValueError):
     """A record that cannot be read; the message names the file, line and value."""
 
 

@@ -123,8 +123,3 @@ class EquilibriumDetector:
         block = np.array(self._recent)[-(self.span - 1 + self._run):]
         tau_b, ch = self._split(block)
         return self.stillness.trim(tau_b, ch, block.shape[0]) == (0, 0)
-
-    @property
-    def window_samples(self) -> int:
-        """Samples the detector needs at rest after start: the span and then a window's length of spans."""
-        return self.span - 1 + self.needed

@@ -25,11 +25,12 @@ from typing import Any
 import numpy as np
 
 from acquisition.runlog import Run, csv_text, read_solution, to_plain
+from calib.errors import CdprError
 
 FORMATS = ("mat", "npz", "csv", "mcap")
 
 
-class ExportError(ValueError):
+class ExportError(CdprError, ValueError):
     """A run or solution that cannot be exported; the message names the file, field and value."""
 
 

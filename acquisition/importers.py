@@ -52,6 +52,8 @@ from acquisition.runlog import (
     time_order,
     write_run,
 )
+from acquisition.trajectory import PEAK_RATE
+from calib.errors import CdprError
 
 PARTIAL = "logging cycles lacking a cable or AHRS line"
 MISSING = "samples missing from a field"
@@ -80,7 +82,7 @@ LOG_EXTRA_FIELDS = ("motor_position", "motor_speed", "motor_torque", "cable_spee
 LOG_INT_FIELDS = ("op_mode", "motor_position", "motor_speed", "motor_torque", "aux_position", "state")
 
 
-class IrmaImportError(ValueError):
+class IrmaImportError(CdprError, ValueError):
     """An IRMA file that cannot be imported; the message names the file, the field or line, and the value."""
 
 
@@ -339,7 +341,7 @@ def quintic_destination(x: np.ndarray, fit_tol: float = 0.05) -> float | None:
         return u**3 * (10.0 - 15.0 * u + 6.0 * u * u)
 
     d0 = 1.5 * (x[-1] - a)
-    fit = least_squares(lambda p: a + p[2] * shape(p) - x, [moving[0] - 1.0, 1.875 * abs(d0) / peak, d0],
+    fit = least_squares(lambda p: a + p[2] * shape(p) - x, [moving[0] - 1.0, PEAK_RATE * abs(d0) / peak, d0],
                         bounds=([-x.size, 2.0, -np.inf], [x.size, 100.0 * x.size, np.inf]))
     if not fit.success or np.abs(fit.fun).max() > fit_tol:
         return None

@@ -18,10 +18,12 @@ from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
+from calib.errors import CdprError
+
 RUN_FILES = ("run.yaml", "samples.csv")
 
 
-class OutputExistsError(ValueError):
+class OutputExistsError(CdprError, ValueError):
     """An output that exists and may not be replaced; the message is one sentence naming it and the option."""
 
 

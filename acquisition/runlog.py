@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from calib.errors import CdprError
 from calib.robot import Robot, RobotDescriptionError, builtin_robot_names, load_robot, robot_from_dict
 
 FORMAT = "cdpr-run/1"
@@ -38,7 +39,7 @@ CABLE_GROUPS = ("tau", "tau_ref", "dl", "dsigma")
 SCALAR_COLUMNS = ("roll", "pitch", "dyaw")
 
 
-class RunFormatError(ValueError):
+class RunFormatError(CdprError, ValueError):
     """A run that does not follow `cdpr-run/1`; the message names the file, field or column, and value."""
 
 

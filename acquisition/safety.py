@@ -23,10 +23,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.errors import CdprError
 from calib.robot import Robot
 
 
-class SafeStop(Exception):
+class SafeStop(CdprError):
     """A reason to stop, as one sentence; ``kind`` is a short word for the run log's event."""
 
     def __init__(self, kind: str, message: str, channels: tuple[int, ...] = ()):
@@ -103,11 +104,6 @@ class SafetySupervisor:
         name = signal.Signals(signum).name
         if self.requested is None:
             self.requested = f"stopped by the operator ({name})"
-
-    def request_stop(self, why: str) -> None:
-        """Ask for a stop from outside the loop (e.g. the operator interface)."""
-        if self.requested is None:
-            self.requested = why
 
     def check(
         self,

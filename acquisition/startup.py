@@ -31,7 +31,8 @@ from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from acquisition.report import ProgressBar
 from acquisition.runlog import RunWriter
 from acquisition.safety import SafeStop, SafetyLimits, SafetySupervisor
-from acquisition.trajectory import TensionTrajectory
+from acquisition.trajectory import PEAK_RATE, TensionTrajectory
+from calib.constants import CONTROL_RATE, EXPECTED_SETTLE, HOLD_TIME, MAX_TENSION_RATE, MIN_TRANSITION
 from calib.design import (
     LOOP_POSE_NOISE,
     OnlineEstimate,
@@ -46,13 +47,14 @@ from calib.design import (
     select_a_optimal,
     sequential_acquisition,
 )
+from calib.errors import CdprError
 from calib.robot import Robot
 
 METHODS = ("equilibrium", "kinematic")
 PLANS = ("grid", "optimal", "sequential")
 
 
-class StartupStopped(RuntimeError):
+class StartupStopped(CdprError, RuntimeError):
     """The routine ended in a safe stop; the message is one sentence, ``kind`` the event's kind."""
 
     def __init__(self, kind: str, message: str, run: Path | None):
@@ -67,12 +69,12 @@ class StartupConfig:
     """Settings of the procedure (SI units)."""
 
     method: str = "equilibrium"
-    rate: float = 500.0  # Hz, control rate
+    rate: float = CONTROL_RATE  # Hz, control rate
     log_period: float = 0.1  # s, logging period (the paper's 100 ms)
-    max_tension_rate: float = 40.0  # N/s, trajectory rate limit
-    min_transition: float = 1.0  # s, shortest transition
+    max_tension_rate: float = MAX_TENSION_RATE  # N/s, trajectory rate limit
+    min_transition: float = MIN_TRANSITION  # s, shortest transition
     initial_rate: float = 20.0  # N/s, rate of the first transition from the power-on tensions to tau0
-    hold_time: float = 2.0  # s logged in each equilibrium window after detection
+    hold_time: float = HOLD_TIME  # s logged in each equilibrium window after detection
     detector: DetectorConfig | None = None  # default: DetectorConfig.for_robot (load-cell uncertainty)
     pretension_timeout: float = 60.0  # s to come to rest under tau0 before the run log starts
     controller: ControllerConfig | None = None
@@ -80,7 +82,7 @@ class StartupConfig:
     kinematic_speed: float = 0.05  # m/s along the kinematic path
     kinematic_spacing: float = 0.05  # m between path waypoints
     device_timeout: float = 1.0  # s (wall) to wait for a tick's readings in lockstep
-    expected_settle: float = 8.0  # s, for the time-left estimate
+    expected_settle: float = EXPECTED_SETTLE  # s, for the time-left estimate
     rehold: int = 2  # sequential plans: extra holds at a pose whose window the run's search finds only quasi
 
     def __post_init__(self) -> None:
@@ -484,7 +486,7 @@ class StartupRoutine:
     def _estimate_total(self) -> float:
         sp = np.vstack([self.plan.tau0, self.plan.setpoints, self.plan.tau0])
         moves = np.abs(np.diff(sp, axis=0)).max(axis=1)
-        tr = np.maximum(1.875 * moves / self.cfg.max_tension_rate, self.cfg.min_transition).sum()
+        tr = np.maximum(PEAK_RATE * moves / self.cfg.max_tension_rate, self.cfg.min_transition).sum()
         per = self.cfg.expected_settle + self.cfg.hold_time
         total = tr + per * (len(sp) - 1) + 10.0 + sum(p.seconds for p in self.plan.pauses)
         if self.plan.sequential is not None:  # unknown in advance: the longest it may take

@@ -42,6 +42,7 @@ import numpy as np
 import yaml
 
 from acquisition.report import ProgressBar, _svg
+from calib.errors import CdprError
 
 PLANS = ("grid2", "grid3", "optimal", "sequential")
 FORMAT = "cdpr-study/1"
@@ -51,7 +52,7 @@ RUN_TIMEOUT = 1800.0  # s of wall time one simulated startup may take before the
 COVERAGE_EXPECTED = (0.6827, 0.9545)  # a Gaussian's probability within 1 and 2 sigma
 
 
-class StudyError(ValueError):
+class StudyError(CdprError, ValueError):
     """An unusable study request or folder; the message is one sentence."""
 
 

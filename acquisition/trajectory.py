@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-PEAK_RATE = 15.0 / 8.0  # max of dp/ds on [0, 1]
+from calib.constants import QUINTIC_PEAK_RATE as PEAK_RATE  # max of dp/ds on [0, 1]
+
 PEAK_ACCEL = 10.0 / np.sqrt(3.0)  # max of |d2p/ds2| on [0, 1], at s = 1/2 -+ sqrt(3)/6
 
 

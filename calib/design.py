@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.constants import EXPECTED_SETTLE, HOLD_TIME, MAX_TENSION_RATE, MIN_TRANSITION, QUINTIC_PEAK_RATE
 from calib.effects import EffectModel
 from calib.effects.builtin import DeviceAccuracy
 from calib.equilibrium import inverse_geometrico_static
@@ -44,7 +45,6 @@ from calib.robot import Robot
 from calib.selfcal import CHANNELS, MeasurementModel, Measurements, Problem, channel_width
 from calib.workspace import default_volume
 
-QUINTIC_PEAK_RATE = 15.0 / 8.0  # peak of the rest-to-rest quintic's rate over the mean rate
 # per-sample sigma of the IRMA4U's sensors in a still window (issue 19: load cells ~1 N, encoders ~0.2 mm,
 # AHRS ~0.02 deg; swivel encoders their 0.03 deg accuracy): N, m, rad
 SAMPLE_NOISE = {
@@ -53,15 +53,10 @@ SAMPLE_NOISE = {
     "swivel": math.radians(0.03),
     "orientation": np.radians([0.02, 0.02, 0.02]),
 }
-# sigma of one window mean per channel (N, m, rad) the plans are chosen with: the startup loop's, measured on
-# LOOP_RUNS grid startups of the simulated prototype with realistic noise (sim_backend/examples/rigid_sway.yaml,
-# seeds 0..19, benchmarks/loop_runs.py, 2026-11-25): per channel group the median over the runs of the noise
-# the run's own solve weighs its window means with in the end (``cdpr solve --noise estimate``: pose-free
-# kinematic noise, variance components on the window means, docs/effects.md): tensions 0.247 N, lengths
-# 0.044 mm, swivels 6.6 urad, roll and pitch 0.091 mrad, yaw 0.177 mrad, times LOOP_SCALE, which makes the
-# grid's predicted 1-sigma equal the RMS error measured on those runs (0.156 mm; the median noise predicts
-# 0.129 mm: the planning model leaves out the reference window's own noise, and the devices' priors do not
-# scale with the noise; that solve's own printed 1-sigma: RMS 0.135 mm). Printed, and checked within 5 %, by
+# sigma of one window mean per channel (N, m, rad) the plans are chosen with: the startup loop's, the median
+# over LOOP_RUNS simulated grid startups of the noise each run's own solve ends with, times LOOP_SCALE, which
+# makes the grid's predicted 1-sigma the RMS error measured on those runs. How it is measured, and the figures:
+# docs/planning.md ("How the loop's noise constants are measured"); checked within 5 % by
 # ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
 LOOP_RUNS = 20
 LOOP_SCALE = 1.221
@@ -111,15 +106,11 @@ def lateral_stiffness(robot: Robot, poses: np.ndarray, tau: np.ndarray) -> np.nd
     return np.sum(np.atleast_2d(tau) / lengths, axis=1)
 
 
-# the startup loop's window-mean noise per pose (:class:`PoseNoise`), measured on the simulated prototype with
-# realistic noise (sim_backend/examples/rigid_sway.yaml, seeds 0..19, benchmarks/loop_runs.py, 2026-11-25):
-# floor and force per channel fitted to the median over the runs of the noise each run's own solve weighs its
-# window means with (``cdpr solve --noise estimate``) on the 20 grid startups (lateral stiffness 131 and
-# 345 N/m) and the 20 A-optimal startups: sigma^2 = floor^2 + force^2 / k^2 pooled over each plan's poses
-# (lengths: a 0.036 mm floor and 4.3 mN / k; swivels, roll, pitch and yaw: no floor); then ``scale`` makes the
-# grid's predicted 1-sigma (:func:`predict_loop`: the first pose's window is the reference, as in the run's
-# solve) equal the RMS error measured on its 20 startups (0.156 mm). The optimal plan's errors are not used.
-# Printed, and checked within 5 %, by ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
+# the startup loop's window-mean noise per pose (:class:`PoseNoise`): floor and force per channel fitted to the
+# noise the simulated grid and A-optimal startups' own solves end with, sigma^2 = floor^2 + force^2 / k^2, then
+# ``scale`` makes the grid's predicted 1-sigma (:func:`predict_loop`) its measured RMS error. How, and the
+# figures: docs/planning.md ("How the loop's noise constants are measured"); checked within 5 % by
+# ``python benchmarks/loop_noise.py --runs 20 --cache DIR``.
 LOOP_POSE_NOISE = PoseNoise(
     floor={"tension": 0.2062, "length": 3.611e-5, "swivel": 0.0, "orientation": np.zeros(3)},
     force={"tension": 23.39, "length": 4.29e-3, "swivel": 1.16e-3, "orientation": 0.02406},
@@ -131,10 +122,10 @@ LOOP_POSE_NOISE = PoseNoise(
 class TimeModel:
     """Robot time of a plan, s: transitions at the tension rate limit plus settling and holding per pose."""
 
-    max_tension_rate: float = 40.0  # N/s
-    min_transition: float = 1.0  # s
-    settle: float = 8.0  # s to come to rest at a setpoint (the startup's expected settling)
-    hold: float = 2.0  # s logged per window
+    max_tension_rate: float = MAX_TENSION_RATE  # N/s
+    min_transition: float = MIN_TRANSITION  # s
+    settle: float = EXPECTED_SETTLE  # s to come to rest at a setpoint (the startup's expected settling)
+    hold: float = HOLD_TIME  # s logged per window
 
     def transition(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Durations (s) of the moves from tensions a to b (..., n) N, broadcast."""

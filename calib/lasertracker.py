@@ -20,13 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
+from calib.errors import CdprError
 from calib.kinematics import inverse_kinematics, rotation
 from calib.robot import Robot
 
 POSE_FIELDS = ("x", "y", "z", "roll", "pitch", "yaw")
 
 
-class MeasurementFileError(ValueError):
+class MeasurementFileError(CdprError, ValueError):
     """A MEASUREMENTS.csv that cannot be used; the message names the file, line, field and value."""
 
 

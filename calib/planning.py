@@ -20,10 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.equilibrium import direct_statics, inverse_geometrico_static
+from calib.errors import CdprError
 from calib.robot import Robot
 
 
-class PlanningError(ValueError):
+class PlanningError(CdprError, ValueError):
     """The requested plan cannot be made (a grid point outside the static workspace, bad grid)."""
 
 

@@ -19,11 +19,14 @@ from typing import Any
 import numpy as np
 import yaml
 
+from calib.errors import CdprError
+from calib.fields import FieldReader, read_yaml
+
 ORIENTATIONS = ("xyz", "zyx")
 AXES = {"x": 0, "y": 1, "z": 2, "roll": 3, "pitch": 4, "yaw": 5}
 
 
-class RobotDescriptionError(ValueError):
+class RobotDescriptionError(CdprError, ValueError):
     """A robot description that cannot be used; the message names the file, field and value."""
 
 
@@ -58,9 +61,6 @@ class NoiseLevels:
     length: float
     swivel: float
     orientation: float
-
-    def as_dict(self) -> dict[str, float]:
-        return dataclasses.asdict(self)
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,27 +194,22 @@ def _freeze(robot: Robot) -> Robot:
     return robot
 
 
-class _Reader:
-    """Typed access to a YAML mapping, raising errors that name the file, field and value."""
+class _Reader(FieldReader):
+    """Typed access to a robot description's fields (calib/fields.py)."""
 
-    def __init__(self, origin: str):
-        self.origin = origin
-
-    def fail(self, path: str, value: Any, why: str) -> RobotDescriptionError:
-        return RobotDescriptionError(f"{self.origin}: field '{path}' = {value!r} {why}.")
+    error = RobotDescriptionError
 
     def get(self, m: dict, key: str, path: str, default: Any = dataclasses.MISSING) -> Any:
         if not isinstance(m, dict):
             raise self.fail(path.rsplit(".", 1)[0] or path, m, "must be a mapping")
         if key not in m:
             if default is dataclasses.MISSING:
-                raise RobotDescriptionError(f"{self.origin}: required field '{path}' is missing.")
+                raise self.missing(path)
             return default
         return m[key]
 
     def number(self, value: Any, path: str, positive: bool = False, nonneg: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            raise self.fail(path, value, "must be a finite number")
+        self.finite(value, path)
         if positive and value <= 0:
             raise self.fail(path, value, "must be positive")
         if nonneg and value < 0:
@@ -398,11 +393,7 @@ def load_robot(name_or_path: str | Path | dict = "irma4u") -> Robot:
         raise RobotDescriptionError(
             f"robot '{text_name}' is neither a built-in robot ({', '.join(builtin_robot_names())}) nor a file."
         )
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise RobotDescriptionError(f"{path}: not valid YAML ({exc}).") from exc
-    return robot_from_dict(data, str(path))
+    return robot_from_dict(read_yaml(path, RobotDescriptionError, "robot description"), str(path))
 
 
 def builtin_robot_yaml(name: str) -> str:

@@ -28,10 +28,13 @@ from typing import Any
 import can.interfaces
 import yaml
 
+from calib.errors import CdprError
+from calib.fields import FieldReader, read_yaml
+
 CAN_BITRATES = (10_000, 20_000, 50_000, 125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
-class DeviceConfigError(ValueError):
+class DeviceConfigError(CdprError, ValueError):
     """A device configuration that cannot be used; the message names the file, field and value."""
 
 
@@ -97,14 +100,11 @@ class DeviceConfig:
                     f"{self.source}: field '{key}' lists {len(nodes)} nodes but the robot has {n_cables} cables")
 
 
-class _Fields:
-    """Typed access to a mapping with errors naming file, field and value."""
+class _Fields(FieldReader):
+    """Typed access to a device file's fields (calib/fields.py); its sentences end without a period."""
 
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, fld: str, value: Any, why: str) -> DeviceConfigError:
-        return DeviceConfigError(f"{self.source}: field '{fld}' = {value!r} {why}")
+    error = DeviceConfigError
+    end = ""
 
     def mapping(self, value: Any, fld: str) -> dict:
         if not isinstance(value, dict):
@@ -207,15 +207,7 @@ def device_config_from_dict(data: Any, source: str = "<config>") -> DeviceConfig
 def load_device_config(path: str | Path) -> DeviceConfig:
     """Read and validate a device YAML file."""
     p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise DeviceConfigError(f"{p}: cannot read the device configuration ({exc.strerror or exc})") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise DeviceConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from exc
-    return device_config_from_dict(data, str(p))
+    return device_config_from_dict(read_yaml(p, DeviceConfigError, "device configuration", end=""), str(p))
 
 
 def dump_device_config(config: DeviceConfig, path: str | Path) -> None:

@@ -14,8 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.errors import CdprError
 
-class DeviceError(RuntimeError):
+
+class DeviceError(CdprError, RuntimeError):
     """A device that failed: a fault, an emergency message, a lost heartbeat, a silent port."""
 
 

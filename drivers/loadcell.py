@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.interfaces import DeviceError, LinkStats, TensionReading
+from drivers.interfaces import DeviceError, TensionReading
 from drivers.interfaces import LoadCellAmplifier as LoadCellBase
-from drivers.serial_util import LatestBox, PortReader, open_port
+from drivers.serial_util import SerialDevice
 
 MAX_LINE = 256
 SEQ_MODULUS = 1 << 32
@@ -202,41 +202,24 @@ class LoadCellConfig:
     tap: Callable[[bytes, bool], None] | None = field(default=None, compare=False)  # raw record (PortReader)
 
 
-class LoadCellDriver(LoadCellBase):
+class LoadCellDriver(SerialDevice, LoadCellBase):
     """A multi-channel amplifier on a serial port; implements :class:`drivers.interfaces.LoadCellAmplifier`."""
 
     name = "loadcells"
+    kind = "load-cell amplifier"
+    tag = "loadcell"
 
     def __init__(self, config: LoadCellConfig) -> None:
-        self.config = config
+        super().__init__(config)
         self.info: InfoLine | None = None
-        self._port = None
-        self._reader: PortReader | None = None
         self._decoder = LineDecoder()
-        self._stats = LinkStats()
-        self._box = LatestBox(1.0 / config.rate_hz, config.stale_periods)
         self._info_event = threading.Event()
         self._last_seq: int | None = None
         self._same = [0] * config.channels  # repeats of each channel's value in a row (plain list: every tick)
         self._prev: list[float] | None = None
         self._flags: tuple[str, ...] = ("",) * config.channels
 
-    def open(self) -> None:
-        if self._port is not None:
-            return
-        self._port = open_port(self.config.port, self.config.baud, "load-cell amplifier")
-        self._reader = PortReader(self._port, self._on_bytes, name=f"loadcell-{self.config.port}",
-                                  threaded=not self.config.polled, tap=self.config.tap)
-        self._box.attach(self._reader)
-        self._reader.start()
-        try:
-            self._handshake()
-        except DeviceError:
-            self.close()
-            raise
-        self._box.opened_at = time.monotonic()
-
-    def _handshake(self) -> None:
+    def _greet(self) -> None:  # INFO: the amplifier's channels; the silence is counted from its answer
         self._info_event.clear()
         try:
             self._reader.write(frame("INFO"))
@@ -252,16 +235,7 @@ class LoadCellDriver(LoadCellBase):
         if self.info.channels != self.config.channels:
             raise DeviceError(f"load-cell amplifier on {self.config.port} has {self.info.channels} channels, "
                               f"the configuration expects {self.config.channels}.")
-
-    def close(self) -> None:
-        if self._reader is not None:
-            self._reader.stop()
-            self._reader = None
-        if self._port is not None:
-            try:
-                self._port.close()
-            finally:
-                self._port = None
+        self._box.opened_at = time.monotonic()
 
     def _on_bytes(self, data: bytes, t: float) -> None:
         decoder = self._decoder
@@ -305,29 +279,8 @@ class LoadCellDriver(LoadCellBase):
         stats.frames += 1
         self._box.put(TensionReading(t=t, seq=seq, tau=np.array(tau), device_seq=seq))
 
-    # ---- the LoadCellAmplifier interface ----
-    def latest(self) -> TensionReading | None:
-        return self._box.current()  # type: ignore[return-value]
-
-    def wait_for(self, device_seq: int, timeout: float) -> TensionReading:
-        r = self._box.latest
-        if r is not None and r.device_seq >= device_seq:  # already here (the usual case in lockstep)
-            return r  # type: ignore[return-value]
-        return self._box.wait(lambda r: r.device_seq >= device_seq, timeout,  # type: ignore[return-value]
-                              f"load-cell amplifier on {self.config.port}: no sample with sequence >= "
-                              f"{device_seq} within {timeout:g} s.")
-
-    @property
-    def stats(self) -> LinkStats:
-        return self._stats
-
-    def staleness(self, now: float | None = None) -> str | None:
-        """A fault sentence when no line arrived for ``stale_periods`` sample periods, else None."""
-        quiet = self._box.silence(now)
-        if quiet is None:
-            return None
-        return (f"load-cell amplifier on {self.config.port} silent for {quiet:.3f} s (more than "
-                f"{self.config.stale_periods:g} periods at {self.config.rate_hz:g} Hz).")
+    def _count(self, reading: TensionReading) -> int:
+        return reading.device_seq
 
     def channel_faults(self) -> list[str]:
         """One sentence per faulty channel (1-based): open bridge, over range, stuck value."""

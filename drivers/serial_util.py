@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import serial
 
-from drivers.interfaces import DeviceError, Reading
+from drivers.interfaces import DeviceError, LinkStats, Reading
 
 
 def open_port(port: str, baud: int, what: str) -> serial.Serial:
@@ -182,3 +182,87 @@ class LatestBox:
         last = self.latest.t if self.latest is not None else self.opened_at
         quiet = now - last
         return quiet if quiet > self.stale_periods * self.period else None
+
+
+class SerialDevice:
+    """What both serial drivers do the same way around their own protocol, as python-can's ``BusABC.recv``
+    over ``_recv_internal``: open the port and its reader, close them, keep the latest reading, wait for one,
+    judge the silence. A driver sets ``kind`` (its name in messages), ``tag`` (its reader thread's prefix) and
+    ``counter`` (what :meth:`wait_for` counts) and implements :meth:`_on_bytes` (decode what the port gave),
+    :meth:`_greet` (the exchange after opening) and :meth:`_count` (a reading's counter).
+
+    ``config`` needs ``port``, ``baud``, ``rate_hz``, ``stale_periods``, ``polled`` and ``tap``."""
+
+    kind = "serial device"
+    tag = "serial"
+    counter = "sequence"
+
+    def __init__(self, config) -> None:
+        self.config = config
+        self._port: serial.Serial | None = None
+        self._reader: PortReader | None = None
+        self._stats = LinkStats()
+        self._box = LatestBox(1.0 / config.rate_hz, config.stale_periods)
+
+    # ---- what a driver implements ----
+    def _on_bytes(self, data: bytes, t: float) -> None:
+        """Decode ``data`` read at monotonic time ``t`` s and :meth:`LatestBox.put` its readings."""
+        raise NotImplementedError
+
+    def _greet(self) -> None:
+        """The exchange that opening ends with (a handshake, a configuration); raises DeviceError."""
+        raise NotImplementedError
+
+    def _count(self, reading: Reading) -> int:
+        """The counter of ``reading`` that :meth:`wait_for` compares."""
+        raise NotImplementedError
+
+    # ---- life cycle ----
+    def open(self) -> None:
+        if self._port is not None:
+            return
+        self._port = open_port(self.config.port, self.config.baud, self.kind)
+        self._reader = PortReader(self._port, self._on_bytes, name=f"{self.tag}-{self.config.port}",
+                                  threaded=not self.config.polled, tap=self.config.tap)
+        self._box.attach(self._reader)
+        self._reader.start()
+        try:
+            self._greet()
+        except DeviceError:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.stop()
+            self._reader = None
+        if self._port is not None:
+            try:
+                self._port.close()
+            finally:
+                self._port = None
+
+    # ---- readings ----
+    def latest(self) -> Reading | None:
+        return self._box.current()
+
+    def wait_for(self, count: int, timeout: float) -> Reading:
+        """Block until a reading whose counter is >= ``count`` arrives (DeviceError after ``timeout`` s)."""
+        r = self._box.latest
+        if r is not None and self._count(r) >= count:  # already here (the usual case in lockstep)
+            return r
+        return self._box.wait(lambda r: self._count(r) >= count, timeout,
+                              f"{self.kind} on {self.config.port}: no sample with {self.counter} >= "
+                              f"{count} within {timeout:g} s.")
+
+    @property
+    def stats(self) -> LinkStats:
+        return self._stats
+
+    def staleness(self, now: float | None = None) -> str | None:
+        """A fault sentence when no reading arrived for ``stale_periods`` periods, else None."""
+        quiet = self._box.silence(now)
+        if quiet is None:
+            return None
+        return (f"{self.kind} on {self.config.port} silent for {quiet:.3f} s (more than "
+                f"{self.config.stale_periods:g} periods at {self.config.rate_hz:g} Hz).")

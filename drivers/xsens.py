@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 from drivers import xbus
 from drivers.interfaces import Ahrs as AhrsBase
-from drivers.interfaces import AhrsReading, DeviceError, LinkStats
-from drivers.serial_util import LatestBox, PortReader, open_port
+from drivers.interfaces import AhrsReading, DeviceError
+from drivers.serial_util import SerialDevice
 from drivers.xbus import MID, XDI
 
 
@@ -49,22 +49,21 @@ def config_problem(config: XsensConfig) -> str | None:
     return None
 
 
-class XsensMti(AhrsBase):
+class XsensMti(SerialDevice, AhrsBase):
     """An MTi-630 on a serial port; implements :class:`drivers.interfaces.Ahrs`."""
 
     name = "ahrs"
+    kind = "Xsens MTi"
+    tag = "xsens"
+    counter = "packet counter"
 
     def __init__(self, config: XsensConfig) -> None:
         problem = config_problem(config)
         if problem:
             raise ValueError(problem)
-        self.config = config
+        super().__init__(config)
         self.device_id: int | None = None
-        self._port = None
-        self._reader: PortReader | None = None
         self._decoder = xbus.XbusDecoder()
-        self._stats = LinkStats()
-        self._box = LatestBox(1.0 / config.rate_hz, config.stale_periods)
         self._replies: list[xbus.Message] = []
         self._reply_cond = threading.Condition()
         self._errors: list[str] = []
@@ -72,31 +71,7 @@ class XsensMti(AhrsBase):
         self._last_raw_pc: int | None = None
 
     # ---- life cycle ----
-    def open(self) -> None:
-        if self._port is not None:
-            return
-        self._port = open_port(self.config.port, self.config.baud, "Xsens MTi")
-        self._reader = PortReader(self._port, self._on_bytes, name=f"xsens-{self.config.port}",
-                                  threaded=not self.config.polled, tap=self.config.tap)
-        self._box.attach(self._reader)
-        self._reader.start()
-        try:
-            self._configure()
-        except DeviceError:
-            self.close()
-            raise
-
-    def close(self) -> None:
-        if self._reader is not None:
-            self._reader.stop()
-            self._reader = None
-        if self._port is not None:
-            try:
-                self._port.close()
-            finally:
-                self._port = None
-
-    def _configure(self) -> None:
+    def _greet(self) -> None:  # GoToConfig, the output configuration, GoToMeasurement
         for attempt in range(self.config.retries):
             try:
                 self.request(MID.GO_TO_CONFIG, b"", MID.GO_TO_CONFIG_ACK)
@@ -194,27 +169,8 @@ class XsensMti(AhrsBase):
                                   packet_counter=-1 if pc is None else pc,
                                   sample_time_fine=-1 if stf is None else stf))
 
-    # ---- the Ahrs interface ----
-    def latest(self) -> AhrsReading | None:
-        return self._box.current()  # type: ignore[return-value]
-
-    def wait_for(self, packet_counter: int, timeout: float) -> AhrsReading:
-        """Block until a reading with unwrapped packet counter (``seq``) >= ``packet_counter`` arrives."""
-        return self._box.wait(lambda r: r.seq >= packet_counter, timeout,  # type: ignore[return-value]
-                              f"Xsens MTi on {self.config.port}: no sample with packet counter >= "
-                              f"{packet_counter} within {timeout:g} s.")
-
-    @property
-    def stats(self) -> LinkStats:
-        return self._stats
-
-    def staleness(self, now: float | None = None) -> str | None:
-        """A fault sentence when no sample arrived for ``stale_periods`` output periods, else None."""
-        quiet = self._box.silence(now)
-        if quiet is None:
-            return None
-        return (f"Xsens MTi on {self.config.port} silent for {quiet:.3f} s (more than "
-                f"{self.config.stale_periods:g} periods at {self.config.rate_hz} Hz).")
+    def _count(self, reading: AhrsReading) -> int:
+        return reading.seq  # the unwrapped packet counter
 
     def fault(self) -> str | None:
         if self._reader is not None and self._reader.error:

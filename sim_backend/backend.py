@@ -379,9 +379,3 @@ class SimBackend:
                 else:
                     hi = mid - 1
             return self._sample(hist[lo])
-
-    def truth_history(self) -> tuple[np.ndarray, np.ndarray]:
-        """(times (k,), poses (k, 6)) of every tick so far, for plots and tests."""
-        with self._lock:
-            recs = list(self._history)
-        return np.array([r[1][0] for r in recs]), np.array([self._sample(r).pose for r in recs])

@@ -48,15 +48,15 @@ Effect names are those of the diagnosis (spec/cli.md). Validation errors name fi
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from calib.errors import CdprError
+from calib.fields import FieldReader, read_yaml
 from calib.robot import Robot
 from sim_backend.physics import PhysicsParams, Sway, WinchParams, transmission_of
 
@@ -77,7 +77,7 @@ EFFECTS = (
 FAULTS = ("can_frames_lost", "drive_fault", "loadcell_stuck", "loadcell_disconnected", "ahrs_corrupt", "cable_slack")
 
 
-class SimConfigError(ValueError):
+class SimConfigError(CdprError, ValueError):
     """An unusable simulation configuration; the message names the file, field and value."""
 
 
@@ -207,12 +207,10 @@ def damping_for(robot: Robot, decay: float) -> tuple[float, float]:
     return 2.0 * robot.mass / decay, 2.0 * inertia / decay
 
 
-class _Check:
-    def __init__(self, origin: str):
-        self.origin = origin
+class _Check(FieldReader):
+    """Typed access to a simulation configuration's fields (calib/fields.py)."""
 
-    def fail(self, fld: str, value: Any, why: str) -> SimConfigError:
-        return SimConfigError(f"{self.origin}: field '{fld}' = {value!r} {why}.")
+    error = SimConfigError
 
     def mapping(self, value: Any, fld: str, allowed: tuple[str, ...]) -> dict:
         if not isinstance(value, dict):
@@ -223,8 +221,7 @@ class _Check:
         return value
 
     def number(self, value: Any, fld: str, lo: float | None = None, hi: float | None = None, strict=False) -> float:
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            raise self.fail(fld, value, "must be a finite number")
+        self.finite(value, fld)
         if lo is not None and (value < lo or (strict and value == lo)):
             raise self.fail(fld, value, f"must be {'>' if strict else '>='} {lo}")
         if hi is not None and value > hi:
@@ -238,7 +235,7 @@ class _Check:
 
     def required(self, m: dict, key: str, fld: str) -> Any:
         if key not in m:
-            raise SimConfigError(f"{self.origin}: required field '{fld}.{key}' is missing.")
+            raise self.missing(f"{fld}.{key}")
         return m[key]
 
     def index(self, value: Any, fld: str, n: int) -> int:
@@ -421,11 +418,7 @@ def load_sim_config(path: str | Path | None, n: int = 4) -> SimConfig:
     p = Path(path)
     if not p.is_file():
         raise SimConfigError(f"{p}: simulation configuration file not found.")
-    try:
-        data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise SimConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]}).") from exc
-    return sim_config_from_dict(data, n, str(p))
+    return sim_config_from_dict(read_yaml(p, SimConfigError, "simulation configuration"), n, str(p))
 
 
 def example_names() -> list[str]:

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.errors import CdprError
 from calib.kinematics import rotation
 from calib.robot import Robot
 
@@ -64,7 +65,7 @@ def play(x: float, state: float, extreme: float, width: float) -> tuple[float, f
     return state, extreme
 
 
-class SimulationError(RuntimeError):
+class SimulationError(CdprError, RuntimeError):
     """The simulation cannot continue (diverged state); the message says when."""
 
 
@@ -337,9 +338,6 @@ class CablePhysics:
             self._l00[i] += self._k[i] * self._th[i]
         self._th = [0.0] * self.n
         self._t = 0.0
-
-    def rotation_matrix(self) -> np.ndarray:
-        return np.array(_quat_to_matrix(self._q))
 
     def pose(self) -> np.ndarray:
         """The true pose (6,) [x, y, z, roll, pitch, yaw] of the platform frame, m and rad."""

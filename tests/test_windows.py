@@ -244,7 +244,7 @@ def test_the_detector_waits_for_the_ends_test_the_search_applies(robot):
     det.start(0.0)
     settled = [det.push(t[i], tau[i], dl[i], dsig[i], roll[i], pitch[i]).settled for i in range(t.size)]
     ch = {"length": dl, "swivel": dsig, "tilt": np.stack([roll, pitch], -1)}
-    n = det.window_samples
+    n = det.span - 1 + det.needed  # a window's worth of samples: the span, then a window's length of spans
     hits = [i for i in range(n, t.size) if settled[i]]
     assert hits
     for i in hits:

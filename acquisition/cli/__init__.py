@@ -20,7 +20,7 @@ import sys
 import threading
 import warnings
 
-from acquisition.cli.errors import OperationError, UsageError
+from calib.errors import CdprError
 
 COMMAND_MODULES = (
     "acquisition.cli.robot",
@@ -34,6 +34,22 @@ COMMAND_MODULES = (
     "acquisition.cli.certify",
     "acquisition.cli.study",
 )
+
+# the module that registers each top-level command: a command line that names one imports only its module
+COMMAND_OWNERS = {
+    "robot": "acquisition.cli.robot",
+    "poses": "acquisition.cli.poses",
+    "workspace": "acquisition.cli.poses",
+    "solve": "acquisition.cli.solve",
+    "import": "acquisition.cli.runs",
+    "export": "acquisition.cli.runs",
+    "devices": "acquisition.cli.devices",
+    "startup": "acquisition.cli.startup",
+    "replay": "acquisition.cli.replay",
+    "diagnose": "acquisition.cli.diagnose",
+    "certify": "acquisition.cli.certify",
+    "study": "acquisition.cli.study",
+}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -52,13 +68,42 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
-def build_parser() -> argparse.ArgumentParser:
+class _VersionAction(argparse.Action):
+    """``--version``: print the installed version and exit, read only when asked (importlib.metadata costs
+    ~0.05 s that every other command skips)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"cdpr {_version()}")
+        parser.exit()
+
+
+def modules_for(argv: list[str]) -> tuple[str, ...]:
+    """The command modules a parse of ``argv`` needs: the named command's alone, none for a bare ``--version``.
+
+    Importing a module is what costs (scipy, python-can, codac...); the parse is the same as with every module
+    registered whenever the command is known. Help, no command or an unknown one: every module.
+    """
+    for token in argv:
+        if token in ("-h", "--help"):
+            return COMMAND_MODULES
+        if not token.startswith("-"):
+            owner = COMMAND_OWNERS.get(token)
+            return (owner,) if owner in COMMAND_MODULES else COMMAND_MODULES
+        if token == "--version":
+            return ()
+    return COMMAND_MODULES
+
+
+def build_parser(modules: tuple[str, ...] | None = None) -> argparse.ArgumentParser:
+    """The ``cdpr`` parser with the commands of ``modules`` (default: every command module)."""
     parser = _Parser(prog="cdpr", description="Self-calibration of underactuated cable-driven parallel robots.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
-    parser.add_argument("--version", action="version", version=f"cdpr {_version()}",
-                        help="print the installed version and exit")
+    parser.add_argument("--version", action=_VersionAction, help="print the installed version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    for name in COMMAND_MODULES:
+    for name in COMMAND_MODULES if modules is None else modules:
         try:
             module = importlib.import_module(name)
         except ModuleNotFoundError as exc:  # a command module not written yet in this checkout
@@ -113,24 +158,20 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None, started: list[str]) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(modules_for(argv))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
-        parser.print_help(sys.stderr)
+        build_parser().print_help(sys.stderr)
         return 2
     started.append(str(args.command))
     try:
         return int(args.func(args) or 0)
-    except UsageError as exc:
+    except CdprError as exc:  # every error of the project, mapped here once
         if args.debug:
             raise
         sys.stderr.write(f"cdpr: {exc}\n")
-        return 2
-    except OperationError as exc:
-        if args.debug:
-            raise
-        sys.stderr.write(f"cdpr: {exc}\n")
-        return 1
+        return exc.exit_status
 
 
 if __name__ == "__main__":  # pragma: no cover

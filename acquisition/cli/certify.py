@@ -15,12 +15,11 @@ from acquisition.cli.args import add_force, check_output_option, claim_output_op
 from acquisition.cli.errors import OperationError, UsageError
 from calib.certify import AXIS_NAMES, LOSSES, CertifyConfig, CertifyResult, certify_anchors
 from calib.lasertracker import (
-    MeasurementFileError,
     read_measurements_csv,
     simulate_tracker_dataset,
     write_measurements_csv,
 )
-from calib.robot import RobotDescriptionError, builtin_robot_names, load_robot
+from calib.robot import builtin_robot_names, load_robot
 
 
 def register(sub) -> None:
@@ -91,13 +90,6 @@ def _model_error(text: str) -> tuple[float, float]:
     return lo, hi
 
 
-def _robot(name: str):
-    try:
-        return load_robot(name)
-    except RobotDescriptionError as exc:
-        raise UsageError(str(exc)) from exc
-
-
 def _check_options(args) -> None:
     for opt in ("pose_tol", "angle_tol"):
         v = getattr(args, opt)
@@ -107,7 +99,7 @@ def _check_options(args) -> None:
 
 def _anchors(args) -> int:
     _check_options(args)
-    robot = _robot(args.robot)
+    robot = load_robot(args.robot)
     if not 0.0 < args.q <= 1.0:
         raise UsageError(f"option --q = {args.q} must be a fraction in (0, 1].")
     for opt in ("anchor_tol", "resolution"):
@@ -120,10 +112,7 @@ def _anchors(args) -> int:
                            model_error=_model_error(args.model_error), anchor_tol=args.anchor_tol,
                            platform_tol=args.platform_tol, rotation_bound=args.rotation_bound,
                            resolution=args.resolution, nwls_loss=args.loss)
-    try:
-        poses, lengths = read_measurements_csv(args.measurements, robot.n)
-    except MeasurementFileError as exc:
-        raise UsageError(str(exc)) from exc
+    poses, lengths = read_measurements_csv(args.measurements, robot.n)
     try:
         result = certify_anchors(robot, poses, lengths, config)
     except ValueError as exc:
@@ -177,7 +166,7 @@ def _simulate(args) -> int:
     for option, path in (("-o", args.output), ("--truth", args.truth)):
         if path:
             check_output_option(path, args.force, option)
-    robot = _robot(args.robot)
+    robot = load_robot(args.robot)
     if args.n < 1:
         raise UsageError(f"option -n = {args.n} must be at least 1.")
     if not 0.0 <= args.outliers < 1.0:

@@ -10,7 +10,7 @@ import numpy as np
 from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
 from calib.planning import PlanningError, kinematic_path, plan_poses
-from calib.robot import RobotDescriptionError, load_robot
+from calib.robot import load_robot
 
 
 def register(sub) -> None:
@@ -43,15 +43,8 @@ def register(sub) -> None:
     w.set_defaults(func=_workspace)
 
 
-def _robot(name: str):
-    try:
-        return load_robot(name)
-    except RobotDescriptionError as exc:
-        raise UsageError(str(exc)) from exc
-
-
 def _poses(args) -> int:
-    robot = _robot(args.robot)
+    robot = load_robot(args.robot)
     check_grid(args.grid)
     if args.separate is not None:
         return _separate(args)
@@ -125,10 +118,10 @@ def _optimal(args, robot) -> int:
 
 
 def _separate(args) -> int:
-    from acquisition.runlog import RunFormatError, read_run
+    from acquisition.runlog import read_run
     from calib.design import candidates, separating_poses
     from calib.diagnose import diagnose_run
-    from calib.effects import EffectLoadError, make_effects
+    from calib.effects import make_effects
     from calib.selfcal import SelfCalFailure, SelfCalInputError
 
     names = [n.strip() for n in args.separate.split(",") if n.strip()]
@@ -138,11 +131,8 @@ def _separate(args) -> int:
         raise UsageError("--separate needs the run folder that was diagnosed (cdpr poses --separate A,B RUN).")
     if args.count < 1:
         raise UsageError(f"--count must be a positive number of poses, got {args.count}.")
-    try:
-        effects = tuple(make_effects(names))
-        run = read_run(args.run)
-    except (EffectLoadError, RunFormatError) as exc:
-        raise UsageError(str(exc)) from exc
+    effects = tuple(make_effects(names))
+    run = read_run(args.run)
     robot = run.robot
     status = sys.stderr.isatty()
     try:
@@ -172,7 +162,7 @@ def _separate(args) -> int:
 def _workspace(args) -> int:
     from calib.workspace import plot_workspace, static_workspace
 
-    robot = _robot(args.robot)
+    robot = load_robot(args.robot)
     if not args.step > 0:
         raise UsageError(f"--step must be positive, got {args.step}.")
     if args.plot:

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from acquisition.cli.errors import UsageError
-from calib.robot import RobotDescriptionError, builtin_robot_names, builtin_robot_yaml
+from calib.robot import builtin_robot_names, builtin_robot_yaml
 
 
 def register(sub) -> None:
@@ -19,8 +18,5 @@ def register(sub) -> None:
 
 
 def _show(args) -> int:
-    try:
-        sys.stdout.write(builtin_robot_yaml(args.name))
-    except RobotDescriptionError as exc:
-        raise UsageError(str(exc)) from exc
+    sys.stdout.write(builtin_robot_yaml(args.name))
     return 0

@@ -7,9 +7,9 @@ from pathlib import Path
 
 from acquisition.cli.args import add_force, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
-from acquisition.export import FORMATS, ExportError, export_run
-from acquisition.importers import IrmaImportError, irma_run
-from acquisition.runlog import RunFormatError, read_run, write_run
+from acquisition.export import FORMATS, export_run
+from acquisition.importers import irma_run
+from acquisition.runlog import read_run, write_run
 
 
 def register(sub) -> None:
@@ -44,10 +44,7 @@ def _import_irma(args) -> int:
     if args.targets is not None and not args.targets.is_file():
         raise UsageError(f"{args.targets}: no such file (--targets).")
     check_output_option(args.out, args.force, "-o")
-    try:
-        run = irma_run(args.file, targets=args.targets)
-    except (IrmaImportError, RunFormatError) as exc:
-        raise UsageError(str(exc)) from exc
+    run = irma_run(args.file, targets=args.targets)
     claim_output_option(args.out, args.force, "-o")
     try:
         write_run(args.out, run)
@@ -64,15 +61,10 @@ def _import_irma(args) -> int:
 
 def _export(args) -> int:
     check_output_option(args.out, args.force, "-o")
-    try:
-        run = read_run(args.run)
-    except RunFormatError as exc:
-        raise UsageError(str(exc)) from exc
+    run = read_run(args.run)
     claim_output_option(args.out, args.force, "-o")
     try:
         out = export_run(run, args.format, args.out)
-    except ExportError as exc:
-        raise UsageError(str(exc)) from exc
     except OSError as exc:
         raise OperationError(f"{args.out}: cannot write the export ({exc.strerror}).") from exc
     solved = "with its solution (absolute channels)" if (args.run / "solution.json").is_file() else "not solved"

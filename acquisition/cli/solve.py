@@ -8,12 +8,11 @@ import sys
 import warnings
 from pathlib import Path
 
-from scipy.stats import chi2 as chi2_dist
-
 from acquisition.cli.args import parse_pose
 from acquisition.cli.errors import OperationError, UsageError
-from acquisition.runlog import RunFormatError, read_run
+from acquisition.runlog import read_run
 from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, solve
+from calib.selfcal.result import chi2_sf
 
 SOLUTION_FILE = "solution.json"
 
@@ -67,10 +66,7 @@ def _solve(args) -> int:
     reference = parse_pose(args.reference)
     if args.stride < 1:
         raise UsageError(f"--stride {args.stride} must be a positive integer.")
-    try:
-        run = read_run(args.run)
-    except RunFormatError as exc:
-        raise UsageError(str(exc)) from exc
+    run = read_run(args.run)
     with_effects = bool(getattr(args, "effects", None))
     if getattr(args, "effects_from", None) and not with_effects:
         from acquisition.cli.diagnose import effect_classes
@@ -146,7 +142,7 @@ def format_solution(sol: Solution) -> str:
     lines.append(f"chi2 {sol.chi2:.1f} on {sol.dof} dof")
     if sol.noise_source in ("estimate", "sensors") and k > 1:  # the chi2 test rejects the model (sigma_scale)
         lines.append(f"the model does not fit these readings within their own noise (p = "
-                     f"{chi2_dist.sf(sol.chi2, sol.dof):.2g}): the 1-sigma bounds hold only for a model that does; "
+                     f"{chi2_sf(sol.chi2, sol.dof):.2g}): the 1-sigma bounds hold only for a model that does; "
                      "`cdpr diagnose RUN` says where it fails and what is missing, and --noise paper weighs the "
                      "channels by the errors the paper expects of the rigid model (eq. 18)")
     if k > 1:

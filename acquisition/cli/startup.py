@@ -39,6 +39,7 @@ from acquisition.startup import (
     connect,
     feedback_every,
 )
+from calib.constants import CONTROL_RATE, HOLD_TIME, MAX_TENSION_RATE
 
 SIM_PLANT = {"auto": None, "child": True, "inline": False}  # --sim-plant -> SimBackend(plant_process=...)
 
@@ -73,12 +74,13 @@ def register(sub) -> None:
     p.add_argument("--sim-plant", choices=tuple(SIM_PLANT), default="auto",
                    help="where the simulated prototype's physics runs: a child process on the second core "
                         "(child), this process (inline), or child when the machine has two cores (auto, default)")
-    p.add_argument("--rate", type=float, default=200.0, help="control rate, Hz, 200..500 (default 200)")
+    p.add_argument("--rate", type=float, default=CONTROL_RATE, help="control rate, Hz, 200..500 (default 200)")
     p.add_argument("--realtime", action="store_true", help="pace the simulated prototype in real time")
     p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file (updated in place: "
                    "its previous content is kept in RUN/run.yaml as previous_offsets)")
-    p.add_argument("--max-rate", type=float, default=40.0, help="tension rate limit of the trajectories, N/s")
-    p.add_argument("--hold", type=float, default=2.0, help="logged seconds of each equilibrium window")
+    p.add_argument("--max-rate", type=float, default=MAX_TENSION_RATE,
+                   help="tension rate limit of the trajectories, N/s")
+    p.add_argument("--hold", type=float, default=HOLD_TIME, help="logged seconds of each equilibrium window")
     p.add_argument("--speed", type=float, default=0.05, help="platform speed along the kinematic path, m/s")
     p.add_argument("--settle-timeout", type=float, default=40.0,
                    help="s to wait for the platform to come to rest at each setpoint before holding anyway")
@@ -196,7 +198,7 @@ def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | N
     ``truth_window_mean``, the true pose averaged over the reference window; the plant runs in this process
     (``--sim-plant inline``). Raises
     UsageError or OperationError."""
-    from acquisition.cli import build_parser
+    from acquisition.cli import build_parser, modules_for
 
     out = Path(out)
     argv = ["startup", "--backend", "sim", "--no-html", "--out", str(out), "--seed", str(seed), "--robot", robot,
@@ -205,7 +207,7 @@ def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | N
     argv += [] if tolerance is None else ["--tolerance", repr(float(tolerance))]
     argv += [] if poses is None else ["--poses", str(poses)]
     argv += [] if sim_config is None else ["--sim-config", str(sim_config)]
-    args = build_parser().parse_args(argv)
+    args = build_parser(modules_for(argv)).parse_args(argv)  # the startup's module alone
     with ReportRenderer() as report:
         summary = _run(args, report)
     truth = json.loads((out / "truth.json").read_text())

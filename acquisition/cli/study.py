@@ -66,7 +66,8 @@ def check_startup_accepts(plans: list[str], tolerance: str | None) -> None:
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err):
-                build_parser().parse_args(["startup", "--backend", "sim", *plan_args(plan, tolerance)])
+                build_parser(("acquisition.cli.startup",)).parse_args(["startup", "--backend", "sim",
+                                                                     *plan_args(plan, tolerance)])
         except SystemExit:
             why = (err.getvalue().strip().splitlines() or ["refused"])[-1].removeprefix("cdpr: ").rstrip(".")
             raise UsageError(f"the startup of this checkout does not take the {plan} plan yet ({why}).") from None

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from calib.effects import builtin, cable, swivel
 from calib.effects.base import Context, Effect, EffectModel, Implausible, ParamSpec, Physical, Projected
+from calib.errors import CdprError
 
 ENTRY_POINT_GROUP = "cdpr.effects"
 # the library: the rigid-model corrections of issue 7, the cable-transmission effects of issue 17, then the
@@ -44,7 +45,7 @@ __all__ = [
 ]
 
 
-class EffectLoadError(ValueError):
+class EffectLoadError(CdprError, ValueError):
     """An effect that cannot be loaded or named (the message names the file or the name)."""
 
 

@@ -247,9 +247,6 @@ class EffectModel:
                     sd.append(s.prior)
         return np.array(idx, dtype=int), np.array(mean, dtype=float), np.array(sd, dtype=float)
 
-    def effect_values(self, theta: np.ndarray) -> dict[str, np.ndarray]:
-        return {e.name: np.asarray(theta[sl]) for e, sl in zip(self.effects, self.slices, strict=True)}
-
     def report(self, theta: np.ndarray) -> dict[str, dict[str, float]]:
         """Fitted parameters of every effect, as the effects report them."""
         return {e.name: e.report(self.robot, np.asarray(theta[sl])) for e, sl in zip(self.effects, self.slices,

@@ -8,27 +8,37 @@ from typing import Any
 
 import numpy as np
 
+from calib.errors import CdprError
 from calib.kinematics import rotation
 from calib.selfcal.windows import Window, WindowSearch
 
 MISFIT_P = 1e-3  # a chi2 whose upper-tail probability is below this rejects the model for the noise used
 
 
+def chi2_sf(chi2: float, dof: float) -> float:
+    """Upper-tail probability P(X > chi2) of a chi2 with ``dof`` degrees of freedom, the very float of
+    ``scipy.stats.chi2.sf`` (1 at or below 0, nan for dof <= 0) from scipy.special alone: importing
+    scipy.stats costs a command about a second."""
+    from scipy.special import chdtrc
+
+    if not dof > 0 or math.isnan(chi2):
+        return math.nan
+    return 1.0 if chi2 <= 0 else float(chdtrc(dof, chi2))
+
+
 def sigma_scale(chi2: float, dof: int) -> float:
     """sqrt(chi2 / dof) when the chi2 test rejects the fit (upper tail below MISFIT_P), else 1: the factor
     (Birge ratio) that makes the misfit count as noise in the 1-sigma bounds."""
-    from scipy.stats import chi2 as chi2_dist
-
-    if dof <= 0 or not math.isfinite(chi2) or chi2_dist.sf(chi2, dof) >= MISFIT_P:
+    if dof <= 0 or not math.isfinite(chi2) or chi2_sf(chi2, dof) >= MISFIT_P:
         return 1.0
     return math.sqrt(chi2 / dof)
 
 
-class SelfCalInputError(ValueError):
+class SelfCalInputError(CdprError, ValueError):
     """A run or argument that cannot be solved as given (the message names the field and value)."""
 
 
-class SelfCalFailure(RuntimeError):
+class SelfCalFailure(CdprError, RuntimeError):
     """A valid problem whose solve failed (no equilibrium found, no convergence)."""
 
 
