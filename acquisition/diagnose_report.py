@@ -120,7 +120,8 @@ def plot_before_after(diag: Diagnosis, path: str | Path) -> Path:
             x = np.where(res.row[m] < 0, 0, res.row[m] + 1) + (0.15 * j - 0.075 * (len(fits) - 1))
             ax.plot(x, res.r[m], "o" if j == 0 else "s", ms=4, alpha=0.8, label=label)
         ax.axhline(0.0, color="k", lw=0.6)
-        ax.set_xticks(range(k + 1), ticks, fontsize=7)
+        every = -(-(k + 1) // 12)  # at most 12 labels: 27 poses' labels would overlap
+        ax.set_xticks(range(0, k + 1, every), ticks[::every], fontsize=7)
         ax.set_title(c)
         ax.set_xlabel("pose")
         ax.set_ylabel("residual / sigma")
@@ -142,7 +143,9 @@ def plot_steps(steps: Sequence[dict[str, Any]], path: str | Path) -> Path:
     labels = ["base model"] + ["+ " + s["effects"][-1] for s in steps[1:]]
     fig, ax = plt.subplots(figsize=(6, 3.6))
     ax.plot(range(len(steps)), [max(s["chi2"], 1e-9) for s in steps], "o-", label="chi2")
-    ax.plot(range(len(steps)), [max(s["dof"], 1) for s in steps], "k--", lw=0.8, label="dof")
+    ax.plot(range(len(steps)), [max(s["dof"], 1) for s in steps], "k--", marker="_", ms=24, lw=0.8,
+            label="dof")  # the marker shows the dof of a single step (no effect added) too
+    ax.set_xlim(-0.5, len(steps) - 0.5)
     ax.set_yscale("log")
     ax.set_xticks(range(len(steps)), labels, rotation=15, fontsize=8)
     ax.set_ylabel("chi2")
@@ -199,7 +202,7 @@ def format_diagnosis(diag: Diagnosis, units: dict[str, str] | None = None, run: 
     """A readable report of a diagnosis; ``units`` maps parameter names to their units
     (:func:`parameter_units`)."""
     units = units or {}
-    lines = [f"chi2 {diag.chi2:.1f} on {diag.dof} dof (p = {diag.p_value:.3g}), noise {diag.noise_source}"]
+    lines = [f"chi2 {diag.chi2:.3g} on {diag.dof} dof (p = {diag.p_value:.3g}), noise {diag.noise_source}"]
     where = misfit_location(diag)
     if diag.p_value < diag.alpha:
         lines.append("where the model fails: " + "; ".join(where["channels"]))
@@ -294,3 +297,123 @@ def device_errors_line(robot, dev: dict[str, float]) -> str:
         return "devices' constant errors, fitted within their datasheet accuracy: " + ", ".join(parts)
     return ("devices' constant errors, fitted: " + ", ".join(parts) + "; outside the datasheet: "
             + "; ".join(outside) + " (the rigid model pushes its misfit there)")
+
+
+# ---- several runs, one robot (issue 28) ------------------------------------------------------------------
+
+def _names(t) -> str:
+    return ",".join(t.names) if t.names else "(base: own unknowns only)"
+
+
+def _fmt_values(fit, name: str) -> str:
+    vals = fit.shared_params().get(name, {})
+    sig = fit.shared_sigmas().get(name, {})
+    return ", ".join(f"{k} = {v:.4g}" + (f" ± {sig[k]:.2g}" if k in sig else "") for k, v in vals.items())
+
+
+def window_chi2(rf) -> tuple[float, int, float]:
+    """chi2 of a fitted run against its window-scatter noise (the weights before the variance components),
+    its degrees of freedom and p-value: the test of the model reported beside the variance components."""
+    from scipy import stats
+
+    from calib.selfcal.problem import Problem
+
+    res = residuals(Problem(rf.problem.model, rf.rows.meas, rf.rows.sigma), rf.theta, rf.poses, jacobian=False)
+    dof = max(int(res.r.shape[0]) - rf.theta.shape[0] - rf.poses.size, 1)
+    chi2 = float(res.r @ res.r)
+    return chi2, dof, float(stats.chi2.sf(chi2, dof))
+
+
+def selection_verdict(sel) -> str:
+    """The verdict: a finding (implausible best candidate) first, then what is recommended."""
+    text = ""
+    if sel.finding is not None:
+        bad = "; ".join(str(v) for v in sel.finding.implausible)
+        text += (f"FINDING: {_names(sel.finding)} predicts best ({sel.mode} score {sel.finding.score:.1f}) only "
+                 f"with {bad}: a likely error in the robot description or the setup (check it); nothing that "
+                 f"explains less is recommended in its place. ")
+    if sel.selected:
+        text += f"recommended: {','.join(sel.selected)} (by {sel.mode} prediction)"
+    elif sel.finding is None:
+        text += "nothing in the library predicts the left-out data better"
+    else:
+        text += "recommended: nothing"
+    return text
+
+
+def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
+    """The JSON of a several-run diagnosis."""
+    def trial(t):
+        return {"effects": list(t.names), "n_params": t.n_params, "fit_score": t.fit_score, "score": t.score,
+                "plausible": t.plausible, "implausible": [str(v) for v in t.implausible],
+                "folds": t.folds, "values": t.fit.shared_params(), "sigma": t.fit.shared_sigmas()}
+
+    runs = []
+    for rf0, rf in zip(sel.base.fit.runs, sel.final.fit.runs, strict=True):
+        chi2, dof, p = window_chi2(rf)
+        runs.append({"name": rf.name, "rms_base": rf0.rms(), "rms": rf.rms(), "initial_pose": list(rf.theta[:6]),
+                     "yaw_drift_deg_per_hour": rf.params().get("ahrs_yaw_drift", {}).get("deg_per_hour"),
+                     "window_chi2": chi2, "window_dof": dof, "window_p": p})
+    return _json_safe({
+        "runs": list(paths), "mode": sel.mode, "selected": sel.selected,
+        "finding": None if sel.finding is None else trial(sel.finding),
+        "verdict": selection_verdict(sel), "base": trial(sel.base), "final": trial(sel.final),
+        "steps": [{"options": [trial(t) for t in st["options"]],
+                   "chosen": None if st["chosen"] is None else list(st["chosen"].names),
+                   "confused_with_chosen": [list(n) for n in st.get("confused", [])]} for st in sel.steps],
+        "per_run": runs, "weights_rounds": sel.final.fit.history,
+    })
+
+
+def _json_safe(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(float(v)) else None
+    if isinstance(v, np.integer):
+        return int(v)
+    return v
+
+
+def format_selection(sel, paths: Sequence[str], model_out: Path | None = None) -> str:
+    """The console report of a several-run diagnosis."""
+    out = [f"cdpr diagnose {' '.join(paths)}: effects shared by the runs, chosen by {sel.mode} prediction",
+           selection_verdict(sel), ""]
+    for name in sel.selected:
+        out.append(f"  {name}: {_fmt_values(sel.final.fit, name)}")
+    out += ["", "options judged (score: held-out -2 log-likelihood with each channel group's own variance, "
+            "lower is better; J per left-out run: sum (rms/w)^2, w = 1 N, 0.5 mm, 0.1 deg, 0.2 deg)"]
+    out.append(f"  {'effects':<52} {'params':>6} {'score':>9} {'gain':>8}  folds J / plausible")
+    base = sel.base
+    out.append(f"  {_names(base):<52} {base.n_params:>6} {base.score:>9.1f} {0.0:>8.1f}  "
+               + " ".join(f"{f.get('J', f['score']):.1f}" for f in base.folds))
+    for i, st in enumerate(sel.steps):
+        cur = st["current"]
+        for t in sorted(st["options"], key=lambda t: t.score):
+            mark = "<- chosen" if t is st["chosen"] else ("" if t.plausible else "implausible: " + "; ".join(
+                str(v) for v in t.implausible[:2]))
+            out.append(f"  {'step ' + str(i + 1) + ': ' + _names(t):<52} {t.n_params:>6} {t.score:>9.1f} "
+                       f"{cur.score - t.score:>8.1f}  " + " ".join(f"{f.get('J', f['score']):.1f}" for f in t.folds)
+                       + f"  {mark}")
+        if st.get("confused"):
+            out.append("  confused with the chosen (fewest parameters kept): "
+                       + "; ".join(",".join(n) for n in st["confused"]))
+    out += ["", "per run: rms per channel, base -> with the selected effects (tension N, length mm, swivel deg, "
+            "orientation deg); chi2 against the window-scatter noise"]
+    for rf0, rf in zip(sel.base.fit.runs, sel.final.fit.runs, strict=True):
+        a, b = rf0.rms(), rf.rms()
+        conv = {"tension": 1.0, "length": 1e3, "swivel": 180 / math.pi, "orientation": 180 / math.pi}
+        chi2, dof, p = window_chi2(rf)
+        drift = rf.params().get("ahrs_yaw_drift", {}).get("deg_per_hour", float("nan"))
+        out.append(f"  {rf.name}: " + ", ".join(f"{c} {a[c] * conv[c]:.3g} -> {b[c] * conv[c]:.3g}" for c in b)
+                   + f"; yaw drift {drift:.1f} deg/h; chi2 {chi2:.1f} on {dof} dof (p = {p:.2g})")
+    out += ["", "the initial pose as the weights move (variance-component rounds; x, y, z mm):"]
+    for name in [rf.name for rf in sel.final.fit.runs]:
+        seq = [h[name]["initial_pose"] for h in sel.final.fit.history if name in h]
+        out.append(f"  {name}: " + " -> ".join(f"({1e3 * p[0]:.1f}, {1e3 * p[1]:.1f}, {1e3 * p[2]:.1f})"
+                                               for p in seq))
+    if model_out is not None:
+        out += ["", f"model written to {model_out}; use it with cdpr solve RUN --model {model_out}"]
+    return "\n".join(out) + "\n"

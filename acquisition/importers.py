@@ -30,6 +30,7 @@ parser's lengths and 52 with the controller's, so the raw import carries a 1.4-2
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -197,12 +198,14 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     ahrs: dict[float, list[float]] = {}
     first_line: dict[float, int] = {}
     conflict: set[float] = set()
+    ahrs_lines = 0  # type-5 lines, damaged ones included: none at all is said plainly
     for k, line in enumerate(lines, start=1):
         line = line.strip()
         if not line:
             continue  # a blank line holds no reading: nothing is lost
         cells = line.split(",")
         kind = cells[0].strip()
+        ahrs_lines += kind == "5"
         if kind == "6":
             continue  # type 6: extras, not used
         if kind not in ("3", "5"):
@@ -245,6 +248,11 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     late = np.flatnonzero(appearance[1:] < np.maximum.accumulate(appearance)[:-1]) + 1 if complete else []
     if len(late):
         damage.add(ORDER, f"first: the cycle at line {appearance[late[0]]}", len(late))
+    if act and not ahrs_lines:
+        raise IrmaImportError(
+            f"{file}: the log has no AHRS line (type 5) at all, only cable lines, so it holds no roll, pitch or yaw "
+            "and cannot be imported."
+        )
     if not complete:
         raise IrmaImportError(
             f"{file}: no complete logging cycle (4 type-3 lines and a type-5 line at one time)"
@@ -309,6 +317,8 @@ class SetpointSegmentation:
     index: np.ndarray  # (N,) int, -1 outside holds
     plateaus: list[tuple[int, int]]  # [first, last] sample of each steady target segment after pretension
     cut: list[tuple[int, int]] = field(default_factory=list)  # [first, last] sample of each move left unfinished
+    rest: tuple[int, int] | None = None  # [first, last] sample of the power-on rest held before the sequence
+    dropped: list[tuple[int, int]] = field(default_factory=list)  # unfinished moves whose destination is in doubt
 
 
 def reference_jumps(target: np.ndarray, floor: float = 0.05) -> np.ndarray:
@@ -355,6 +365,8 @@ def segment_targets(
     pretension_band: float = 5.0,
     setpoints: np.ndarray | None = None,
     match_tol: float = 0.05,
+    bounds: tuple[float, float] = (0.0, math.inf),
+    measured: np.ndarray | None = None,
 ) -> SetpointSegmentation:
     """Find the setpoints of the target tensions (N, n), in order.
 
@@ -362,7 +374,14 @@ def segment_targets(
     first value. After it, every segment where all targets stay constant for at least ``min_hold`` s is a
     hold. A move the controller left unfinished (the reference jumped to begin the next move while a target
     was still on its way, :func:`reference_jumps`) had a setpoint too: each target still moving is extended
-    to where its quintic was heading (:func:`quintic_destination`); no sample of it is a hold. Without
+    to where its quintic was heading (:func:`quintic_destination`); no sample of it is a hold. Such a
+    destination is in doubt, and dropped (``dropped``), when it lies outside the tension ``bounds`` (N, the
+    robot's) or less than ``pretension_band`` from where the move began (a restart of the reference, not a
+    move). A
+    first steady segment entered by a jump of the reference straight from the pretension to within
+    ``pretension_band`` of the mean ``measured`` tensions (N, n) of the pretension (the controller holding
+    the tensions it measured at power-on) is the rest before the sequence (``rest``, phase ``rest``), not a
+    setpoint. Without
     ``setpoints``, these values (consecutive equal ones merged) are the setpoints; with them, each hold takes
     the index of the setpoint it equals within ``match_tol`` N (-1 if none).
     """
@@ -389,7 +408,17 @@ def segment_targets(
         j = k + 1
     # moves cut by a jump of the reference, their last sample not steady: (first, last, destination)
     cut: list[tuple[int, int, np.ndarray]] = []
-    starts = np.r_[0, reference_jumps(T)]
+    jumps = reference_jumps(T)
+    rest = None
+    if measured is not None and plateaus and plateaus[0][0] == pre_end and pre_end in jumps:
+        held = np.asarray(measured, dtype=float)[:pre_end].mean(axis=0)
+        if np.max(np.abs(T[pre_end] - held)) < pretension_band:
+            rest = plateaus.pop(0)
+    if rest is not None:
+        phase[rest[0] : rest[1] + 1] = "rest"
+    lo, hi = bounds
+    dropped: list[tuple[int, int]] = []
+    starts = np.r_[0, jumps]
     for a, b in zip(starts[:-1], starts[1:] - 1, strict=True):
         if b < pre_end or b - a < 4 or same[b]:
             continue
@@ -397,7 +426,11 @@ def segment_targets(
         for i in np.flatnonzero(np.abs(T[b] - T[b - 1]) > tol[b - 1]):
             end = quintic_destination(T[a : b + 1, i])
             dest[i] = np.nan if end is None else end
-        if np.all(np.isfinite(dest)):
+        if not np.all(np.isfinite(dest)):
+            continue
+        if np.any((dest < lo) | (dest > hi)) or np.max(np.abs(dest - T[a])) < pretension_band:
+            dropped.append((int(a), int(b)))
+        else:
             cut.append((int(a), int(b), dest))
     steps = sorted([(a, b, T[a], False) for a, b in plateaus] + [(a, b, v, True) for a, b, v in cut],
                    key=lambda s: s[0])
@@ -415,12 +448,17 @@ def segment_targets(
         if not unfinished:
             index[a : b + 1] = j
     sp = np.asarray(setpoints, dtype=float) if setpoints is not None else np.array(found).reshape(-1, T.shape[1])
-    return SetpointSegmentation(sp, phase.astype(str), index, plateaus, [(a, b) for a, b, _ in cut])
+    return SetpointSegmentation(sp, phase.astype(str), index, plateaus, [(a, b) for a, b, _ in cut], rest, dropped)
 
 
-def read_irma_targets(file: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """The authors' ``sc_control_target_*.mat`` (struct ``out``): setpoints (k, 4) N and ideal poses (k, 6)."""
+def read_irma_targets(file: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """The planned setpoints (k, 4) N and ideal poses (k, 6), or None, of an experiment: the authors'
+    ``sc_control_target_*.mat`` (struct ``out``) or the controller's ``tension_target_*.csv``
+    (:func:`read_tension_targets`, setpoints only)."""
     file = Path(file)
+    with open(file, "rb") as fh:
+        if not fh.read(10).startswith(b"MATLAB"):
+            return read_tension_targets(file), None
     try:
         data = _loadmat(file)
     except (ValueError, TypeError, OSError, NotImplementedError) as exc:
@@ -440,6 +478,54 @@ def read_irma_targets(file: str | Path) -> tuple[np.ndarray, np.ndarray]:
             f"{file}: field 'out.opt_meas_config' has shape {poses.shape}, expected (6, {tens.shape[1]})."
         )
     return tens.T.copy(), poses.T.copy()
+
+
+def read_tension_targets(file: str | Path) -> np.ndarray:
+    """The controller's setpoint file ``tension_target_*.csv``: one line per cable (4), one comma-separated
+    column per setpoint in the order applied, N, no header. Returns the setpoints (k, 4)."""
+    file = Path(file)
+    rows = [line for line in file.read_bytes().decode("ascii", errors="replace").splitlines() if line.strip()]
+    if len(rows) != IRMA_CABLES:
+        raise IrmaImportError(f"{file}: {len(rows)} lines, expected {IRMA_CABLES} (one line of setpoint tensions "
+                              "per cable, as the controller reads tension_target_*.csv).")
+    cells = [r.split(",") for r in rows]
+    k = len(cells[0])
+    for i, c in enumerate(cells, start=1):
+        if len(c) != k:
+            raise IrmaImportError(f"{file}: line {i} has {len(c)} values, line 1 has {k}.")
+        bad = next((v for v in c if not 0.0 < float_or_nan(v) < math.inf), None)
+        if bad is not None:
+            raise IrmaImportError(f"{file}: line {i} has the value {bad.strip()[:20]!r}, not a tension in N.")
+    return np.array([[float(v) for v in c] for c in cells]).T.copy()
+
+
+def _check_targets(file: Path, targets: Path, seg: SetpointSegmentation, t: np.ndarray) -> None:
+    """Refuse a target list whose setpoints the run's holds do not follow (another experiment's file)."""
+    unmatched = [(a, b) for a, b in seg.plateaus if seg.index[a] < 0]
+    if unmatched:
+        a = unmatched[0][0]
+        raise IrmaImportError(
+            f"{targets}: its {len(seg.setpoints)} setpoints do not match {file.name}: {len(unmatched)} of the run's "
+            f"{len(seg.plateaus)} holds follow none of them (the first at {t[a] - t[0]:.1f} s); give the targets "
+            "of this experiment."
+        )
+
+
+def _setpoint_doubts(file: Path, seg: SetpointSegmentation, t: np.ndarray) -> str | None:
+    """One sentence on what the setpoints found without targets may have wrong, or None."""
+    said = []
+    if seg.rest is not None:
+        a, b = seg.rest
+        said.append(f"the hold at {t[a] - t[0]:.1f}-{t[b] - t[0]:.1f} s, entered by a jump of the reference from the "
+                    "pretension, is taken for the rest before the sequence, not a setpoint")
+    if seg.dropped:
+        when = ", ".join(f"{t[a] - t[0]:.1f} s" for a, _ in seg.dropped)
+        said.append(f"{len(seg.dropped)} move(s) cut short (at {when}) whose destination is in doubt are not "
+                    "taken for setpoints")
+    if not said:
+        return None
+    return (f"{file}: setpoints found without --targets: {'; '.join(said)}; {len(seg.setpoints)} setpoints kept "
+            "(give --targets to check them).")
 
 
 # ------------------------------------------------------------------------------------------------ import
@@ -467,22 +553,32 @@ def detect_irma_format(file: str | Path) -> str:
 def irma_run(file: str | Path, targets: str | Path | None = None) -> Run:
     """An IRMA recording (``*_parsed.mat`` or raw ``.log``) as a run in memory (path None).
 
-    ``targets`` (optional): the ``sc_control_target_*.mat`` of the same experiment, giving the planned
-    setpoints and ideal poses; without it the setpoints are those found steady in the target tensions.
+    ``targets`` (optional): the ``sc_control_target_*.mat`` (planned setpoints and ideal poses) or the
+    ``tension_target_*.csv`` (setpoints) of the same experiment; every hold of the run must follow one of its
+    setpoints, else the import is refused. Without it the setpoints are those found steady in the target
+    tensions, and one warning says which of them are in doubt (:func:`segment_targets`).
     """
     file = Path(file)
     kind = detect_irma_format(file)
     sig = read_irma_parsed(file) if kind == "parsed" else read_irma_log(file)
     planned = read_irma_targets(targets) if targets is not None else None
-    seg = segment_targets(sig.target, IRMA_SAMPLE_PERIOD, setpoints=None if planned is None else planned[0])
+    from calib.robot import load_robot
+
+    seg = segment_targets(sig.target, IRMA_SAMPLE_PERIOD, setpoints=None if planned is None else planned[0],
+                          bounds=(0.0, load_robot("irma4u").tau_max), measured=sig.tension)
     if len(seg.plateaus) < MIN_HOLDS:
         damaged = f"; damaged input: {sig.damage.summary()}" if sig.damage else ""
         raise IrmaImportError(
             f"{file}: {len(seg.plateaus)} steady setpoint hold(s) in the experiment ({len(sig.t)} samples), a solve "
             f"needs at least {MIN_HOLDS}{damaged}."
         )
+    if planned is not None:
+        _check_targets(file, Path(targets), seg, sig.t)
     if sig.damage:
         sig.damage.warn(len(sig.t), stacklevel=2)
+    doubts = None if planned is not None else _setpoint_doubts(file, seg, sig.t)
+    if doubts:
+        warnings.warn(doubts, UserWarning, stacklevel=2)
     t0 = float(sig.t[0])
     meta_extra: dict[str, Any] = {
         "homing": sig.homing,

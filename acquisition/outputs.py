@@ -9,11 +9,14 @@ from under it).
 
 Files a command derives from a run and keeps inside it (``solution.json``, ``offsets.yaml``,
 ``report.html``, ``effects_chi2.png``) are not outputs in this sense: the command that owns them rewrites
-them, since the run they are computed from is kept.
+them, since the run they are computed from is kept (``solution.json`` only when asked: `cdpr solve --save`,
+or its first solve with the default options).
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -55,13 +58,46 @@ def _occupied(path: Path) -> bool:
     return path.exists() or path.is_symlink()
 
 
-def check_output(path: str | Path, force: bool, option: str) -> None:
-    """Raise OutputExistsError when ``path`` (given with ``option``) exists and may not be replaced."""
+def _input_clash(path: Path, inputs: Iterable[str | Path]) -> str | None:
+    """How ``path`` overlaps one of ``inputs`` (is it, is inside it, holds it), or None."""
+    target = path.resolve()
+    for given in inputs:
+        source = Path(given).resolve()
+        if target == source:
+            return f"is the input {given}"
+        if source in target.parents:
+            return f"is inside the input {given}"
+        if target in source.parents:
+            return f"holds the input {given}"
+    return None
+
+
+def _unwritable_parent(path: Path) -> str | None:
+    """Why the folder of ``path`` cannot be made and written (its nearest existing ancestor), or None."""
+    parent = path.absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"{parent} is not a folder"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"the folder {parent} is not writable"
+    return None
+
+
+def check_output(path: str | Path, force: bool, option: str, inputs: Iterable[str | Path] = ()) -> None:
+    """Raise OutputExistsError when ``path`` (given with ``option``) exists and may not be replaced, overlaps
+    one of the command's ``inputs``, or lies where no folder can be made."""
     path = Path(path)
     if _is_run_file(path):
         raise OutputExistsError(
             f"{option} {path} is the log of the run in {path.parent}; write the output elsewhere."
         )
+    clash = _input_clash(path, inputs)
+    if clash:
+        raise OutputExistsError(f"{option} {path} {clash}; write the output elsewhere (even --force cannot).")
+    why = _unwritable_parent(path)
+    if why:
+        raise OutputExistsError(f"{option} {path} cannot be written: {why}.")
     if not _occupied(path):
         return
     if not force:
@@ -87,11 +123,13 @@ def kept_name(path: Path, now: datetime | None = None) -> Path:
     return kept
 
 
-def claim_output(path: str | Path, force: bool, option: str) -> Replaced | None:
-    """Make ``path`` free to write: check it (see :func:`check_output`) and, with ``force``, move what is
-    there aside. Returns what was moved, or None; an empty folder is left in place and used."""
+def claim_output(path: str | Path, force: bool, option: str, inputs: Iterable[str | Path] = ()) -> Replaced | None:
+    """Make ``path`` free to write: check it (see :func:`check_output`), create its missing parent folders
+    and, with ``force``, move what is there aside. Returns what was moved, or None; an empty folder is left
+    in place and used."""
     path = Path(path)
-    check_output(path, force, option)
+    check_output(path, force, option, inputs)
+    path.absolute().parent.mkdir(parents=True, exist_ok=True)
     if not _occupied(path):
         return None
     kept = kept_name(path)

@@ -154,12 +154,12 @@ def render_text(summary: StartupSummary) -> str:
         lines.append(f"  yaw     {float(off.get('yaw', 0.0)):.4f} rad")
         res = sol.get("residuals", {})
         if res:
-            lines.append(f"residuals (chi2 {float(sol.get('chi2', float('nan'))):.2f}, dof {sol.get('dof')}):")
-            lines.append(f"  {'channel':<12}{'rms':>12}{'rms/noise':>12}")
+            lines.append(f"residuals (chi2 {float(sol.get('chi2', float('nan'))):.3g}, dof {sol.get('dof')}):")
+            lines.append(f"  {'channel':<12}{'rms':>12}     {'rms/noise':>10}")
             for ch in CHANNELS:
                 if ch in res:
-                    lines.append(f"  {ch:<12}{float(res[ch]['rms']):>12.5g}{float(res[ch]['rms_normalized']):>12.3f}"
-                                 f" {UNITS[ch]}")
+                    lines.append(f"  {ch:<12}{float(res[ch]['rms']):>12.5g} {UNITS[ch]:<4}"
+                                 f"{float(res[ch]['rms_normalized']):>10.3f}")
             lines += misfit_lines(sol)
     if summary.windows:
         lines.append("equilibrium windows held (first, last sample): "
@@ -326,7 +326,9 @@ def render_html(summary: StartupSummary, t: np.ndarray, tau: np.ndarray, tau_ref
         parts.append("<h2>Events</h2><ul>")
         parts += [f"<li>{float(e['t']):.2f} s {esc(e['kind'])}: {esc(e['message'])}</li>" for e in summary.events]
         parts.append("</ul>")
-    parts.append(f"<h2>Timing</h2><pre>{esc(yaml.safe_dump(summary.timing))}</pre></body></html>")
+    parts.append("<h2>Timing</h2><table>" + "".join(
+        f"<tr><td>{esc(k)}</td><td>{float(v):.3g} {'ms' if k.endswith('_ms') else 's'}</td></tr>"
+        for k, v in summary.timing.items()) + "</table></body></html>")
     return "\n".join(parts)
 
 

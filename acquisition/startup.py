@@ -527,6 +527,8 @@ class StartupRoutine:
             "control": {"rate": self.cfg.rate, "max_tension_rate": self.cfg.max_tension_rate,
                         "hold_time": self.cfg.hold_time},
             "devices": list(getattr(self, "_statuses", [])),
+            **({"pauses": [{"after": p.after, "seconds": p.seconds, "home": p.home} for p in plan.pauses]}
+               if plan.pauses else {}),
             **self.meta,
         }
         self.writer = RunWriter(self.out, self.robot.name, self.cfg.method, self.cfg.log_period, self.source,

@@ -383,6 +383,7 @@ class Diagnosis:
     residual_data: Residuals
     final: Fit
     reference_sample: int | None = None
+    finding: Candidate | None = None  # the implausible candidate that explains most (a description error?)
 
     def to_json(self) -> dict[str, Any]:
         """The `cdpr diagnose --json` object of spec/cli.md (plus extra keys)."""
@@ -401,6 +402,9 @@ class Diagnosis:
             "verdict": self.verdict,
             "alpha": self.alpha,
             "device_errors": {k: _num(v) for k, v in self.fit.params().get("device_accuracy", {}).items()},
+            "finding": None if self.finding is None else {
+                "effect": self.finding.effect, "params": {k: _num(v) for k, v in self.finding.params.items()},
+                "implausible": [str(v) for v in self.finding.implausible]},
         }
 
 
@@ -633,7 +637,17 @@ def diagnose(
     selected: list[str] = []
     current, rank_now = fit0, ranking
     pred_now = pred0
+    finding: Candidate | None = None
     while len(selected) < max_effects and rank_now:
+        finding = implausible_finding(rank_now)
+        if finding is not None:  # what explains most is out of its range: a finding, nothing that explains less
+            finding.decision = ("FINDING: explains the most (delta chi2 " f"{finding.delta_chi2:.1f}) only with "
+                                + "; ".join(str(v) for v in finding.implausible[:3])
+                                + ": a likely error in the robot description or the setup")
+            for c in rank_now:
+                if c is not finding and c.eligible:
+                    c.decision = f"not added: it explains less than {finding.effect}, whose value is a finding"
+            break
         best = choose(rank_now)
         if best is None:
             if len(selected) + 2 > max_effects:
@@ -665,7 +679,7 @@ def diagnose(
     more = bool(selected) and len(selected) >= max_effects and any(
         c.eligible for c in rank_now if c.effect not in selected)
     diag = Diagnosis(fit0, fit0.chi2, fit0.dof, p_fit, noise_source, channels, cables, rows, ranking, selected,
-                     steps, "", alpha, res0, current, reference_sample)
+                     steps, "", alpha, res0, current, reference_sample, finding)
     diag.verdict = _verdict(diag, more)
     return diag
 
@@ -731,7 +745,39 @@ def misfit_location(diag: Diagnosis, top: int = 2) -> dict[str, list[str]]:
     return {"channels": out_ch, "cables": out_cab, "rows": out_rows}
 
 
+FINDING_RATIO = 1.5  # an implausible candidate explaining this many times the best plausible one's delta chi2
+
+
+def implausible_finding(ranked: list[Candidate]) -> Candidate | None:
+    """The significant candidate that explains the most (largest delta chi2) when it lies outside its
+    plausible range and explains clearly more (FINDING_RATIO) than any eligible one and predicts left-out
+    poses better than them: a finding (a likely error in the robot description or the setup), not a reason
+    to recommend the next one."""
+    fitted = [c for c in ranked if c.delta_chi2 is not None and c.significant and c.cv_gain is not None]
+    if not fitted:
+        return None
+    top = max(fitted, key=lambda c: c.delta_chi2)
+    if top.plausible or top.cv_gain <= 0:
+        return None
+    ok = [c for c in ranked if c.eligible]
+    if any(c.delta_chi2 * FINDING_RATIO > top.delta_chi2 or c.cv_gain >= top.cv_gain for c in ok):
+        return None
+    return top
+
+
 def _verdict(diag: Diagnosis, more: bool = False) -> str:
+    text = _verdict_text(diag, more)
+    f = diag.finding
+    if f is None:
+        return text
+    lead = (f"FINDING: {f.effect} explains the most (delta chi2 {f.delta_chi2:.1f}, predicting left-out poses "
+            f"better by {f.cv_gain:.1f}) with " + "; ".join(str(v) for v in f.implausible[:3])
+            + ": likely an error in the robot description or the setup (check it); nothing that explains less is "
+            "recommended in its place")
+    return lead + (f"; {text}" if diag.selected else "")
+
+
+def _verdict_text(diag: Diagnosis, more: bool = False) -> str:
     fit0, ranking, selected, final, alpha = diag.fit, diag.ranking, diag.selected, diag.final, diag.alpha
     dof = max(fit0.dof, 1)
     excess = fit0.chi2 - dof

@@ -12,6 +12,16 @@ from typing import Any
 
 import yaml
 
+QUOTE_LIMIT = 60  # characters of a quoted value at most
+
+
+def quote(value: Any, limit: int = QUOTE_LIMIT) -> str:
+    """``repr(value)`` cut at its first line break and to ``limit`` characters, with '...' where cut: a whole
+    file read as one YAML scalar becomes its first line, not 380,000 characters."""
+    text = repr(value)
+    first = text.split("\\n", 1)[0].split("\n", 1)[0]
+    return text if first == text and len(text) <= limit else first[:limit].rstrip() + "..."
+
 
 def read_yaml(path: str | Path, error: type[Exception], what: str, end: str = ".") -> Any:
     """The parsed content of the YAML file ``path`` (a ``what``: 'robot description'...); an unreadable file
@@ -39,7 +49,7 @@ class FieldReader:
 
     def fail(self, fld: str, value: Any, why: str) -> Exception:
         """The error for field ``fld`` holding ``value`` that ``why`` ('must be positive')."""
-        return self.error(f"{self.origin}: field '{fld}' = {value!r} {why}{self.end}")
+        return self.error(f"{self.origin}: field '{fld}' = {quote(value)} {why}{self.end}")
 
     def missing(self, fld: str) -> Exception:
         """The error for the required field ``fld`` (dotted path) that is absent."""

@@ -8,7 +8,8 @@ workspace or outside the grid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -48,16 +49,27 @@ def default_volume(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
 
 
 def static_workspace(
-    robot: Robot, lower: np.ndarray | None = None, upper: np.ndarray | None = None, step: float = 0.1
+    robot: Robot, lower: np.ndarray | None = None, upper: np.ndarray | None = None, step: float = 0.1,
+    progress: Callable[[int, int], None] | None = None, chunk: int = 500,
 ) -> WorkspaceMap:
-    """Evaluate the static workspace on a regular grid with spacing ``step`` (m) inside [lower, upper]."""
+    """Evaluate the static workspace on a regular grid with spacing ``step`` (m) inside [lower, upper].
+
+    The positions are solved ``chunk`` at a time; ``progress(done, total)`` is called after each chunk. A
+    position where a cable cannot leave its pulley (the anchor within the pulley radius: no tangent, NaN
+    lengths) is outside the workspace, without numpy's warning."""
     lo, hi = default_volume(robot)
     lo = lo if lower is None else np.asarray(lower, float)
     hi = hi if upper is None else np.asarray(upper, float)
     axes = tuple(np.arange(a, b + step / 2, step) for a, b in zip(lo, hi, strict=True))
     gx, gy, gz = np.meshgrid(*axes, indexing="ij")
     pos = np.stack([gx.ravel(), gy.ravel(), gz.ravel()], 1)
-    sol = inverse_geometrico_static(robot, pos)
+    parts = []
+    for a in range(0, len(pos), chunk):
+        with np.errstate(invalid="ignore"):
+            parts.append(inverse_geometrico_static(robot, pos[a : a + chunk]))
+        if progress is not None:
+            progress(min(a + chunk, len(pos)), len(pos))
+    sol = StaticPose(*(np.concatenate([getattr(q, f.name) for q in parts]) for f in fields(StaticPose)))
     member = sol.feasible.reshape(gx.shape)
     padded = np.pad(member, 1, constant_values=False)
     inner = np.ones_like(member)
@@ -86,12 +98,14 @@ def plot_workspace(ws: WorkspaceMap, robot: Robot, path: str | Path) -> Path:
         lo, hi = robot.workspace_lower, robot.workspace_upper
         for x in (lo[0], hi[0]):
             for y in (lo[1], hi[1]):
-                ax.plot([x, x], [y, y], [lo[2], hi[2]], "k-", lw=0.8)
+                label = "calibration poses' bounds (eq. 19)" if (x, y) == (lo[0], lo[1]) else None
+                ax.plot([x, x], [y, y], [lo[2], hi[2]], "k-", lw=0.8, label=label)
         for z in (lo[2], hi[2]):
             ax.plot([lo[0], hi[0], hi[0], lo[0], lo[0]], [lo[1], lo[1], hi[1], hi[1], lo[1]], [z] * 5, "k-", lw=0.8)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
+    ax.set_box_aspect(None, zoom=0.85)  # room for the z label, which the colorbar would otherwise cut
     ax.set_title(f"{robot.name}: static workspace boundary ({int(ws.member.sum())} of {len(ws.member)} points)")
     ax.legend(loc="upper left")
     out = Path(path)

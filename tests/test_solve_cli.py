@@ -68,20 +68,22 @@ def test_raw_log_import_then_solve(irma_data, tmp_path, capsys):
 
 @pytest.mark.parametrize("log", ["sc_8_final_parsed.mat", "sc_8_final.log"])
 def test_misfit_scales_the_printed_sigma_to_the_order_of_the_real_error(irma_data, tmp_path, capsys, log):
-    """--noise estimate on the real run: the rigid model misses its window means by 36-48 times their noise,
-    and zeta_0_real's position is up to 35 (parsed) and 83 (raw log) formal sigmas (0.08-0.23 mm) away; times
-    sqrt(chi2/dof) the bounds hold it within 2 sigma on every axis. The paper noise's chi2 is not above its
-    band: nothing is scaled."""
+    """--noise estimate on the real run: the rigid model misses its window means by 20-60 times their noise;
+    such groups are weighed by their scatter around the fit (model error, issue 28), so the formal bounds are
+    of the error's order (zeta_0_real's position 0.2-1.6 formal sigmas away: 1.3-6.9 mm; before, 35-83
+    sigmas of 0.08-0.23 mm); the tensions' remaining misfit is still rejected by chi2 (sqrt(chi2/dof) 1.7)
+    and times it the bounds hold zeta_0_real within 2 sigma on every axis. The paper noise's chi2 is not
+    above its band: nothing is scaled."""
     run = tmp_path / "run"
     import_irma(irma_data / log, run)
     assert main(["solve", str(run), "--noise", "estimate", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     k = doc["sigma_scale"]
-    assert k == pytest.approx(math.sqrt(doc["chi2"] / doc["dof"]), rel=1e-12) and 30 < k < 60
+    assert k == pytest.approx(math.sqrt(doc["chi2"] / doc["dof"]), rel=1e-12) and 1.2 < k < 3
     formal, scaled = np.array(doc["initial_pose_sigma"][:3]), np.array(doc["initial_pose_sigma_scaled"][:3])
     assert np.allclose(scaled, k * formal, rtol=1e-12)
     err = np.abs(np.subtract(doc["initial_pose"][:3], ZETA_0_REAL[:3]))
-    assert np.max(err / formal) > 15  # the formal bounds are not the error's
+    assert np.max(err / formal) < 3  # the model error is in the weights: the formal bounds are of its order
     assert np.all(err <= 2.0 * scaled)
     assert main(["solve", str(run), "--noise", "paper"]) == 0
     text = capsys.readouterr().out

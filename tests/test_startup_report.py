@@ -47,7 +47,7 @@ def test_text_summary_shows_pose_in_mm_and_degrees_with_sigma():
     text = render_text(summary())
     assert "z       1065.100 +- 0.200 mm" in text
     assert f"yaw   {math.degrees(0.0031):10.3f} +- {math.degrees(0.0003):.3f} deg" in text
-    assert "  tension             0.31       0.031 N" in text
+    assert "  tension             0.31 N        0.031" in text  # the unit beside the rms, not after rms/noise
     assert "[0, 19], [60, 79]" in text
     assert "  time: acquisition_s 120.00 s, solve_s 0.02 s, control_p99_ms 0.11 ms" in text
 

@@ -139,6 +139,17 @@ def _route_signals() -> dict:
     return {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so that Python's flush at exit does not raise BrokenPipeError again."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout is not a file descriptor (captured in tests)
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     previous = _route_signals()
     started: list[str] = []  # the command, once it runs
@@ -152,13 +163,35 @@ def main(argv: list[str] | None = None) -> int:
         when = f" during cdpr {started[0]}" if started else " before the command started; nothing was written"
         sys.stderr.write(f"cdpr: interrupted by the operator ({name}){when}.\n")
         return 1
+    except BrokenPipeError:  # the reader of stdout left (`cdpr poses --json | head`): end quietly, as Unix tools do
+        _silence_stdout()
+        return 141  # 128 + SIGPIPE, what a shell reports for a tool the pipe ended
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
 
+LENGTH_OPTIONS = ("--tolerance",)  # options whose value is a length: a leading '-' there is a sign, not an option
+
+
+def _join_signed_values(argv: list[str]) -> list[str]:
+    """``--tolerance -3mm`` as ``--tolerance=-3mm``: argparse would read ``-3mm`` as an unknown option and say
+    only "expected one argument"; joined, the value reaches ``acquisition.cli.args.parse_length``, which says
+    what is wrong."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in LENGTH_OPTIONS and i + 1 < len(argv) and argv[i + 1][:1] == "-" and (
+                argv[i + 1][1:2].isdigit() or argv[i + 1][1:2] == "."):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def _main(argv: list[str] | None, started: list[str]) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    argv = _join_signed_values(sys.argv[1:] if argv is None else list(argv))
     parser = build_parser(modules_for(argv))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

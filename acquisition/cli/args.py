@@ -9,7 +9,8 @@ import sys
 import numpy as np
 
 from acquisition.cli.errors import UsageError
-from acquisition.outputs import OutputExistsError, check_output, claim_output
+from acquisition.outputs import OutputExistsError, Replaced, check_output, claim_output
+from calib.fields import quote
 
 
 def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
@@ -23,6 +24,25 @@ def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | No
     if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
         raise UsageError(f"{option} '{text}' must be six numbers x,y,z,roll,pitch,yaw (m, rad).")
     return np.array(vals)
+
+
+LENGTH_UNITS = (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0))
+
+
+def parse_length(text: str, option: str) -> float:
+    """A positive length with its unit (mm, cm or m), in metres; anything else is one sentence (UsageError)."""
+    t = text.strip().lower()
+    unit = next(((u, f) for u, f in LENGTH_UNITS if t.endswith(u)), None)
+    try:
+        value = float(t[: -len(unit[0])]) * unit[1] if unit else float(t)
+    except ValueError:
+        raise UsageError(f"{option} {quote(text)} is not a length: give a number and its unit, e.g. 3mm, 0.5cm "
+                         "or 0.003m.") from None
+    if unit is None:
+        raise UsageError(f"{option} {quote(text)} needs its unit: {t}mm, {t}cm or {t}m.")
+    if not (value > 0 and math.isfinite(value)):
+        raise UsageError(f"{option} {quote(text)} must be a positive length.")
+    return value
 
 
 GRID_POINTS = (2, 6)  # calibration grid points per axis that `cdpr startup` can acquire and solve
@@ -43,19 +63,22 @@ def add_force(parser) -> None:
     parser.add_argument("--force", action="store_true", help=FORCE_HELP)
 
 
-def check_output_option(path, force: bool, option: str) -> None:
-    """Refuse, before any work, an output that exists and may not be replaced (one sentence, exit 2)."""
+def check_output_option(path, force: bool, option: str, inputs=()) -> None:
+    """Refuse, before any work, an output that exists and may not be replaced, or that is, holds or is inside
+    one of the command's ``inputs`` (one sentence, exit 2)."""
     try:
-        check_output(path, force, option)
+        check_output(path, force, option, inputs)
     except OutputExistsError as exc:
         raise UsageError(str(exc)) from exc
 
 
-def claim_output_option(path, force: bool, option: str) -> None:
-    """Free an output path for writing; with --force what was there is moved aside and the user told where."""
+def claim_output_option(path, force: bool, option: str, inputs=()) -> Replaced | None:
+    """Free an output path for writing (its missing folders made); with --force what was there is moved aside
+    and the user told where."""
     try:
-        replaced = claim_output(path, force, option)
+        replaced = claim_output(path, force, option, inputs)
     except OutputExistsError as exc:
         raise UsageError(str(exc)) from exc
     if replaced is not None:
         sys.stderr.write(f"cdpr: note: {replaced.sentence()}\n")
+    return replaced

@@ -23,8 +23,15 @@ from calib.effects import Effect, EffectLoadError, available_effects, make_effec
 
 def register(sub) -> None:
     p = sub.add_parser("diagnose", help="compare model and measurements, rank the candidate physical effects")
-    p.add_argument("run", type=Path, metavar="RUN", help="run folder")
+    p.add_argument("run", type=Path, nargs="+", metavar="RUN",
+                   help="run folder; several runs of one robot: its effects shared, each run's own unknowns, "
+                   "effects chosen by leave-one-run-out prediction (issue 28)")
     p.add_argument("--json", action="store_true", help="print the diagnosis as JSON (spec/cli.md)")
+    p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
+                   help="a learned robot model (docs/robot-model.md): its effects enter every fit as priors")
+    p.add_argument("--model-out", type=Path, default=None, metavar="MODEL.yaml",
+                   help="write the learned robot model (effects kept, values, 1-sigma, runs and weights); "
+                   "diagnoses the runs jointly; an existing file is refused unless --force")
     p.add_argument(
         "--noise", choices=("estimate", "accuracy", "paper"), default="estimate",
         help="noise units: estimate (scatter inside the equilibrium windows, default), accuracy (that scatter "
@@ -98,17 +105,25 @@ def _diagnose(args) -> int:
 
     if args.max_effects < 0:
         raise UsageError(f"--max-effects {args.max_effects} must be 0 or more.")
+    if len(args.run) > 1 or args.model is not None or args.model_out is not None:
+        from acquisition.cli.diagnose_runs import diagnose_runs
+
+        return diagnose_runs(args)
+    args.run = args.run[0]
     reference = parse_pose(args.reference)
     for option, path in (("--plots", args.plots), ("--html", args.html)):
         if path is not None:
-            check_output_option(path, args.force, option)
+            check_output_option(path, args.force, option, [args.run])
     classes = effect_classes(args.effects_from)
     included = parse_effects(args.effects, classes)
     run = _read(args.run)
     cands = [cls() for name, cls in classes.items() if name not in {e.name for e in included}]
+    from acquisition.cli.progress import Activity
+
     try:
-        diag = diagnose_run(run, noise=args.noise, candidates=cands, included=included,
-                            max_effects=args.max_effects, reference_pose=reference)
+        with Activity(f"diagnose: fitting the model and {len(cands)} candidate effects"):
+            diag = diagnose_run(run, noise=args.noise, candidates=cands, included=included,
+                                max_effects=args.max_effects, reference_pose=reference)
     except SelfCalInputError as exc:
         raise UsageError(f"{args.run}: {exc}") from exc
     except SelfCalFailure as exc:
@@ -120,13 +135,14 @@ def _diagnose(args) -> int:
 
         folder = args.plots if args.plots is not None else Path(tempfile.mkdtemp(prefix="cdpr-diagnose-"))
         if args.plots is not None:
-            claim_output_option(folder, args.force, "--plots")
+            claim_output_option(folder, args.force, "--plots", [args.run])
         try:
-            pngs = plot_residuals(diag, folder)
+            with Activity("diagnose: drawing the plots"):
+                pngs = plot_residuals(diag, folder)
         except OSError as exc:
             raise OperationError(f"{folder}: cannot write the plots ({exc.strerror}).") from exc
     if args.html is not None:
-        claim_output_option(args.html, args.force, "--html")
+        claim_output_option(args.html, args.force, "--html", [args.run])
         try:
             args.html.write_text(html_report(diag, pngs, f"cdpr diagnose {args.run}", units, args.run))
         except OSError as exc:
@@ -153,7 +169,7 @@ def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: di
     :func:`calib.diagnose.effect_chain` (the diagnosis's own refits: same noise, device priors and start),
     each returned as a Solution. Returns the final Solution (its ``effects`` filled) and the before/after
     table; writes the plot RUN/effects_chi2.png."""
-    from acquisition.diagnose_report import plot_steps
+    from acquisition.diagnose_report import parameter_units, plot_steps
     from calib.diagnose import effect_chain, pose_error, run_rows
     from calib.selfcal import solve
 
@@ -181,25 +197,37 @@ def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: di
         plot_steps(steps, Path(args.run) / "effects_chi2.png")
     except OSError:
         pass
-    return sols[-1], effects_table(sols, effects, reference)
+    units = parameter_units(f.model.effects, rows.robot)  # the last fit's model: every effect, the devices' too
+    return sols[-1], effects_table(sols, effects, reference, units)
 
 
-def effects_table(sols, effects: list[Effect], reference: np.ndarray | None) -> str:
+def effects_table(sols, effects: list[Effect], reference: np.ndarray | None, units: dict[str, str] | None = None
+                  ) -> str:
     """Before/after: chi2, per-channel RMS (normalised), change of the initial pose, eps_p where known."""
     from calib.diagnose import pose_error
 
     chans = list(sols[0].residuals)
-    head = f"{'model':<36} {'chi2':>10} {'dof':>4} " + " ".join(f"{c[:6]:>7}" for c in chans)
+    widths = [max(len(c), 7) for c in chans]
+    head = f"{'model':<36} {'chi2':>10} {'dof':>4} " + " ".join(f"{c:>{w}}" for c, w in zip(chans, widths, strict=True))
     head += f" {'d zeta0 [mm]':>12}" + (f" {'eps_p [mm]':>10}" if reference is not None else "")
     lines = ["effects added one by one (rms/sigma per channel)", head]
     for j, s in enumerate(sols):
         name = "base model (device errors)" if j == 0 else "+ " + effects[j - 1].name
-        row = f"{name:<36} {s.chi2:>10.1f} {s.dof:>4} " + " ".join(
-            f"{s.residuals.get(c, {}).get('rms_normalized', float('nan')):>7.2f}" for c in chans)
+        row = f"{name:<36} {s.chi2:>10.4g} {s.dof:>4} " + " ".join(
+            f"{s.residuals.get(c, {}).get('rms_normalized', float('nan')):>{w}.2f}"
+            for c, w in zip(chans, widths, strict=True))
         row += f" {1000 * pose_error(s.initial_pose, sols[0].initial_pose):>12.2f}"
         if reference is not None:
             row += f" {1000 * pose_error(s.initial_pose, reference):>10.2f}"
         lines.append(row)
+    units = units or {}
     for name, params in sols[-1].effects.items():
-        lines.append(f"  {name}: " + ", ".join(f"{k} = {v:.5g}" for k, v in params.items()))
+        lines.append(f"  {name}: " + ", ".join(_with_unit(k, v, units.get(k, "")) for k, v in params.items()))
     return "\n".join(lines) + "\n"
+
+
+def _with_unit(name: str, value: float, unit: str) -> str:
+    """'name = value unit' of a fitted parameter: angles in degrees, a dimensionless one bare."""
+    if unit == "rad":
+        return f"{name} = {math.degrees(value):.4g} deg"
+    return f"{name} = {value:.5g}" + ("" if unit in ("", "1") else f" {unit}")

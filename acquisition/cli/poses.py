@@ -167,7 +167,10 @@ def _workspace(args) -> int:
         raise UsageError(f"--step must be positive, got {args.step}.")
     if args.plot:
         check_output_option(args.plot, args.force, "--plot")
-    ws = static_workspace(robot, step=args.step)
+    from acquisition.cli.progress import Progress
+
+    with Progress(1, "workspace", "positions") as bar:
+        ws = static_workspace(robot, step=args.step, progress=bar.update)
     summary = ws.summary()
     if args.plot:
         claim_output_option(args.plot, args.force, "--plot")

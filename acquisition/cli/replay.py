@@ -32,11 +32,11 @@ def run(args) -> int:
     for need in (can_record_path(args.run), args.run / SERIAL_RECORD):
         if not need.is_file():
             raise UsageError(f"{need}: no such file; only runs recorded by `cdpr startup` can be replayed.")
-    check_output_option(args.out, args.force, "--out")
+    check_output_option(args.out, args.force, "--out", [args.run])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            claim_output_option(args.out, args.force, "--out")
+            claim_output_option(args.out, args.force, "--out", [args.run])
             res = replay_run(args.run, args.out)
         except (RecordError, RunFormatError, ValueError) as exc:
             raise UsageError(str(exc)) from exc

@@ -22,8 +22,10 @@ def register(sub) -> None:
     irma.add_argument(
         "--targets",
         type=Path,
-        metavar="MAT",
-        help="sc_control_target_*.mat of the same experiment: planned setpoints and ideal poses",
+        metavar="FILE",
+        help="the planned setpoints of the same experiment: sc_control_target_*.mat (with the ideal poses) or "
+        "the controller's tension_target_*.csv (docs/run-format.md); a file whose setpoints the run's holds "
+        "do not follow is refused",
     )
     add_force(irma)
     irma.set_defaults(func=_import_irma)
@@ -43,9 +45,10 @@ def _import_irma(args) -> int:
         raise UsageError(f"{args.file}: no such file.")
     if args.targets is not None and not args.targets.is_file():
         raise UsageError(f"{args.targets}: no such file (--targets).")
-    check_output_option(args.out, args.force, "-o")
+    inputs = [f for f in (args.file, args.targets) if f is not None]
+    check_output_option(args.out, args.force, "-o", inputs)
     run = irma_run(args.file, targets=args.targets)
-    claim_output_option(args.out, args.force, "-o")
+    claim_output_option(args.out, args.force, "-o", inputs)
     try:
         write_run(args.out, run)
         run = read_run(args.out)
@@ -60,13 +63,28 @@ def _import_irma(args) -> int:
 
 
 def _export(args) -> int:
-    check_output_option(args.out, args.force, "-o")
+    check_output_option(args.out, args.force, "-o", [args.run])
     run = read_run(args.run)
-    claim_output_option(args.out, args.force, "-o")
+    claim_output_option(args.out, args.force, "-o", [args.run])
     try:
         out = export_run(run, args.format, args.out)
     except OSError as exc:
         raise OperationError(f"{args.out}: cannot write the export ({exc.strerror}).") from exc
-    solved = "with its solution (absolute channels)" if (args.run / "solution.json").is_file() else "not solved"
+    solved = _which_solution(args.run / "solution.json")
     sys.stdout.write(f"{out}: {len(run)} samples of {args.run}, {solved}\n")
     return 0
+
+
+def _which_solution(path: Path) -> str:
+    """What `export` says of the solution it carried: the file and how it was solved, or 'not solved'."""
+    import json
+
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return "not solved"
+    effects = ", ".join(doc.get("effects") or {}) or "none"
+    noise = doc.get("noise")
+    noise = noise.get("source", "?") if isinstance(noise, dict) else noise
+    return (f"with its solution {path} (method {doc.get('method', '?')}, noise {noise}, effects {effects}; "
+            "absolute channels)")

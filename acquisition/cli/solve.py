@@ -1,4 +1,7 @@
-"""`cdpr solve RUN`: initial-pose self-calibration of a run (spec/cli.md); writes RUN/solution.json."""
+"""`cdpr solve RUN`: initial-pose self-calibration of a run (spec/cli.md).
+
+RUN/solution.json is the run's solution, what `cdpr export` carries: the first solve with the default options
+writes it, `--save` makes any solve the run's solution; every other solve explores and writes nothing."""
 
 from __future__ import annotations
 
@@ -39,9 +42,16 @@ def register(sub) -> None:
         help="a known initial pose (m, rad) to compare with: eps_p, eps_r (eq. 20) and the geodesic angle",
     )
     p.add_argument("--json", action="store_true", help="print the solution as JSON")
+    p.add_argument("--save", action="store_true",
+                   help="make this solve the run's solution (RUN/solution.json, what export carries); without it "
+                   "only the first solve with the default options writes it, and exploring (--effects, --noise, "
+                   "--method...) changes nothing")
     from acquisition.cli.diagnose import add_solve_options  # --effects, --effects-from (issue 7)
 
     add_solve_options(p)
+    p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
+                   help="a learned robot model (cdpr diagnose --model-out): its effects as priors, this run's own "
+                   "unknowns refitted, weights by variance components (docs/robot-model.md)")
     p.set_defaults(func=_solve)
 
 
@@ -79,7 +89,14 @@ def _solve(args) -> int:
     model = None if with_effects else _effects_model(run.robot, getattr(args, "effects", None))
     table = ""
     try:
-        if with_effects:  # effects added one by one, with the before/after table (issue 7)
+        if getattr(args, "model", None) is not None:  # a learned robot model as priors (issue 28)
+            from acquisition.cli.diagnose_runs import solve_with_model_file
+
+            if with_effects:
+                raise UsageError("--model and --effects: put the effects in the model (cdpr diagnose --model-out).")
+            kw = dict(method=args.method, stride=args.stride, reference_sample=args.reference_sample)
+            sol, table = solve_with_model_file(args, run, reference, kw)
+        elif with_effects:  # effects added one by one, with the before/after table (issue 7)
             from acquisition.cli.diagnose import solve_with_effects
 
             kw = dict(method=args.method, noise=args.noise, stride=args.stride,
@@ -97,15 +114,27 @@ def _solve(args) -> int:
     except SelfCalFailure as exc:
         raise OperationError(f"{args.run}: {exc}") from exc
     doc = sol.to_json()
-    try:
-        (Path(args.run) / SOLUTION_FILE).write_text(json.dumps(doc, indent=2) + "\n")
-    except OSError as exc:
-        raise OperationError(f"{args.run / SOLUTION_FILE}: cannot write the solution ({exc.strerror}).") from exc
+    path = Path(args.run) / SOLUTION_FILE
+    save = args.save or (not path.exists() and _default_options(args))
+    if save:
+        try:
+            path.write_text(json.dumps(doc, indent=2) + "\n")
+        except OSError as exc:
+            raise OperationError(f"{path}: cannot write the solution ({exc.strerror}).") from exc
     if args.json:
         sys.stdout.write(json.dumps(doc) + "\n")
     else:
-        sys.stdout.write(format_solution(sol) + table)
+        said = (f"saved as the run's solution: {path}" if save else
+                f"not saved: {path} stays the run's solution (--save to replace it)" if path.exists() else
+                "not saved: the run has no solution yet (--save to make this one, or solve with the default options)")
+        sys.stdout.write(format_solution(sol) + table + said + "\n")
     return 0
+
+
+def _default_options(args) -> bool:
+    """True for a solve with every option at its default: the solve `cdpr startup` makes, not an exploration."""
+    return (args.method == "tlse" and args.noise == "paper" and args.stride == 1 and args.reference_sample is None
+            and not getattr(args, "effects", None) and not getattr(args, "effects_from", None))
 
 
 def _too_few_windows_hint(run) -> str:
@@ -126,20 +155,21 @@ def format_solution(sol: Solution) -> str:
     lines = [
         f"method {sol.method}, {len(sol.poses) + 1} poses, reference sample {sol.reference_sample}, "
         f"noise {sol.noise_source}, {sol.iterations} iterations, {sol.timing['solve_s'] * 1000:.1f} ms",
-        "initial pose       value        1-sigma" + (f"   x {k:.3g} (*)" if k > 1 else ""),
+        "initial pose       value         1-sigma" + (f"       x {k:.3g} (*)" if k > 1 else ""),
     ]
-    for j, name in enumerate(("x [m]", "y [m]", "z [m]")):
-        lines.append(f"  {name:<14} {z[j]:>10.4f}  {s[j]:>10.4f}" + (f"  {k * s[j]:>10.4f}" if k > 1 else ""))
-    for j, name in enumerate(("roll [deg]", "pitch [deg]", "yaw [deg]")):
-        scaled = f"  {math.degrees(k * s[3 + j]):>10.3f}" if k > 1 else ""
-        lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f}  {math.degrees(s[3 + j]):>10.3f}{scaled}")
+    for j, name in enumerate("xyz"):  # positions in m, their 1-sigma in mm (a tenth of a mm shows)
+        scaled = f"  {1000 * k * s[j]:>10.3f} mm" if k > 1 else ""
+        lines.append(f"  {name:<14} {z[j]:>10.4f} m   {1000 * s[j]:>10.3f} mm{scaled}")
+    for j, name in enumerate(("roll", "pitch", "yaw")):
+        scaled = f"  {math.degrees(k * s[3 + j]):>10.3f} deg" if k > 1 else ""
+        lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f} deg {math.degrees(s[3 + j]):>10.3f} deg{scaled}")
     off = sol.sensor_offsets
     lines.append("sensor offsets (absolute = offset + reading)")
     lines.append("  length [m]     " + "  ".join(f"{v:.4f}" for v in off["length"]))
     lines.append("  swivel [deg]   " + "  ".join(f"{math.degrees(v):.3f}" for v in off["swivel"]))
     lines.append(f"  yaw [deg]      {math.degrees(off['yaw']):.3f}")
     lines.extend(format_windows(sol))
-    lines.append(f"chi2 {sol.chi2:.1f} on {sol.dof} dof")
+    lines.append(f"chi2 {sol.chi2:.3g} on {sol.dof} dof")
     if sol.noise_source in ("estimate", "sensors") and k > 1:  # the chi2 test rejects the model (sigma_scale)
         lines.append(f"the model does not fit these readings within their own noise (p = "
                      f"{chi2_sf(sol.chi2, sol.dof):.2g}): the 1-sigma bounds hold only for a model that does; "

@@ -12,7 +12,6 @@ An existing RUN is refused, or with ``--force`` moved aside (acquisition/outputs
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import json
 import logging
@@ -22,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.cli import Interrupted
-from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option
+from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option, parse_length
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.clock import RealClock, SimClock
 from acquisition.equilibrium import DetectorConfig
@@ -57,9 +56,9 @@ def register(sub) -> None:
                         "sequential (the default with --tolerance)")
     p.add_argument("--poses", type=int, default=None,
                    help="optimal plan: number of poses (default 8); sequential: at most this many (default 27)")
-    p.add_argument("--tolerance", type=_length,
+    p.add_argument("--tolerance",
                    help="sequential acquisition: stop as soon as the 1-sigma of the initial position is below "
-                        "this (e.g. 3mm, 0.5cm, 0.002 = metres)")
+                        "this length, unit required (e.g. 3mm, 0.5cm, 0.002m)")
     p.add_argument("--noise", choices=("estimate", "paper", "sensors"), default=None,
                    help="weights of the final solve, as cdpr solve --noise (default: estimate for the equilibrium "
                         "method, the 1-sigma the sequential stop compares with --tolerance; paper for kinematic)")
@@ -90,6 +89,9 @@ def register(sub) -> None:
                    help="format of the raw CAN record RUN/bus.<fmt> (python-can's loggers; default blf)")
     p.add_argument("--no-html", action="store_true", help="skip the HTML report")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
+                   help="a learned robot model (cdpr diagnose --model-out): the run's solve takes its effects as "
+                   "priors (docs/robot-model.md)")
     add_force(p)
     p.set_defaults(func=run)
 
@@ -105,24 +107,6 @@ def _config(args, robot) -> StartupConfig:
                              detector=DetectorConfig.for_robot(robot, timeout=args.settle_timeout))
     except ValueError as exc:
         raise UsageError(f"invalid option: {exc}") from exc
-
-
-def _length(text: str) -> float:
-    """A length with an optional unit (mm, cm, m; default m) in metres."""
-    t = text.strip().lower()
-    for unit, scale in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
-        if t.endswith(unit):
-            t, f = t[: -len(unit)], scale
-            break
-    else:
-        f = 1.0
-    try:
-        v = float(t) * f
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a length (give e.g. 3mm, 0.5cm or 0.003)") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"'{text}' must be a positive length")
-    return v
 
 
 def make_plan(robot, cfg: StartupConfig, grid: int = 2, plan: str | None = None, poses: int | None = None,
@@ -171,6 +155,13 @@ def _pause(text: str, k: int) -> Pause:
 
 
 def run(args) -> int:
+    if getattr(args, "model", None) is not None:  # a bad model file is refused before the robot moves
+        from calib.robot_model import ModelFileError, read_model
+
+        try:
+            read_model(args.model)
+        except ModelFileError as exc:
+            raise UsageError(f"--model {exc}") from exc
     try:
         with ReportRenderer() as report:
             if not args.no_html:
@@ -204,7 +195,7 @@ def simulated_startup(out: str | Path, plan: str = "grid2", tolerance: float | N
     argv = ["startup", "--backend", "sim", "--no-html", "--out", str(out), "--seed", str(seed), "--robot", robot,
             "--truth", str(out / "truth.json"), "--step", repr(float(step)), "--sim-plant", "inline"]
     argv += ["--plan", "grid", "--grid", plan[4:] or "2"] if plan.startswith("grid") else ["--plan", plan]
-    argv += [] if tolerance is None else ["--tolerance", repr(float(tolerance))]
+    argv += [] if tolerance is None else ["--tolerance", f"{float(tolerance)!r}m"]
     argv += [] if poses is None else ["--poses", str(poses)]
     argv += [] if sim_config is None else ["--sim-config", str(sim_config)]
     args = build_parser(modules_for(argv)).parse_args(argv)  # the startup's module alone
@@ -224,7 +215,8 @@ def _run(args, report: ReportRenderer) -> StartupSummary:
     except RobotDescriptionError as exc:
         raise UsageError(str(exc)) from exc
     cfg = _config(args, robot)
-    plan = make_plan(robot, cfg, args.grid, args.plan, args.poses, args.tolerance, args.step)
+    tolerance = None if args.tolerance is None else parse_length(args.tolerance, "--tolerance")
+    plan = make_plan(robot, cfg, args.grid, args.plan, args.poses, tolerance, args.step)
     plan.pauses = tuple(_pause(text, len(plan.setpoints)) for text in args.pause)
     meta = {}
     if args.offsets and Path(args.offsets).exists():  # the last calibration, for the record of this run
@@ -234,9 +226,10 @@ def _run(args, report: ReportRenderer) -> StartupSummary:
             raise UsageError(str(exc)) from exc
     args.run_meta = meta
     out = Path(args.out or f"run-{_dt.datetime.now(_dt.UTC).strftime('%Y%m%dT%H%M%SZ')}")
-    check_output_option(out, args.force, "--out")
+    inputs = [f for f in (args.sim_config, args.config, args.robot) if f and Path(f).exists()]
+    check_output_option(out, args.force, "--out", inputs)
     if args.truth:
-        check_output_option(args.truth, args.force, "--truth")
+        check_output_option(args.truth, args.force, "--truth", inputs)
     if args.backend == "hw":
         if not args.config:
             raise UsageError("--backend hw needs --config FILE (the device configuration YAML).")
@@ -244,7 +237,10 @@ def _run(args, report: ReportRenderer) -> StartupSummary:
             raise UsageError("--sim-config and --truth apply to --backend sim only.")
     elif args.config:
         raise UsageError("--config applies to --backend hw only (the simulator makes its own devices).")
-    claim_output_option(out, args.force, "--out")
+    replaced = claim_output_option(out, args.force, "--out", inputs)
+    previous = meta.get("previous_offsets")
+    if replaced is not None and previous and Path(str(previous.get("run", ""))).absolute() == out.absolute():
+        previous["run"] = str(replaced.kept)  # the offsets came from the run just moved aside
     args.run_folder = out
     if args.backend == "hw":
         return _run_hw(args, robot, plan, cfg, out, report)
@@ -411,7 +407,13 @@ def _solve_and_report(args, robot, cfg, result, out: Path, report: ReportRendere
     method = "tlse" if cfg.method == "equilibrium" else "lse"
     t0 = time.perf_counter()
     try:
-        sol = solve(robot, run, method=method, noise=getattr(args, "noise", None) or default_noise(method))
+        if getattr(args, "model", None) is not None and method == "tlse":  # a learned model as priors (issue 28)
+            from acquisition.cli.diagnose_runs import solve_with_model_file
+
+            args.run, args.effects_from = out, []
+            sol, _ = solve_with_model_file(args, run, None, {"method": method})
+        else:
+            sol = solve(robot, run, method=method, noise=getattr(args, "noise", None) or default_noise(method))
     except (SelfCalFailure, SelfCalInputError) as exc:
         raise OperationError(f"the acquisition finished but the solve failed: {exc}") from exc
     solve_s = time.perf_counter() - t0

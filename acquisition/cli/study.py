@@ -73,6 +73,20 @@ def check_startup_accepts(plans: list[str], tolerance: str | None) -> None:
             raise UsageError(f"the startup of this checkout does not take the {plan} plan yet ({why}).") from None
 
 
+class _StudyLines(StudyProgress):
+    """A study's progress when stderr is not a terminal: one plain line per tenth of the runs."""
+
+    def __init__(self, total: int):
+        from acquisition.cli.progress import Progress
+
+        super().__init__(total, stream=sys.stderr, enabled=False)
+        self.lines = Progress(total, "study", "runs", tty=False)
+
+    def advance(self, done: int, failed: int, force: bool = False) -> None:
+        self.failed = failed
+        self.lines.update(done)
+
+
 def run(args) -> int:
     from calib.robot import RobotDescriptionError, load_robot
 
@@ -85,6 +99,10 @@ def run(args) -> int:
     plans = list(dict.fromkeys(args.plan))
     if args.tolerance is not None and "sequential" not in plans:
         raise UsageError("--tolerance applies to --plan sequential only.")
+    if args.tolerance is not None:
+        from acquisition.cli.args import parse_length
+
+        parse_length(args.tolerance, "--tolerance")
     try:
         robot = load_robot(args.robot)
         for plan in plans:
@@ -101,6 +119,8 @@ def run(args) -> int:
         raise UsageError(str(exc)) from exc
     tasks = [RunTask(p, s, config) for p in plans for s in seeds if not folder.done(p, s)]
     progress = StudyProgress(len(plans) * len(seeds), stream=sys.stderr)
+    if not progress.enabled:  # redirected: plain lines instead of the terminal's bar
+        progress = _StudyLines(len(plans) * len(seeds))
     progress.first = len(plans) * len(seeds) - len(tasks)
     t0 = time.perf_counter()
     counts = StudyCounts()

@@ -29,6 +29,27 @@ def _scale_channel(pred: ChannelPrediction, factor: np.ndarray) -> None:
     pred.d_theta = pred.d_theta * factor[None, :, None]
 
 
+class ChannelGain(Effect):
+    """A gain per reading of one channel: reading = (1 + g_i) x the prediction (``channel``; parameters
+    ``prefix``_i, plausible within +-``bound``). Subclasses set the three and say where the bound comes from."""
+
+    channel: str = ""
+    prefix: str = "g"
+    bound: float = 0.03
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        return [ParamSpec(f"{self.prefix}_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01, plausible=(-self.bound, self.bound))
+                for i in range(robot.n)]
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        if self.channel not in preds:
+            return
+        pr = preds[self.channel]
+        base = pr.value.copy()
+        _scale_channel(pr, 1.0 + np.asarray(values, float))
+        pr.d_theta[..., ctx.cols] = base[..., None] * np.eye(values.shape[0])[None]
+
+
 class CableElasticity(Effect):
     """Elastic cables: the encoders count the unstretched length l0 = L / (1 + c tau), c = 1/EA (1/N)."""
 
@@ -73,53 +94,33 @@ class CableElasticity(Effect):
         return {"EA": (1.0 / c) if c != 0 else math.inf, "compliance": c}
 
 
-class LengthScale(Effect):
+class LengthScale(ChannelGain):
     """Transmission-ratio error per winch: length reading = (1 + k_i) true change of length."""
 
     name = "length_scale"
     order = 20
     description = "per-winch transmission ratio error k_i"
-
-    def params(self, robot: Robot) -> list[ParamSpec]:
-        # plausible: |k_i| <= 5 %. The length per motor revolution is a number configured in the controller
-        # (drum radius and gear ratio), and the lab's own files of one run disagree on it: the controller's
-        # per-winch ratios (0.028807, 0.028652, 0.028448, 0.028641 m/rev, raw log of sc_8_final) and the
-        # authors' parser's common 0.0280645 m/rev differ by 1.4-2.6 % (acquisition/importers.py), so a
-        # configured ratio can be off by that much; the rope's layer on the drum then shifts the effective
-        # radius by up to half a rope diameter (1-2 mm, a further 1-2 % of a ~50 mm drum radius).
-        return [ParamSpec(f"k_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01, plausible=(-0.05, 0.05)) for i in range(robot.n)]
-
-    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
-        if "length" not in preds:
-            return
-        pr = preds["length"]
-        base = pr.value.copy()
-        _scale_channel(pr, 1.0 + values)
-        n = values.shape[0]
-        pr.d_theta[..., ctx.cols] = base[..., None] * np.eye(n)[None]
+    channel, prefix = "length", "k"
+    # plausible: |k_i| <= 5 %. The length per motor revolution is a number configured in the controller
+    # (drum radius and gear ratio), and the lab's own files of one run disagree on it: the controller's
+    # per-winch ratios (0.028807, 0.028652, 0.028448, 0.028641 m/rev, raw log of sc_8_final) and the
+    # authors' parser's common 0.0280645 m/rev differ by 1.4-2.6 % (acquisition/importers.py), so a
+    # configured ratio can be off by that much; the rope's layer on the drum then shifts the effective
+    # radius by up to half a rope diameter (1-2 mm, a further 1-2 % of a ~50 mm drum radius).
+    bound = 0.05
 
 
-class TensionGain(Effect):
+class TensionGain(ChannelGain):
     """Load-cell gain error per channel: reading = (1 + g_i) tau_i."""
 
     name = "tension_gain"
     order = 30
     description = "per-channel load-cell gain error g_i"
-
-    def params(self, robot: Robot) -> list[ParamSpec]:
-        # plausible: |g_i| <= 3 %. A load cell's rated-output tolerance is 0.1-1 % (uncalibrated S-beam cells,
-        # typical datasheets), the amplifier's gain error <= 0.5 %, and a rope leaving the cell's pulley a
-        # few degrees off its axis changes the force on the cell by (1 - cos) ~ 0.1-1 %.
-        return [ParamSpec(f"g_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01, plausible=(-0.03, 0.03))
-                for i in range(robot.n)]
-
-    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
-        if "tension" not in preds:
-            return
-        pr = preds["tension"]
-        base = pr.value.copy()
-        _scale_channel(pr, 1.0 + values)
-        pr.d_theta[..., ctx.cols] = base[..., None] * np.eye(values.shape[0])[None]
+    channel = "tension"
+    # plausible: |g_i| <= 3 %. A load cell's rated-output tolerance is 0.1-1 % (uncalibrated S-beam cells,
+    # typical datasheets), the amplifier's gain error <= 0.5 %, and a rope leaving the cell's pulley a
+    # few degrees off its axis changes the force on the cell by (1 - cos) ~ 0.1-1 %.
+    bound = 0.03
 
 
 class TensionOffset(Effect):

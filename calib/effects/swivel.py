@@ -24,6 +24,7 @@ import math
 import numpy as np
 
 from calib.effects.base import Context, Effect, ParamSpec, wrap
+from calib.effects.builtin import ChannelGain
 from calib.kinematics import cross, inverse_kinematics, pose_gradients, rotation
 from calib.robot import Robot
 from calib.selfcal.model import ChannelPrediction
@@ -154,35 +155,19 @@ class SwivelEntry(Effect):
             preds["swivel"] = ChannelPrediction(wrap(ctx.at.sigma - ctx.ref.sigma), ctx.at.dsigma.copy(),
                                                 ctx.at.tsigma - ctx.ref.tsigma)
 
-    def report(self, robot: Robot, values: np.ndarray) -> dict[str, float]:
-        return {s.name: float(v) for s, v in zip(self.params(robot), values, strict=True)}
 
-
-class SwivelGain(Effect):
+class SwivelGain(ChannelGain):
     """Swivel-encoder gain error per pulley: reading = (1 + g_i) * true change of the swivel angle."""
 
     name = "swivel_gain"
     order = 21
     description = "per-pulley swivel encoder gain error g_i"
-
-    def params(self, robot: Robot) -> list[ParamSpec]:
-        # plausible: |g_i| <= 0.2 %. The swivel encoders are "mounted directly on the swivel axes" (Zoffoli
-        # et al. 2025, Section 4): no gear or belt between, so a count is 2 pi / 65536 exactly; what remains is
-        # the encoder's accuracy, +-0.03 deg, which over the runs' swivel swing (>= 15 deg) is <= 0.2 % of it.
-        # A larger gain is the geometry (a tilted axis scales the swing) or a wrong counts-per-revolution.
-        return [ParamSpec(f"g_{i + 1}", "1", 0.0, -0.5, 0.5, 0.01, plausible=(-0.002, 0.002))
-                for i in range(robot.n)]
-
-    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
-        if "swivel" not in preds:
-            return
-        pr = preds["swivel"]
-        base = pr.value.copy()
-        fac = 1.0 + np.asarray(values, float)
-        pr.value = base * fac
-        pr.d_pose = pr.d_pose * fac[None, :, None]
-        pr.d_theta = pr.d_theta * fac[None, :, None]
-        pr.d_theta[..., ctx.cols] = base[..., None] * np.eye(values.shape[0])[None]
+    channel = "swivel"
+    # plausible: |g_i| <= 0.2 %. The swivel encoders are "mounted directly on the swivel axes" (Zoffoli
+    # et al. 2025, Section 4): no gear or belt between, so a count is 2 pi / 65536 exactly; what remains is
+    # the encoder's accuracy, +-0.03 deg, which over the runs' swivel swing (>= 15 deg) is <= 0.2 % of it.
+    # A larger gain is the geometry (a tilted axis scales the swing) or a wrong counts-per-revolution.
+    bound = 0.002
 
 
 SWIVEL: dict[str, type[Effect]] = {cls.name: cls for cls in (SwivelTilt, SwivelEntry, SwivelGain)}

@@ -473,11 +473,12 @@ def solve_run(
             res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
         # the within-window sigmas bound each group's noise of a mean from above (they include motion the
         # means average out, e.g. the force control's ripple, and the share the rows' poses absorb): where
-        # the window means scatter less around the fit, variance components bring them down, never up; the
-        # reference's noise keeps its within-window prior (the fit cannot see the reference's own error)
-        within = noise.sigma
+        # the window means scatter less around the fit, variance components bring them down; up only where
+        # the model misses a group far beyond its noise (model error, noise.rescaled_sigma); the reference's
+        # noise keeps its within-window prior (the fit cannot see the reference's own error)
+        within, floor = noise.sigma, sensor_noise(robot)
         for _ in range(VCE_ROUNDS_ROWS):
-            shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses), sensor_noise(robot))
+            shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses), floor)
             if shrunk is None:
                 break
             model, theta = _with_reference_noise(robot, model, res.theta, within, meas.windows, ref_win.size)

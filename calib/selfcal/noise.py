@@ -26,8 +26,10 @@ The row weights take one sigma per channel, that of a window of the harmonic mea
 tilt) are not noise of a mean: the solve and the diagnosis carry them as parameters with priors.
 
 At a solution the estimate is refined (calib.selfcal.solve, noise 'estimate'): :func:`pose_free_noise` takes the
-platform's motion out of the kinematic groups, and :func:`variance_factors` / :func:`shrunk_sigma` bring a
-group down to what its window means scatter by around the fit (never up). The reference window's own noise,
+platform's motion out of the kinematic groups, and :func:`variance_factors` / :func:`rescaled_sigma` bring a
+group down to what its window means scatter by around the fit, and up only where the model misses it by more
+than sqrt(MISFIT_FACTOR) times its noise (model error: it must not pull the poses to its misfit; issue 28).
+The reference window's own noise,
 which every relative row carries at once, is a parameter with a prior (calib.effects.builtin.ReferenceNoise).
 """
 

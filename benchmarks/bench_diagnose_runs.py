@@ -1,0 +1,112 @@
+"""Several real runs, one robot (issue 28, done-when 1 and 6): the three-run diagnosis's CPU time and the
+leave-one-run-out table (not collected by pytest).
+
+1. The diagnosis of the three real runs (parsed .mat with targets) on one core: rows of every run (their
+   rigid solves) and the selection by leave-one-run-out prediction; target <= 10 s CPU.
+2. For each run left out: the diagnosis of the other two writes a model (``--model-out``), the left-out run
+   is solved with it (``cdpr solve RUN --model``: the robot's effects as priors, only its own unknowns
+   refitted) and plainly (``cdpr solve RUN``); J = sum over channels of (rms residual / w)^2, w = 1 N,
+   0.5 mm, 0.1 deg, 0.2 deg. Target: J with the model <= 0.35 of the plain J, no channel's rms up > 20 %.
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_diagnose_runs.py [--data DIR] [--max-effects 3]
+
+Exits 1 on a miss.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RUNS = {"sc_8_final": "sc_control_target_8_final.mat", "sc_8_medium_a": "sc_control_target_8.mat",
+        "sc_27_medium_a": "sc_control_target_27.mat"}
+RATIO, GROWTH, CPU = 0.35, 1.20, 10.0
+
+
+def import_runs(data: Path, out: Path) -> list[Path]:
+    from acquisition.importers import import_irma
+
+    paths = []
+    for name, targets in RUNS.items():
+        dst = out / name
+        if not dst.exists():
+            import_irma(data / f"{name}_parsed.mat", dst, targets=data / targets)
+        paths.append(dst)
+    return paths
+
+
+def diagnose(paths, max_effects):
+    from acquisition.runlog import read_run
+    from calib.diagnose import run_rows
+    from calib.effects import available_effects
+    from calib.multirun import NOT_CANDIDATES
+    from calib.runselect import Judge, select
+
+    classes = available_effects()
+    items = [(p.name, run_rows(read_run(p))) for p in paths]
+    judge = Judge(items, lambda names: [classes[n]() for n in names])
+    return select(judge, [n for n in classes if n not in NOT_CANDIDATES], max_effects)
+
+
+def solved_rms(path: Path, model: Path | None):
+    """rms per channel (N, m, rad) of `cdpr solve RUN` (paper weights) or `cdpr solve RUN --model MODEL`."""
+    from acquisition.runlog import read_run
+    from calib.selfcal import solve
+
+    run = read_run(path)
+    if model is None:
+        sol = solve(run.robot, run)
+    else:
+        from acquisition.cli.diagnose_runs import solve_with_model_file
+
+        sol, _ = solve_with_model_file(argparse.Namespace(model=model, run=path, effects_from=[]), run, None,
+                                       {"method": "tlse"})
+    return {c: v["rms"] for c, v in sol.residuals.items()}, sol.initial_pose
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    default = Path(os.environ.get("CDPR_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+                                  / "irma4u"))
+    ap.add_argument("--data", type=Path, default=default)
+    ap.add_argument("--max-effects", type=int, default=3)
+    args = ap.parse_args()
+    from calib.multirun import WEIGHTS, misfit_j
+    from calib.robot_model import model_document, write_model
+
+    ok = True
+    with tempfile.TemporaryDirectory(prefix="bench-runs-") as tmp:
+        paths = import_runs(args.data, Path(tmp))
+        t0 = time.process_time()
+        sel = diagnose(paths, args.max_effects)
+        cpu = time.process_time() - t0
+        print(f"three-run diagnosis: {cpu:.1f} s CPU (target <= {CPU:.0f} s) "
+              f"{'ok' if cpu <= CPU else 'MISS'}; selected {','.join(sel.selected) or 'nothing'}"
+              + ("" if sel.finding is None else f"; finding {','.join(sel.finding.names)}"))
+        ok &= cpu <= CPU
+        print(f"{'left out':<16} {'learned':<44} {'J plain':>8} {'J model':>8} {'ratio':>6}  rms plain -> model "
+              "(N, mm, deg, deg)")
+        for j, p in enumerate(paths):
+            train = [q for i, q in enumerate(paths) if i != j]
+            s2 = diagnose(train, args.max_effects)
+            mfile = Path(tmp) / f"model_without_{p.name}.yaml"
+            write_model(mfile, model_document(s2.final.fit, [str(q) for q in train]), force=True)
+            a, _ = solved_rms(p, None)
+            b, _ = solved_rms(p, mfile)
+            ja, jb = misfit_j(a), misfit_j(b)
+            grow = [c for c in WEIGHTS if c in a and b[c] > GROWTH * a[c]]
+            good = jb <= RATIO * ja and not grow
+            ok &= good
+            conv = {"tension": 1.0, "length": 1e3, "swivel": 57.29577951308232, "orientation": 57.29577951308232}
+            rms = ", ".join(f"{c[:3]} {a[c] * conv[c]:.3g}->{b[c] * conv[c]:.3g}" for c in WEIGHTS if c in a)
+            print(f"{p.name:<16} {','.join(s2.selected) or '-':<44} {ja:>8.1f} {jb:>8.1f} {jb / ja:>6.2f}  {rms}"
+                  f"  {'ok' if good else 'MISS' + (' (grows: ' + ','.join(grow) + ')' if grow else '')}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,418 @@
+"""Several runs, one robot: a joint fit with the robot's effects shared and each run's own unknowns (issue 28).
+
+Unknowns of a joint fit over runs r = 1..R:
+
+* the **shared** effects (cell offsets, compliance, geometry: what belongs to the robot), one value for all
+  runs, first in the parameter vector;
+* per run, its **own** unknowns: the initial pose zeta_0 and the poses of its rows, the devices' constant
+  errors within their datasheet accuracy (:class:`DeviceBase`, whose priors step aside where a shared effect
+  overlaps them), the reference window's noise (``ReferenceNoise``, with the run's own priors) and the AHRS
+  yaw drift rate (``ahrs_yaw_drift``: a gyro-only heading drifts by a different rate in every run).
+
+Each run keeps its own :class:`calib.selfcal.problem.Problem` (its rows and weights); the theta of run r is
+[zeta_0, its own effect values, the shared values], so the joint Jacobian is the runs' dense Jacobians
+(:func:`calib.diagnose.residuals`) side by side on the shared columns. It is solved by a dense
+Levenberg-Marquardt on unit-norm columns (a ridge keeps the directions no run sees where they started).
+
+**Weights that fit the data** (:func:`fit_runs` with ``components``): the sigma of each run's channel group
+(tension, length, swivel, orientation) is rescaled by its variance component, sum r^2 / (n (1 - h)), with
+h the share of the fit's free parameters in the residual count; up as well as down, floored at the sensors'
+specification (``calib.selfcal.sensor_noise``): the model being judged sets its own noise, so one channel's
+misfit does not dominate the others' (with window-scatter weights the swivel encoders did on the real runs).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from calib.diagnose import RunRows, residuals
+from calib.effects import Effect, EffectModel, ParamSpec, Projected
+from calib.effects.builtin import AhrsYawDrift, DeviceAccuracy, ReferenceNoise
+from calib.selfcal.model import CHANNELS
+from calib.selfcal.problem import Problem
+
+GROUPS = CHANNELS  # the channel groups whose noise the variance components set
+LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
+RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
+PIN = 1e-6  # a device prior that steps aside is pinned at its absent value: sd = PIN * its typical size
+# which device priors a shared effect overlaps (the same columns): they step aside while it is fitted
+OVERLAPS = {"tension_offset": ("b_",), "ahrs_mounting": ("b_roll", "b_pitch")}
+PER_RUN = ("ahrs_yaw_drift",)  # library effects that are a run's own unknown, never shared
+NOT_CANDIDATES = (*PER_RUN, DeviceAccuracy.name, ReferenceNoise.name)  # in every fit of a run, never selected
+
+
+class DeviceBase(DeviceAccuracy):
+    """The devices' datasheet errors (``DeviceAccuracy``) with the priors named in ``aside`` (names, or a
+    prefix ending in '_' for the numbered ones: 'b_' is the cells b_1..b_n) pinned at zero: a shared effect
+    that explains the same readings takes them instead. The yaw drift rate is always aside: every run fits
+    its own (``ahrs_yaw_drift``)."""
+
+    def __init__(self, aside: Sequence[str] = ()):
+        self.aside = ("yaw_rate", *aside)
+
+    def params(self, robot) -> list[ParamSpec]:
+        out = []
+        for s in super().params(robot):
+            if any(s.name == a or (a.endswith("_") and s.name.startswith(a) and s.name[len(a):].isdigit())
+                   for a in self.aside):
+                s = replace(s, prior=PIN * s.scale)
+            out.append(s)
+        return out
+
+
+class Learned(Projected):
+    """An effect at a learned value: values = learned + delta, delta a parameter with a Gaussian prior of
+    standard deviation ``sd`` (per parameter, same unit: a model used as prior); ``sd=None`` freezes it (the
+    prior pinned, PIN times the typical size). Reported and checked as the inner effect's full values."""
+
+    def __init__(self, inner: Effect, robot, values: np.ndarray, sd: np.ndarray | None = None):
+        specs = inner.params(robot)
+        super().__init__(inner, np.eye(len(specs)), [s.name for s in specs])
+        self.learned = np.asarray(values, float)
+        scales = np.array([s.scale for s in specs], float)
+        self.sd = PIN * scales if sd is None else np.maximum(np.asarray(sd, float), PIN * scales)
+        self.frozen = sd is None
+
+    def _absent(self, robot) -> np.ndarray:
+        return self.learned
+
+    def transform(self, ctx, values, preds) -> None:
+        """As Projected's, with ctx.theta and the physical columns widened too (effects that build their
+        columns from them)."""
+        q, p = self.basis.shape[0], ctx.theta.shape[0]
+        for pr in preds.values():
+            pr.d_theta = np.concatenate([pr.d_theta, np.zeros(pr.d_theta.shape[:2] + (q,))], axis=2)
+        def wide(ph):
+            z = np.zeros(ph.tL.shape[:2] + (q,))
+            return replace(ph, tL=np.concatenate([ph.tL, z], 2), tsigma=np.concatenate([ph.tsigma, z], 2),
+                           ttau=np.concatenate([ph.ttau, z], 2))
+
+        inner_ctx = replace(ctx, theta=np.r_[ctx.theta, np.zeros(q)], cols=slice(p, p + q), at=wide(ctx.at),
+                            ref=wide(ctx.ref))
+        self.inner.transform(inner_ctx, self.full_values(ctx.robot, values), preds)
+        for pr in preds.values():
+            extra = pr.d_theta[..., p:]
+            pr.d_theta = pr.d_theta[..., :p]
+            pr.d_theta[..., ctx.cols] = extra @ self.basis
+
+    def params(self, robot) -> list[ParamSpec]:
+        return [ParamSpec(s.name, s.unit, 0.0, -np.inf, np.inf, s.scale, prior=float(sd))
+                for s, sd in zip(self.inner.params(robot), self.sd, strict=True)]
+
+
+def learned_effects(shared: Sequence[Effect], robot, values: np.ndarray, sd: np.ndarray | None = None
+                    ) -> list[Effect]:
+    """The shared effects at the values (q,) of a fit (the inner effects of Learned ones), frozen or with
+    priors of sd (q,)."""
+    out, q = [], 0
+    for e in shared:
+        inner = e.inner if isinstance(e, Learned) else e
+        full = e.full_values(robot, values[q:q + len(e.params(robot))]) if isinstance(e, Projected) else \
+            values[q:q + len(e.params(robot))]
+        nq = len(e.params(robot))
+        s = None if sd is None else sd[q:q + nq]
+        if isinstance(e, Projected) and not isinstance(e, Learned) and s is not None:
+            s = np.sqrt(np.clip(np.diag(e.basis @ np.diag(s**2) @ e.basis.T), 0, None))
+        out.append(Learned(inner, robot, full, s))
+        q += nq
+    return out
+
+
+def own_effects(rows: RunRows, shared: Sequence[Effect]) -> list[Effect]:
+    """A run's own unknowns besides its poses: device errors (priors aside where a shared effect overlaps),
+    the reference window's noise, the yaw drift rate."""
+    names = {e.name for e in shared}
+    aside = [p for n, pre in OVERLAPS.items() if n in names for p in pre]
+    out: list[Effect] = [DeviceBase(aside)]
+    if rows.reference is not None:
+        out.append(rows.reference)
+    out.append(AhrsYawDrift())
+    return out
+
+
+@dataclass
+class RunFit:
+    """One run in a joint fit: its name, problem, theta ([zeta_0, own values, shared values]), poses, the
+    weights it was fitted with and its chi2 with them."""
+
+    name: str
+    rows: RunRows
+    problem: Problem
+    theta: np.ndarray
+    poses: np.ndarray
+    sigma: dict[str, np.ndarray]
+    chi2: float = 0.0
+
+    def params(self) -> dict[str, dict[str, float]]:
+        return self.problem.model.report(self.theta)
+
+    def rms(self) -> dict[str, float]:
+        """Rms residual per channel in physical units (N, m, rad), the rows and the reference row."""
+        res = residuals(self.problem, self.theta, self.poses, jacobian=False)
+        return {c: float(np.sqrt(np.mean(res.si[res.channel == c] ** 2))) for c in GROUPS
+                if (res.channel == c).any()}
+
+
+@dataclass
+class JointFit:
+    """A joint fit: the shared effects, their values (q,) and covariance, the runs, the total chi2."""
+
+    shared: list[Effect]
+    values: np.ndarray
+    cov: np.ndarray
+    runs: list[RunFit]
+    chi2: float
+    converged: bool
+    iterations: int
+    n_residuals: int = 0
+    n_free: int = 0
+    history: list[dict[str, Any]] = field(default_factory=list)  # per weighting round: run -> weights, pose
+
+    @property
+    def names(self) -> list[str]:
+        return [e.name for e in self.shared]
+
+    def shared_params(self) -> dict[str, dict[str, float]]:
+        """The shared effects' values as they report them."""
+        if not self.runs:
+            return {}
+        return {k: v for k, v in self.runs[0].params().items() if k in self.names}
+
+    def shared_sigmas(self) -> dict[str, dict[str, float]]:
+        """1-sigma of every shared effect parameter (full parameters for restricted effects)."""
+        out, start = {}, 0
+        robot = self.runs[0].rows.robot
+        for e in self.shared:
+            q = len(e.params(robot))
+            cov = self.cov[start:start + q, start:start + q]
+            specs = e.params(robot)
+            if isinstance(e, Projected):
+                cov, specs = e.covariance(cov), e.inner.params(robot)
+            sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+            out[e.name] = {s.name: float(v) for s, v in zip(specs, sd, strict=True)}
+            start += q
+        return out
+
+
+def _layout(shared: Sequence[Effect], robot) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    specs = [s for e in shared for s in e.params(robot)]
+    lo = np.array([s.lower for s in specs], float)
+    hi = np.array([s.upper for s in specs], float)
+    return len(specs), np.array([s.absent for s in specs], float), lo, hi
+
+
+def start_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect],
+               starts: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+               sigmas: Sequence[dict[str, np.ndarray]] | None = None) -> list[RunFit]:
+    """The RunFits of a joint fit before fitting: each run's model (own effects, then the shared), its
+    start (the given (theta_own, poses) or the run's rigid solve) and weights (given or the run's own)."""
+    out = []
+    for j, (name, rows) in enumerate(items):
+        own = own_effects(rows, shared)
+        model = EffectModel(rows.robot, [*own, *shared])
+        sigma = dict(rows.sigma) if sigmas is None else sigmas[j]
+        problem = Problem(model, rows.meas, sigma)
+        q_sh = sum(len(e.params(rows.robot)) for e in shared)
+        if starts is None:
+            theta = model.initial_params(rows.solution.theta[:6])
+            poses = np.asarray(rows.solution.poses, float).copy()
+        else:
+            own_theta, poses = starts[j]
+            theta = np.r_[own_theta, model.absent_values()[own_theta.shape[0] - 6:]]
+            theta = theta[: model.n_params]
+            poses = np.asarray(poses, float).copy()
+        assert theta.shape[0] == model.n_params, (theta.shape, model.n_params, q_sh)
+        out.append(RunFit(name, rows, problem, theta, poses, sigma))
+    return out
+
+
+def _cost(runs: list[RunFit]) -> float:
+    """Joint chi2 (weighted residuals' sum of squares, priors included)."""
+    return float(sum(np.sum(residuals(rf.problem, rf.theta, rf.poses, jacobian=False).r ** 2) for rf in runs))
+
+
+def stack(runs: list[RunFit], q: int, fixed_shared: bool = False, blocks_out: list | None = None
+          ) -> tuple[np.ndarray, np.ndarray, list]:
+    """Joint weighted residuals and Jacobian; columns: shared (q, unless fixed), then per run own theta and
+    poses. Also the per-run column slices (own, poses); ``blocks_out`` receives each run's Residuals."""
+    rs, blocks, cols = [], [], []
+    start = 0 if fixed_shared else q
+    for rf in runs:
+        k = rf.poses.shape[0]
+        p_own = rf.theta.shape[0] - q
+        res = residuals(rf.problem, rf.theta, rf.poses)
+        rs.append(res.r)
+        blocks.append(res)
+        cols.append((slice(start, start + p_own), slice(start + p_own, start + p_own + 6 * k)))
+        start += p_own + 6 * k
+    if blocks_out is not None:
+        blocks_out.extend(blocks)
+    m = sum(r.shape[0] for r in rs)
+    A = np.zeros((m, start))
+    row = 0
+    for rf, res, (so, sp) in zip(runs, blocks, cols, strict=True):
+        k = rf.poses.shape[0]
+        p_own = rf.theta.shape[0] - q
+        mm = res.r.shape[0]
+        A[row:row + mm, sp] = res.A[:, :6 * k]
+        A[row:row + mm, so] = res.A[:, 6 * k:6 * k + p_own]
+        if not fixed_shared and q:
+            A[row:row + mm, :q] = res.A[:, 6 * k + p_own:]
+        row += mm
+    return np.concatenate(rs), A, cols
+
+
+def _apply(runs: list[RunFit], x: np.ndarray, q: int, cols, fixed_shared: bool) -> list[RunFit]:
+    out = []
+    for rf, (so, sp) in zip(runs, cols, strict=True):
+        p_own = rf.theta.shape[0] - q
+        theta = rf.theta.copy()
+        theta[:p_own] += x[so]
+        if not fixed_shared and q:
+            theta[p_own:] += x[:q]
+        out.append(replace(rf, theta=theta, poses=rf.poses + x[sp].reshape(-1, 6)))
+    return out
+
+
+def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
+    for rf in runs:
+        if q:
+            rf.theta[-q:] = np.clip(rf.theta[-q:], lo, hi)
+
+
+def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = False, max_iter: int = 60,
+            tol: float = 1e-5) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
+    """Levenberg-Marquardt on the joint problem. Returns the runs, chi2, converged, iterations, the scaled
+    inverse normal matrix's shared block (covariance of the shared values) and the rank."""
+    robot = runs[0].rows.robot
+    q, _, lo, hi = _layout(shared, robot)
+    lam, iterations, converged = 1e-5, 0, False
+    r, A, cols = stack(runs, q, fixed_shared)
+    cost = float(r @ r)
+    for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
+        scale = np.linalg.norm(A, axis=0)
+        scale[scale == 0] = 1.0
+        As = A / scale
+        N = As.T @ As
+        g = As.T @ r
+        improved = False
+        for trial_no in range(LAMBDA_TRIES):
+            ds = -np.linalg.solve(N + (lam + RIDGE) * np.diag(np.maximum(np.diag(N), 1e-12)), g)
+            if trial_no == 0 and -float(2.0 * g @ ds + ds @ N @ ds) < tol * cost:
+                break  # the lightly damped step predicts nothing left to gain
+            trial = _apply(runs, ds / scale, q, cols, fixed_shared)
+            _clip(trial, q, lo, hi)
+            c1 = _cost(trial)
+            if np.isfinite(c1) and c1 < cost:
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            converged = True
+            break
+        rel = (cost - c1) / max(cost, 1e-300)
+        runs, cost = trial, c1
+        lam = max(lam / 10.0, 1e-12)
+        if rel < tol:
+            converged = True
+            break
+        r, A, _ = stack(runs, q, fixed_shared)
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    As = A / scale
+    U, s, Vt = np.linalg.svd(As, full_matrices=False)
+    keep = s > 1e-10 * s.max(initial=0.0)
+    cov_s = (Vt[keep].T / s[keep] ** 2) @ Vt[keep] / np.outer(scale, scale)
+    cov = cov_s[:q, :q] if not fixed_shared else np.zeros((q, q))
+    start = 0
+    for rf in runs:
+        mm = residuals(rf.problem, rf.theta, rf.poses, jacobian=False).r
+        rf.chi2 = float(mm @ mm)
+        start += mm.shape[0]
+    return runs, cost, converged, iterations, cov, int(keep.sum())
+
+
+def components(rf: RunFit, redundancy: float, floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The run's weights rescaled by the variance component of each channel group (up and down), floored
+    at the sensors' specification."""
+    res = residuals(rf.problem, rf.theta, rf.poses, jacobian=False)
+    out = {}
+    for c, sig in rf.sigma.items():
+        m = res.channel == c
+        if not m.any():
+            out[c] = sig
+            continue
+        f = float(np.sum(res.r[m] ** 2)) / max(m.sum() * redundancy, 1.0)
+        out[c] = np.maximum(np.asarray(sig, float) * math.sqrt(max(f, 1e-12)), floor[c])
+    return out
+
+
+ROUNDS = 3  # variance-component rounds (each: fit, then new weights)
+
+
+def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, frozen: bool = False,
+             starts=None, sigmas=None, rounds: int = ROUNDS, max_iter: int = 60) -> JointFit:
+    """Joint fit of the runs with the shared effects (values free, or ``frozen`` at their current values:
+    only each run's own unknowns fitted), with ``rounds`` of variance components (0: the given weights)."""
+    from calib.selfcal import sensor_noise
+
+    shared = list(shared)
+    runs = start_runs(items, shared, starts, sigmas)
+    robot = runs[0].rows.robot
+    floor = sensor_noise(robot)
+    history = []
+    it_total, conv = 0, False
+    for rnd in range(rounds + 1):
+        runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, max_iter)
+        it_total += it
+        history.append({rf.name: {"weights": {c: [float(v) for v in s] for c, s in rf.sigma.items()},
+                                  "initial_pose": [float(v) for v in rf.theta[:6]]} for rf in runs})
+        m = sum(residuals(rf.problem, rf.theta, rf.poses, jacobian=False).r.shape[0] for rf in runs)
+        if rnd == rounds:
+            break
+        red = max(1.0 - rank / max(m, 1), 0.05)
+        new = []
+        for rf in runs:
+            sig = components(rf, red, floor)
+            new.append(replace(rf, sigma=sig, problem=Problem(rf.problem.model, rf.rows.meas, sig)))
+        runs = new
+    q = _layout(shared, robot)[0]
+    values = runs[0].theta[runs[0].theta.shape[0] - q:] if q else np.zeros(0)
+    return JointFit(shared, values.copy(), cov, runs, cost, conv, it_total, m, rank, history)
+
+
+def held_out_score(rf: RunFit) -> float:
+    """Gaussian negative log-likelihood (up to a constant) of a run's residuals with each channel group's
+    variance its own mean square, floored at the sensors' specification: sum_g n_g log(ms_g / floor_g^2).
+    Independent of the weights; lower is better."""
+    from calib.selfcal import sensor_noise
+
+    res = residuals(rf.problem, rf.theta, rf.poses, jacobian=False)
+    return score_of(res.si, res.channel, sensor_noise(rf.rows.robot))
+
+
+def score_of(phys: np.ndarray, channel: np.ndarray, floor: dict[str, np.ndarray]) -> float:
+    """sum over channel groups of n_g log(ms_g / floor_g^2), ms_g the mean square of the physical residuals
+    (m,) labelled ``channel`` in group g, floored at floor_g^2 (:func:`held_out_score`)."""
+    total = 0.0
+    for c in GROUPS:
+        m = channel == c
+        if not m.any():
+            continue
+        f2 = float(np.mean(np.asarray(floor[c], float)) ** 2)
+        ms = float(np.mean(phys[m] ** 2))
+        total += m.sum() * math.log(max(ms, f2) / f2)
+    return total
+
+
+WEIGHTS = {"tension": 1.0, "length": 0.5e-3, "swivel": math.radians(0.1), "orientation": math.radians(0.2)}
+
+
+def misfit_j(rms: dict[str, float]) -> float:
+    """DW1's misfit J = sum over channels of (rms / w)^2, w: 1 N, 0.5 mm, 0.1 deg, 0.2 deg."""
+    return float(sum((rms[c] / WEIGHTS[c]) ** 2 for c in WEIGHTS if c in rms))

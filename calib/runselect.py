@@ -1,0 +1,252 @@
+"""Which effects does the robot have? Selection by prediction across runs (issue 28, what to build 1, 2, 8).
+
+A candidate set of shared effects is judged by what it predicts on data it was not fitted on:
+
+* with two runs or more, **leave one run out**: the shared effects are learned on the other runs (joint fit,
+  :func:`calib.multirun.fit_runs`), frozen, and the left-out run is solved with only its own unknowns
+  refitted (initial pose, poses, device errors, reference noise, yaw drift rate; its weights by variance
+  components); the figure is that run's :func:`calib.multirun.held_out_score` (a Gaussian negative
+  log-likelihood with each channel group's variance its own, so no channel's units dominate), summed over
+  the left-out runs;
+* with one run, **leave one pose out** (:func:`calib.prediction.leave_one_pose_out`) on the weights of the
+  base model, so that every candidate is scored in the same units.
+
+Forward steps: every single candidate is fitted on all runs (cheap, one joint fit each); the best
+``PROBE`` of them by joint fit, and the pairs of the best ``PAIR_POOL``, are judged by prediction. The best
+option by prediction is taken, unless one with fewer parameters predicts within ``CONFUSED`` of its gain
+(the fewest parameters among confused candidates). An option must predict better in total and on most
+left-out runs (poses). When the best option by prediction has a value outside its plausible range, that is
+a finding, not a reason to take the next one: the selection stops there and says so (a likely error in the
+robot description or the setup, with the value found).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from calib.diagnose import RunRows, residuals
+from calib.effects import Effect, Implausible
+from calib.multirun import (
+    GROUPS,
+    JointFit,
+    RunFit,
+    fit_runs,
+    held_out_score,
+    misfit_j,
+    score_of,
+    stack,
+)
+from calib.prediction import leave_one_pose_out
+from calib.selfcal.problem import Problem
+
+PROBE = 3  # single candidates judged by prediction per step (the best by joint fit)
+PAIR_POOL = 3  # their pairs judged together
+CONFUSED = 0.10  # an option predicting within this share of the best gain is confused with it
+MIN_GAIN = 2.0  # held-out -2 log-likelihood gain an added option must bring (a likelihood ratio of e)
+QUICK_ITER = 15  # LM iterations of a screening fit
+FOLD_ROUNDS = 1  # variance-component rounds in the folds (started from the full fit's weights)
+
+
+@dataclass
+class Trial:
+    """One candidate set judged: the names, parameter count, the joint fit on all runs, the prediction
+    score (lower is better) and per fold (left-out run or pose) its score and the left-out run's rms per
+    channel and J; the fitted values outside their plausible ranges."""
+
+    names: tuple[str, ...]
+    n_params: int
+    fit: JointFit
+    fit_score: float
+    score: float | None = None
+    folds: list[dict[str, Any]] = field(default_factory=list)
+    implausible: list[Implausible] = field(default_factory=list)
+
+    @property
+    def plausible(self) -> bool:
+        return not self.implausible
+
+
+@dataclass
+class Selection:
+    """Outcome: the base trial, each step's options (trials) and choice, the selected names, the finding
+    (an implausible best candidate) if any, and the final trial."""
+
+    base: Trial
+    steps: list[dict[str, Any]]
+    selected: list[str]
+    final: Trial
+    finding: Trial | None = None
+    mode: str = "leave-one-run-out"
+
+
+def _n_params(effects: Sequence[Effect], robot) -> int:
+    return sum(len(e.params(robot)) for e in effects)
+
+
+Z_RANGE = 2.0  # a value is implausible when it leaves its plausible range by more than this many sigma
+
+
+def _implausible(f: JointFit) -> list[Implausible]:
+    """The shared values outside their plausible range by more than Z_RANGE times their 1-sigma."""
+    robot = f.runs[0].rows.robot
+    sig = f.shared_sigmas()
+    out, q = [], 0
+    for e in f.shared:
+        nq = len(e.params(robot))
+        for v in e.implausible(robot, f.values[q:q + nq]):
+            s = sig.get(e.name, {}).get(v.param.split(".", 1)[1], 0.0)
+            if min(abs(v.value - v.lo), abs(v.value - v.hi)) > Z_RANGE * s:
+                out.append(v)
+        q += nq
+    return out
+
+
+def _starts(f: JointFit, idx: Sequence[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Starts of a fit whose effects extend f's: each run's theta (own values, then f's shared values; the
+    added effects start absent) and poses."""
+    return [(f.runs[i].theta.copy(), f.runs[i].poses.copy()) for i in idx]
+
+
+class Judge:
+    """Fits and scores candidate sets on the runs; ``make(names)`` builds fresh effect instances;
+    ``prior`` effects (a model given as prior) are in every set, first."""
+
+    def __init__(self, items: Sequence[tuple[str, RunRows]], make: Callable[[Sequence[str]], list[Effect]],
+                 prior: Sequence[Effect] = ()):
+        self.items = list(items)
+        self.make = make
+        self.prior = list(prior)
+        self.robot = self.items[0][1].robot
+        from calib.selfcal import sensor_noise
+
+        self.floor = sensor_noise(self.robot)
+        self.base_sigmas: list[dict[str, np.ndarray]] | None = None
+
+    def effects(self, names: Sequence[str]) -> list[Effect]:
+        return [*self.prior, *self.make(names)]
+
+    def fit(self, names: Sequence[str], start: JointFit | None = None) -> Trial:
+        """The joint fit of all runs with these effects (started from ``start``, whose effects are a prefix
+        of these, and its weights; None: from the runs' rigid solves and own weights)."""
+        eff = self.effects(names)
+        if start is None:
+            f = fit_runs(self.items, eff)
+        else:
+            f = fit_runs(self.items, eff, starts=_starts(start, range(len(self.items))),
+                         sigmas=[rf.sigma for rf in start.runs], rounds=FOLD_ROUNDS)
+        fs = sum(held_out_score(rf) for rf in f.runs)
+        return Trial(tuple(names), _n_params(eff, self.robot), f, fs, implausible=_implausible(f))
+
+    def quick(self, current: JointFit, names: Sequence[str]) -> tuple[float, JointFit]:
+        """Screening of adding the last of ``names`` to ``current``: the joint fit's own score
+        (:func:`calib.multirun.held_out_score` of every run, in-sample) after a short fit with current's
+        weights (no variance-component round), and that fit."""
+        eff = self.effects(names)
+        f = fit_runs(self.items, eff, starts=_starts(current, range(len(self.items))),
+                     sigmas=[rf.sigma for rf in current.runs], rounds=0, max_iter=QUICK_ITER)
+        return sum(held_out_score(rf) for rf in f.runs), f
+
+    def judge(self, t: Trial) -> Trial:
+        """Fill the trial's prediction score and folds."""
+        if len(self.items) >= 2:
+            self._leave_one_run_out(t)
+        else:
+            self._leave_one_pose_out(t)
+        return t
+
+    def _leave_one_run_out(self, t: Trial) -> None:
+        """Linearised leave-one-run-out from the joint fit: the shared values learned without run j (one
+        Gauss-Newton step on the normal equations less run j's rows), then run j's own unknowns refitted
+        with them frozen (least squares on its own columns); the figure is run j's held-out score."""
+        f = t.fit
+        q = f.values.shape[0]
+        blocks: list = []
+        r, A, cols = stack(f.runs, q, blocks_out=blocks)
+        scale = np.linalg.norm(A, axis=0)
+        scale[scale == 0] = 1.0
+        As = A / scale
+        N, g = As.T @ As, As.T @ r
+        bounds = np.cumsum([0] + [b.r.shape[0] for b in blocks])
+        total, folds = 0.0, []
+        for j, (rf, res) in enumerate(zip(f.runs, blocks, strict=True)):
+            rows = slice(bounds[j], bounds[j + 1])
+            own = np.r_[np.arange(cols[j][0].start, cols[j][0].stop), np.arange(cols[j][1].start, cols[j][1].stop)]
+            keep = np.setdiff1d(np.arange(A.shape[1]), own)
+            Aj, rj = As[rows], r[rows]
+            Nt = (N - Aj.T @ Aj)[np.ix_(keep, keep)]
+            gt = (g - Aj.T @ rj)[keep]
+            delta = -np.linalg.solve(Nt + 1e-9 * np.diag(np.maximum(np.diag(Nt), 1e-12)), gt)
+            e = rj + Aj[:, keep[keep < q]] @ delta[: int((keep < q).sum())]
+            P = Aj[:, own]
+            step, *_ = np.linalg.lstsq(P, e, rcond=1e-10)
+            e = e - P @ step
+            with np.errstate(divide="ignore", invalid="ignore"):
+                unit = np.where(res.r != 0, res.si / res.r, 0.0)  # physical units per weighted unit
+            phys = e * unit
+            s = score_of(phys, res.channel, self.floor)
+            rms = {c: float(np.sqrt(np.mean(phys[res.channel == c] ** 2))) for c in GROUPS
+                   if (res.channel == c).any()}
+            folds.append({"run": rf.name, "score": s, "rms": rms, "J": misfit_j(rms)})
+            total += s
+        t.score, t.folds = total, folds
+
+    def _leave_one_pose_out(self, t: Trial) -> None:
+        rf: RunFit = t.fit.runs[0]
+        sig = self.base_sigmas[0] if self.base_sigmas else rf.sigma
+        res = residuals(Problem(rf.problem.model, rf.rows.meas, sig), rf.theta, rf.poses)
+        pred = leave_one_pose_out(res.r, res.A, res.row, rf.poses.shape[0])
+        t.score = pred.total
+        t.folds = [{"pose": i + 1, "score": float(v)} for i, v in enumerate(pred.rows)]
+
+
+def _better_on_most(t: Trial, ref: Trial) -> bool:
+    d = np.array([b["score"] - a["score"] for a, b in zip(t.folds, ref.folds, strict=True)])
+    return bool((d > 0).sum() > d.size / 2)
+
+
+def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Selection:
+    """Forward selection by prediction (module doc)."""
+    base = judge.judge(judge.fit([]))
+    judge.base_sigmas = [rf.sigma for rf in base.fit.runs]
+    current, selected, steps, finding = base, [], [], None
+    while len(selected) < max_effects:
+        rest = [c for c in candidates if c not in selected]
+        if not rest:
+            break
+        quick = {c: judge.quick(current.fit, [*selected, c]) for c in rest}
+        screen = sorted(rest, key=lambda c: quick[c][0])
+        probe = [judge.judge(judge.fit([*selected, c], quick[c][1])) for c in screen[:PROBE]]
+        top = sorted(probe, key=lambda t: t.score)[:PAIR_POOL]
+        pairs = []
+        if len(selected) + 2 <= max_effects:
+            for a in range(len(top)):
+                for b in range(a + 1, len(top)):
+                    t = judge.fit([*selected, top[a].names[-1], top[b].names[-1]], top[a].fit)
+                    pairs.append(judge.judge(t))
+        options = probe + pairs
+        step: dict[str, Any] = {"screen": screen, "options": options, "chosen": None, "current": current,
+                                "confused": []}
+        steps.append(step)
+        best = min(options, key=lambda t: t.score)
+        ok = [t for t in options if t.plausible and current.score - t.score > MIN_GAIN
+              and _better_on_most(t, current)]
+        margin = max(MIN_GAIN, CONFUSED * (current.score - best.score))
+        if not best.plausible and current.score - best.score > MIN_GAIN and (
+                not ok or min(t.score for t in ok) > best.score + margin):
+            finding = best  # the option that predicts clearly best is out of its range: a finding, stop here
+            break
+        if not ok:
+            break
+        top_gain = max(current.score - t.score for t in ok)
+        confused = [t for t in ok if current.score - t.score >= (1.0 - CONFUSED) * top_gain]
+        chosen = min(confused, key=lambda t: (t.n_params, t.score))
+        step["chosen"] = chosen
+        step["confused"] = [t.names for t in confused if t is not chosen]
+        selected = list(chosen.names)
+        current = chosen
+    mode = "leave-one-run-out" if len(judge.items) >= 2 else "leave-one-pose-out"
+    return Selection(base, steps, selected, current, finding, mode)
