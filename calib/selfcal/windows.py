@@ -233,7 +233,7 @@ class EndsTest:
         ``options.ends_margin_s`` long for a span of ``span`` samples of ``options.span_s``. The slow wander
         is measured where the spans also move within ``noise_factor`` quiet sigmas alone, not the floors: a
         platform still swinging by a millimetre passes those, and would pass for a sway."""
-        from scipy.stats import chi2
+        from scipy.special import chdtri  # chi2's inverse survival function, without importing scipy.stats
 
         every = {"tension": tau} | dict(channels)
         floors = {"length": options.length_tol, "swivel": options.swivel_tol, "tilt": options.tilt_tol}
@@ -248,7 +248,7 @@ class EndsTest:
         per = options.span_s / span  # s per sample
         q = max(1, int(round(options.ends_s / per)))
         columns = sum(int(np.prod(x.shape[1:])) for x in every.values())
-        return cls(span, q, int(round(options.ends_margin_s / per)), float(chi2.ppf(1.0 - options.ends_p, columns)),
+        return cls(span, q, int(round(options.ends_margin_s / per)), float(chdtri(columns, options.ends_p)),
                    sigma, slow)
 
     def scores(self, block: dict[str, np.ndarray]) -> tuple[float, float]:
