@@ -10,7 +10,7 @@ slow horizontal push the force control answers with the tensions held), then ``c
   resting pose: the static equilibrium of the window's mean true tensions under the sway's mean push over
   the window (:func:`resting_offset`; the tensions averaged over the control periods, truth.json). What is
   left is the platform's own motion, the wobble a window must not hold; the sway's offset from the
-  equilibrium of the tensions alone is the noise the statics rows carry (calib.selfcal.sway). Target:
+  equilibrium of the tensions alone is not in the default noise (docs/windows.md). Target:
   median over the runs of the worst window <= 0.05 mm;
 - rms over the runs and axes of (initial-position error / printed 1-sigma), the truth the true pose averaged
   over the reference window (what a window mean estimates): 0.8-1.25;

@@ -257,9 +257,11 @@ def test_real_run_recommends_only_plausible_effects_and_keeps_the_initial_pose(r
     # 0.34 / 0.52 kg/m (plausible: 0.07); the hysteresis is not significant
     assert not by["cable_sag"].plausible and by["cable_sag"].params["density"] > 0.2
     # issue 28: weighed by the model's own scatter (model-error rule of --noise estimate) friction is no
-    # longer significant (score p 0.02-0.04); when it is, it fits only implausibly and predicts worse
+    # longer significant (score p 0.02-0.04); when it is, it fits only implausibly, by trading its two parts
+    # (since the windows' ends test of issue 29: significant, mu 16 %, f -13 N, predicting left-out poses better:
+    # what it predicts is the common excess a cell offset takes within its range)
     fr = by["pulley_friction"]
-    assert not fr.significant or (not fr.plausible and fr.params["f"] < 0 and fr.cv_gain < 0)
+    assert not fr.significant or (not fr.plausible and fr.params["f"] < 0)
     assert not {"pulley_friction", "loadcell_hysteresis", "cable_sag"} & set(diag.selected)
     # the rows carry the directions the cables moved into each window, from the run's signals
     meas = diag.fit.problem.meas
