@@ -329,8 +329,7 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
             break
         rel = (cost - c1) / max(cost, 1e-300)
         runs, cost, blocks = trial, c1, trial_blocks
-        if trial_no == 0:  # a damping that had to be raised stays: lowered again, the next trial mostly fails
-            lam = max(lam / 10.0, 1e-12)
+        lam = max(lam / 10.0, 1e-12)
         if rel < tol:
             converged = True
             break
