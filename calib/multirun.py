@@ -297,9 +297,10 @@ def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
 
 
 def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = False, max_iter: int = 60,
-            tol: float = 1e-5) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
+            tol: float = 1e-5, covariance: bool = True) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
     """Levenberg-Marquardt on the joint problem. Returns the runs, chi2, converged, iterations, the scaled
-    inverse normal matrix's shared block (covariance of the shared values) and the rank."""
+    inverse normal matrix's shared block (covariance of the shared values) and the rank (without
+    ``covariance``: zeros and 0, the SVD skipped)."""
     robot = runs[0].rows.robot
     q, _, lo, hi = _layout(shared, robot)
     lam, iterations, converged = 1e-5, 0, False
@@ -334,6 +335,10 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
             converged = True
             break
         r, A, _ = stack(runs, q, fixed_shared, blocks=blocks)
+    for rf, b in zip(runs, blocks, strict=True):
+        rf.chi2, rf.res = float(b.r @ b.r), b
+    if not covariance:
+        return runs, cost, converged, iterations, np.zeros((q, q)), 0
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     As = A / scale
@@ -341,8 +346,6 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     keep = s > 1e-10 * s.max(initial=0.0)
     cov_s = (Vt[keep].T / s[keep] ** 2) @ Vt[keep] / np.outer(scale, scale)
     cov = cov_s[:q, :q] if not fixed_shared else np.zeros((q, q))
-    for rf, b in zip(runs, blocks, strict=True):
-        rf.chi2, rf.res = float(b.r @ b.r), b
     return runs, cost, converged, iterations, cov, int(keep.sum())
 
 
@@ -365,9 +368,11 @@ ROUNDS = 3  # variance-component rounds (each: fit, then new weights)
 
 
 def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, frozen: bool = False,
-             starts=None, sigmas=None, rounds: int = ROUNDS, max_iter: int = 60) -> JointFit:
+             starts=None, sigmas=None, rounds: int = ROUNDS, max_iter: int = 60, covariance: bool = True
+             ) -> JointFit:
     """Joint fit of the runs with the shared effects (values free, or ``frozen`` at their current values:
-    only each run's own unknowns fitted), with ``rounds`` of variance components (0: the given weights)."""
+    only each run's own unknowns fitted), with ``rounds`` of variance components (0: the given weights).
+    Without ``covariance`` (a fit only used as a start) the final covariance is zeros and n_free 0."""
     from calib.selfcal import sensor_noise
 
     shared = list(shared)
@@ -377,7 +382,8 @@ def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, 
     history = []
     it_total, conv = 0, False
     for rnd in range(rounds + 1):
-        runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, max_iter)
+        runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, max_iter,
+                                                  covariance=covariance or rnd < rounds)
         it_total += it
         history.append({rf.name: {"weights": {c: [float(v) for v in s] for c, s in rf.sigma.items()},
                                   "initial_pose": [float(v) for v in rf.theta[:6]]} for rf in runs})

@@ -147,7 +147,7 @@ class Judge:
         weights (no variance-component round), and that fit."""
         eff = self.effects(names)
         f = fit_runs(self.items, eff, starts=_starts(current, range(len(self.items))),
-                     sigmas=[rf.sigma for rf in current.runs], rounds=0, max_iter=QUICK_ITER)
+                     sigmas=[rf.sigma for rf in current.runs], rounds=0, max_iter=QUICK_ITER, covariance=False)
         return sum(held_out_score(rf) for rf in f.runs), f
 
     def judge(self, t: Trial) -> Trial:
