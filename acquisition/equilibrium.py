@@ -65,7 +65,8 @@ class EquilibriumDetector:
         self.needed = min_samples(opt, self.sample_period)  # consecutive still judgements that make a rest
         keep = max(2 * self.span, int(round(self.config.history / self.sample_period)))
         self._past: deque[np.ndarray] = deque(maxlen=keep)  # rows [tau, dl, dsigma, roll, pitch]
-        self._recent: deque[np.ndarray] = deque(maxlen=self.span)  # the same rows, since start
+        # the same rows since start, a window's worth: the latest span is judged, the whole block's ends
+        self._recent: deque[np.ndarray] = deque(maxlen=self.span - 1 + self.needed)
         self._n = 0
         self._count = 0
         self._run = 0
@@ -107,11 +108,18 @@ class EquilibriumDetector:
             self.update_thresholds()
         elapsed = float(t) - self._t0
         still, scores = False, (float("nan"), float("nan"))
-        if len(self._recent) == self.span:
-            tau_b, ch = self._split(np.array(self._recent))
+        if len(self._recent) >= self.span:
+            tau_b, ch = self._split(np.array(self._recent)[-self.span:])
             scores = self.stillness.judge(tau_b, ch)
             still = scores[0] <= 1.0 and scores[1] <= 1.0
         self._run = self._run + 1 if still else 0
-        settled = self._run >= self.needed and elapsed >= self.config.min_wait
+        settled = self._run >= self.needed and elapsed >= self.config.min_wait and self._rests()
         timed_out = not settled and elapsed > self.timeout
         return DetectorState(settled, timed_out, elapsed, still, scores)
+
+    def _rests(self) -> bool:
+        """Whether the samples the still spans cover rest from end to end: the offline search's cut of a
+        window's moving ends (:meth:`Stillness.trim`) leaves them whole."""
+        block = np.array(self._recent)[-(self.span - 1 + self._run):]
+        tau_b, ch = self._split(block)
+        return self.stillness.trim(tau_b, ch, block.shape[0]) == (0, 0)

@@ -639,6 +639,8 @@ def _read_samples(folder: Path, n: int) -> tuple[list[str], list[list[str]], lis
     elif len(lines) > 1:
         damage.add(CUT, f"line {len(lines)}")
         lines.pop()
+    else:  # the file ends inside its header: a column name may be cut short, and the header describes every line
+        raise _fail(f, "header line is cut short (the file ends before its line end)")
     if "\ufffd" in lines[0]:
         raise _fail(f, "header line is not UTF-8 text")
     header = [h.strip() for h in lines[0].rstrip("\r").split(",")]

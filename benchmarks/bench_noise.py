@@ -57,6 +57,14 @@ def one(config: str, seed: int, grid: int) -> dict | None:
             "err": err.tolist(), "sigma": list(map(float, sol.initial_pose_sigma[:3]))}
 
 
+def chi2_band(rs: list[dict]) -> tuple[int, int, np.ndarray]:
+    """Of runs with ``chi2``, ``dof``, ``err`` and ``sigma``: how many chi2 fall below and above the two-sided
+    99 % band, and the (runs, 3) errors over their printed sigmas."""
+    below = sum(r["chi2"] < stats.chi2.ppf(0.005, r["dof"]) for r in rs)
+    above = sum(r["chi2"] > stats.chi2.ppf(0.995, r["dof"]) for r in rs)
+    return below, above, np.array([np.divide(r["err"], r["sigma"]) for r in rs])
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=100)
@@ -82,10 +90,8 @@ def main() -> int:
             print(f"{c}: no run finished")
             ok = False
             continue
-        below = sum(r["chi2"] < stats.chi2.ppf(0.005, r["dof"]) for r in rs)
-        above = sum(r["chi2"] > stats.chi2.ppf(0.995, r["dof"]) for r in rs)
+        below, above, zs = chi2_band(rs)
         inside = len(rs) - below - above
-        zs = np.array([np.divide(r["err"], r["sigma"]) for r in rs])
         rms = float(np.sqrt(np.mean(zs**2)))
         per_axis = np.sqrt(np.mean(zs**2, axis=0))
         errs = 1e3 * np.linalg.norm([r["err"] for r in rs], axis=1)

@@ -143,6 +143,7 @@ class SimBackend:
         self.errors: list[str] = []  # exceptions raised inside the lockstep (the SYNC handler)
         self._lock = threading.RLock()
         self._history: list[tuple[int, tuple[float, ...]]] = []  # (SYNC count, PlantView state) per tick
+        self._push = None  # the sway's force law (sway_push), made when first asked
         self._link: PlantLink | None = None
         self._fds: list[int] = []
         self._bus: SimBus | None = None
@@ -253,9 +254,10 @@ class SimBackend:
         self._started = False
 
     # -- setup helpers ------------------------------------------------------------------------------------
-    def _make_physics(self) -> CablePhysics:
+    def _new_physics(self) -> CablePhysics:
+        """The plant at power-on, before any step."""
         robot = self.true_robot
-        params = self.config.physics_params()
+        params = self.config.physics_params(robot)
         k = self.config.true_transmission(self.robot)
         if self.initial_pose is None:
             pose, tau = power_on_state(robot, self.seed, self.config.initial_spread)
@@ -266,7 +268,21 @@ class SimBackend:
                 f"SimBackend: initial_pose = {self.initial_pose.tolist()} needs a slack cable (model tensions "
                 f"{np.round(tau, 2).tolist()} N)."
             )
-        ph = CablePhysics(robot, params, k, self.initial_pose, tau, brakes=True, sway=self._sway())
+        return CablePhysics(robot, params, k, self.initial_pose, tau, brakes=True, sway=self._sway())
+
+    def sway_push(self, times: np.ndarray) -> np.ndarray:
+        """(k, 2) N: the sway's horizontal push on the platform at the sim times ``times`` (s), zero without a
+        sway (the plant's own force law, so that a benchmark can tell the platform's rest under the push)."""
+        ts = np.atleast_1d(np.asarray(times, float))
+        if self._push is None:
+            self._push = self._new_physics().push
+        push = self._push
+        return np.array([push(float(t)) for t in ts]).reshape(ts.size, 2)
+
+    def _make_physics(self) -> CablePhysics:
+        ph = self._new_physics()
+        if self.initial_pose is None:
+            return ph
         for _ in range(int(round(5.0 / self.control_period))):  # settle on the locked winches
             ph.step(self.control_period, t_end=self.sync_count * self.control_period)
         ph.rezero()

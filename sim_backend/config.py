@@ -32,9 +32,15 @@ The YAML file (every section optional; nothing is on by default)::
       ahrs_sigma: [0.03, 0.03, 0.1]            #   deg: roll, pitch, yaw
     sway: {amplitude: 0.002, period: 8.0}      # slow random horizontal push on the platform: m of position
                                                #   amplitude it gives, s of period (off without the section)
+    wobble: {decay: 4.0}                       # a lightly damped platform: s for its swing to fall by 1/e
+                                               #   (sets the platform's linear and angular damping; the
+                                               #   nominal 20 N s/m damps the prototype's in 1.3 s)
 
 The values shown for ``sensors`` are the prototype's (the defaults); ``sway`` is a force on the platform in
-the physics (sim_backend.physics.Sway), so it shows in every signal: lengths, angles and tensions.
+the physics (sim_backend.physics.Sway): the force control answers it with the tensions held, so the platform
+swings about the equilibrium of those tensions and the lengths, angles and AHRS follow it. ``wobble`` leaves
+the platform swinging when a tension move ends (its damping from the decay time, ``damping_for``), as a real
+platform does: the samples before it rests are not at rest.
 
 Effect names are those of the diagnosis (spec/cli.md). Validation errors name file, field and value.
 """
@@ -131,6 +137,7 @@ class SimConfig:
     source: str = "<nominal>"
     sensors: SensorNoise = field(default_factory=SensorNoise)
     sway: Sway | None = None  # amplitude (m) and period (s); its seed is the backend's
+    wobble: float | None = None  # s: e-folding time of the platform's swing (sets its damping), None: nominal
 
     def true_robot(self, robot: Robot) -> Robot:
         """The robot as the simulated prototype really is: geometry, mass and centre of mass with effects."""
@@ -157,9 +164,13 @@ class SimConfig:
             k = k / (1.0 + np.asarray(self.effects.length_scale))
         return k
 
-    def physics_params(self) -> PhysicsParams:
-        """Physics parameters with the cable effects (EA, cable mass) applied."""
+    def physics_params(self, robot: Robot | None = None) -> PhysicsParams:
+        """Physics parameters with the cable effects (EA, cable mass) applied, and with ``robot`` (the true
+        one) the wobble's damping (:func:`damping_for`)."""
         p = self.physics
+        if self.wobble is not None and robot is not None:
+            lin, ang = damping_for(robot, self.wobble)
+            p = dataclasses.replace(p, linear_damping=lin, angular_damping=ang)
         if self.effects.cable_elasticity is not None:
             p = dataclasses.replace(p, ea=self.effects.cable_elasticity)
         if self.effects.cable_sag is not None:
@@ -187,6 +198,13 @@ class SimConfig:
 
     def ahrs_mounting(self) -> tuple[float, float]:
         return (0.0, 0.0) if self.effects.ahrs_mounting is None else self.effects.ahrs_mounting
+
+
+def damping_for(robot: Robot, decay: float) -> tuple[float, float]:
+    """Linear (N s/m) and angular (N m s/rad) damping of the platform that make its swing fall by 1/e in
+    ``decay`` s: 2 m / decay and 2 I / decay, I the mean of the principal inertias about G (kg m^2)."""
+    inertia = float(np.mean(np.diag(np.asarray(robot.inertia, float))))
+    return 2.0 * robot.mass / decay, 2.0 * inertia / decay
 
 
 class _Check(FieldReader):
@@ -360,7 +378,7 @@ def sim_config_from_dict(data: Any, n: int = 4, origin: str = "<sim config>") ->
     c = _Check(origin)
     if data is None:
         data = {}
-    m = c.mapping(data, "", ("effects", "faults", "physics", "initial", "sensors", "sway"))
+    m = c.mapping(data, "", ("effects", "faults", "physics", "initial", "sensors", "sway", "wobble"))
     effects = _effects(c, m["effects"], n) if m.get("effects") is not None else HiddenEffects()
     faults = _faults(c, m["faults"], n) if m.get("faults") is not None else ()
     physics = _physics(c, m["physics"]) if m.get("physics") is not None else PhysicsParams()
@@ -374,7 +392,11 @@ def sim_config_from_dict(data: Any, n: int = 4, origin: str = "<sim config>") ->
         sw = c.mapping(m["sway"], "sway", ("amplitude", "period"))
         sway = Sway(c.number(c.required(sw, "amplitude", "sway"), "sway.amplitude", 0.0, 0.05),
                     c.number(sw.get("period", 8.0), "sway.period", 0.5, 120.0))
-    return SimConfig(effects, faults, physics, spread, origin, sensors, sway)
+    wobble = None
+    if m.get("wobble") is not None:
+        wb = c.mapping(m["wobble"], "wobble", ("decay",))
+        wobble = c.number(c.required(wb, "decay", "wobble"), "wobble.decay", 0.1, 60.0)
+    return SimConfig(effects, faults, physics, spread, origin, sensors, sway, wobble)
 
 
 def _sensors(c: _Check, raw: Any) -> SensorNoise:

@@ -282,6 +282,10 @@ class CablePhysics:
         stiffness = sum(t / g[0] for t, g in zip(tensions, geo, strict=True) if t > 0)
         self._sway = None if sway is None or sway.amplitude <= 0 else sway.forces(stiffness * sway.amplitude)
 
+    def push(self, t: float) -> tuple[float, float]:
+        """The sway's horizontal push (fx, fy) N on the platform at sim time t (s); (0, 0) without a sway."""
+        return (0.0, 0.0) if self._sway is None else self._sway(t)
+
     # --- Plant protocol -------------------------------------------------------------------------------
     @property
     def time(self) -> float:

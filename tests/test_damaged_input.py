@@ -251,3 +251,13 @@ def test_parsed_mat_importer_on_damaged_samples(tmp_path_factory, ops, cut):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name)[index], err_msg=name)
     if not warned:
         assert len(got) == len(want)
+
+
+def test_samples_cut_inside_the_header_are_refused(good_run, tmp_path):
+    """A file that ends inside its header line (found by hypothesis: cut at 1.5 %, the last column read
+    'setpo') was read as a run of 0 samples without a word; the header describes every line, so it is fatal."""
+    (tmp_path / "run.yaml").write_bytes((good_run / "run.yaml").read_bytes())
+    header = (good_run / "samples.csv").read_text().splitlines()[0]
+    (tmp_path / "samples.csv").write_text(header[:-3])
+    with pytest.raises(RunFormatError, match="header line is cut short"):
+        read_run(tmp_path)

@@ -191,7 +191,9 @@ def test_sequential_startup_stops_at_the_tolerance(tmp_path):
     finally:
         worker.close()
     assert len(ticks) > 10 and est.position_sigma == pytest.approx(final, rel=1e-9)
-    assert max(np.diff(ticks), default=0.0) < 0.1  # the loop was never held up by the solve
+    # the loop was never held up by the solve: no gap between ticks is a sizeable part of the solve's time (a solve
+    # in line would be one gap as long as the whole solve); relative, so a loaded machine does not fail it
+    assert max(np.diff(ticks)) < 0.25 * (ticks[-1] - ticks[0])
 
 
 def _diagnosis_gap(robot, rows, names):

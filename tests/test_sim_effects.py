@@ -199,6 +199,10 @@ def test_every_shipped_example_loads_and_nominal_changes_nothing(tmp_path):
         elif name.startswith("rigid"):  # no effect at all: cables as stiff as the rigid model's (issue 17)
             assert cfg.effects.active() == [] and cfg.physics_params().ea >= 1e12
             assert (cfg.sway is not None) == (name == "rigid_sway")
+        elif name == "settling_sway":  # rigid, a wobble and a sway, no effect (issue 29)
+            assert cfg.effects.active() == [] and cfg.physics_params().ea >= 1e12
+            assert cfg.wobble > 0 and cfg.sway.amplitude > 0
+            assert cfg.physics_params(ROBOT).linear_damping < cfg.physics_params().linear_damping
         elif name != "nominal":
             assert cfg.effects.active() == [name]
     nominal = load_sim_config(example_path("nominal"))

@@ -25,7 +25,23 @@ def _quintic(a, b, m):
     return a + (b - a) * u**3 * (10 - 15 * u + 6 * u**2)
 
 
-def _run(rng, setpoints, rest=12.0, move=4.0, noise=1.0, sway=0.0, blocks=None, tail=True):
+def _swing(ref, decay=0.8, hz=0.7):
+    """(N,) the platform's damped swing after each move of the reference: e-folding ``decay`` s, ``hz`` Hz
+    (0: a creep towards rest without a swing)."""
+    N = ref.shape[0]
+    t = np.arange(N) * DT
+    moving = np.r_[0.0, np.abs(np.diff(ref, axis=0)).max(axis=1)] > 1e-9
+    swing = np.zeros(N)
+    last = -1e9
+    for i in range(N):
+        if moving[i]:
+            last = t[i]
+        phase = math.sin(2 * math.pi * hz * (t[i] - last)) if hz else 1.0
+        swing[i] = math.exp(-(t[i] - last) / decay) * phase if last > -1e9 else 0
+    return swing
+
+
+def _run(rng, setpoints, rest=12.0, move=4.0, noise=1.0, sway=0.0, blocks=None, tail=True, decay=0.8, hz=0.7):
     """A synthetic run: rest under tau0, then per block (setpoint j or the pretension tau0 for a pause) a
     quintic move of ``move`` s and a rest of ``rest`` s; poses follow the tensions (lengths, swivels, tilt
     proportional to the tension change). ``noise`` scales the noisy-sensor sigmas (0.3 N, 0.2 mm,
@@ -43,13 +59,7 @@ def _run(rng, setpoints, rest=12.0, move=4.0, noise=1.0, sway=0.0, blocks=None, 
     tau = ref.copy()
     dtau = ref - tau0
     t = np.arange(N) * DT
-    swing = np.zeros(N)
-    moving = np.r_[0.0, np.abs(np.diff(ref, axis=0)).max(axis=1)] > 1e-9
-    last = -1e9
-    for i in range(N):
-        if moving[i]:
-            last = t[i]
-        swing[i] = math.exp(-(t[i] - last) / 0.8) * math.sin(2 * math.pi * 0.7 * (t[i] - last)) if last > -1e9 else 0
+    swing = _swing(ref, decay, hz)
     sw = sway * (np.sin(2 * math.pi * t / 8.0) + 0.5 * np.sin(2 * math.pi * t / 6.4 + 1.0))
     dl = 2e-3 * dtau + 0.004 * swing[:, None] + sw[:, None]
     dsig = 1e-3 * dtau + 0.01 * swing[:, None] + 5 * sw[:, None]
@@ -178,7 +188,9 @@ def test_online_and_offline_judge_a_record_identically(robot, seed):
     rng = np.random.default_rng(seed)
     sp = _setpoints(rng, 8)
     t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, sway=0.002)
-    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp)
+    # the spans' judgement alone (the ends test, which both also apply, is test_the_detector_waits_for_...;
+    # the offline cut where the reference moves is the detector's start after each move, tau_ref left out)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, None, sp, options=WindowOptions(ends_p=0.0))
     offline = [(w.first, w.last) for w in ws.found]
     assert len(offline) == 10 and not any(w.quasi for w in ws.found)
     given = Stillness(5, ws.thresholds, ws.ripple_tol)
@@ -197,3 +209,50 @@ def test_online_and_offline_judge_a_record_identically(robot, seed):
     assert max(gaps[2:]) <= 2
     # the first two rests (under 30 s of history: the first seconds' noise, no drift estimate yet) within 2 s
     assert max(gaps[:2]) <= 20
+
+
+def test_windows_cut_the_creep_towards_rest_the_ranges_let_in(robot):
+    """A platform that creeps towards its rest after each move (e-folding 1 s, 4 mm of cable, 3 N of ripple,
+    no swing: nothing the 0.5 s ranges and their floors of 2 mm, 0.1 deg, 0.3 deg see) over 5 s rests: the
+    windows of the ranges alone start where the creep is still 0.8 mm on average over the window; the ends
+    test cuts it to under 0.2 mm (measured on the known creep, mm of cable length; every setpoint keeps its
+    window). What is left is below the test's power: 0.1 mm per sample of noise at the start of the rest."""
+    worst = {}
+    for p in (1e-3, 0.0):  # ends_p 0: the ranges alone
+        shifts = []
+        for seed in range(3):
+            rng = np.random.default_rng(seed)
+            sp = _setpoints(rng, 8)
+            t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, rest=5.0, noise=0.5, decay=1.0, hz=0.0)
+            ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp, options=WindowOptions(ends_p=p))
+            assert [w.setpoint for w in ws.used] == list(range(8)) and not any(w.quasi for w in ws.used)
+            creep = 4.0 * _swing(ref, 1.0, 0.0)
+            shifts += [abs(float(creep[w.slice].mean())) for w in ws.used]
+        worst[p] = max(shifts)
+    assert worst[0.0] > 0.7 and worst[1e-3] < 0.2
+
+
+def test_the_detector_waits_for_the_ends_test_the_search_applies(robot):
+    """Online and offline one criterion: on a record whose platform still wobbles, the detector settles only
+    where a window of its length would keep both ends under Stillness.trim."""
+    rng = np.random.default_rng(4)
+    sp = _setpoints(rng, 3)
+    t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, noise=0.5, decay=2.5)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp)
+    still = Stillness(5, ws.thresholds, ws.ripple_tol, ws.ends)
+    det = EquilibriumDetector(DT, DetectorConfig.for_robot(robot, stillness=still))
+    det.start(0.0)
+    settled = [det.push(t[i], tau[i], dl[i], dsig[i], roll[i], pitch[i]).settled for i in range(t.size)]
+    ch = {"length": dl, "swivel": dsig, "tilt": np.stack([roll, pitch], -1)}
+    n = det.span - 1 + det.needed  # a window's worth of samples: the span, then a window's length of spans
+    hits = [i for i in range(n, t.size) if settled[i]]
+    assert hits
+    for i in hits:
+        block = slice(i - n + 1, i + 1)
+        assert still.trim(tau[block], {c: x[block] for c, x in ch.items()}, n) == (0, 0)
+    # and a detector without the ends test settles earlier after each move, on samples the test cuts
+    bare = EquilibriumDetector(DT, DetectorConfig.for_robot(robot, stillness=Stillness(5, ws.thresholds,
+                                                                                        ws.ripple_tol)))
+    bare.start(0.0)
+    early = [bare.push(t[i], tau[i], dl[i], dsig[i], roll[i], pitch[i]).settled for i in range(t.size)]
+    assert sum(early) > sum(settled)

@@ -20,13 +20,20 @@ from calib.selfcal.result import chi2_sf
 SOLUTION_FILE = "solution.json"
 
 
+def default_noise(method: str) -> str:
+    """The weights a solve takes unless told: the run's own noise of a window mean ('estimate', whose 1-sigma
+    covers the truth as often as it says) for the window methods, the paper's (eq. 18) for lse's samples."""
+    return "paper" if method == "lse" else "estimate"
+
+
 def register(sub) -> None:
     p = sub.add_parser("solve", help="initial-pose self-calibration of a run")
     p.add_argument("run", type=Path, metavar="RUN", help="run folder")
     p.add_argument("--method", choices=METHODS, default="tlse", help="tlse (default), lse or hybrid")
     p.add_argument(
-        "--noise", choices=("paper", "estimate", "sensors"), default="paper",
-        help="weights: paper (eq. 18), estimate (scatter in the equilibrium windows), sensors (specifications)",
+        "--noise", choices=("paper", "estimate", "sensors"), default=None,
+        help="weights: estimate (the run's own noise of a window mean: the honest 1-sigma; default for tlse and "
+             "hybrid), paper (eq. 18; default for lse, whose rows are single samples), sensors (specifications)",
     )
     p.add_argument("--stride", type=int, default=1, help="lse/hybrid: use every S-th sample (default 1)")
     p.add_argument("--reference-sample", type=int, default=None, help="sample whose pose is the initial pose")
@@ -77,6 +84,8 @@ def _solve(args) -> int:
         names = sorted(set(effect_classes(args.effects_from)) - set(effect_classes([])))
         warnings.warn(f"--effects-from defines {', '.join(names) or 'no new effect'}; without --effects none "
                       "of them enters the model.", stacklevel=1)
+    if args.noise is None:
+        args.noise = default_noise(args.method)
     model = None if with_effects else _effects_model(run.robot, getattr(args, "effects", None))
     table = ""
     try:

@@ -194,6 +194,7 @@ class PoseFreeNoise:
     noise: WindowNoise
     sample: dict[str, float]
     stuck: dict[str, float]
+    sway: object = None  # calib.selfcal.sway.SwayOffset: the window-mean pose's offset from equilibrium
 
 
 def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, np.ndarray]],
@@ -211,7 +212,8 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     correlation in each window gives the AR(1) factor of their window mean, as in :func:`window_mean_noise`.
     A reading that sat on one count for a whole window keeps its quantisation error in the mean: the
     share of such readings adds q^2/12 times that share. Tensions keep ``base``'s figures (the force
-    control holds them; their jitter is not a pose motion)."""
+    control holds them; their jitter is not a pose motion), plus the sway's offset of the window-mean pose from
+    the equilibrium of the held tensions, sized from these per-sample poses (calib.selfcal.sway)."""
     from calib.selfcal.lm import solve_poses
     from calib.selfcal.problem import Measurements, Problem
 
@@ -262,7 +264,12 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     sigma_out["length"] = np.full(n, groups["length"].mean)
     sigma_out["swivel"] = np.full(n, groups["swivel"].mean)
     sigma_out["orientation"] = np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean])
-    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, stuck)
+    # the platform's sway about its equilibrium under the held tensions, in the statics rows (calib.selfcal.sway)
+    from calib.selfcal.sway import sway_offset, tension_sigma
+
+    sway = sway_offset(Z, owner)
+    sigma_out["tension"] = tension_sigma(robot, base.sigma["tension"], np.array([z for _, z in spans]), sway)
+    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, stuck, sway)
 
 
 VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")

@@ -54,6 +54,9 @@ class WindowOptions:
     gap_factor: float = 2.0
     quasi_max: float = 10.0
     use_unmatched: bool = False  # with a plan, also use the still stretches that match no setpoint
+    ends_s: float = 0.1  # s of samples at each end of a window compared with the rest of it
+    ends_p: float = 1e-3  # false-alarm probability of the ends test at rest (per end and step; 0: no test)
+    ends_margin_s: float = 0.2  # s cut beyond an end the test found moving
 
 
 @dataclass(frozen=True)
@@ -91,7 +94,8 @@ class MissingSetpoint:
 class WindowSearch:
     """What :func:`search_windows` found: ``found`` every window (time order, labelled), ``used`` those that
     become poses, ``planned`` the number of planned setpoints (0: no plan), ``missing`` the planned setpoints
-    without a window, ``thresholds`` the stillness ranges per channel (SI) and ``ripple_tol`` (N)."""
+    without a window, ``thresholds`` the stillness ranges per channel (SI), ``ripple_tol`` (N) and ``ends`` the
+    test that cut the windows' moving ends."""
 
     found: list[Window]
     used: list[Window]
@@ -99,6 +103,7 @@ class WindowSearch:
     missing: list[MissingSetpoint]
     thresholds: dict[str, np.ndarray] = field(default_factory=dict)
     ripple_tol: float = 0.0
+    ends: EndsTest | None = None  # the ends test the windows were cut with
 
 
 def _centred(stat: np.ndarray, w: int, size: int) -> np.ndarray:
@@ -122,6 +127,22 @@ def sample_noise(x: np.ndarray) -> np.ndarray:
         return np.zeros(x.shape[1:])
     d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
     return 1.4826 * np.median(np.abs(d2), axis=0) / math.sqrt(6.0)
+
+
+def quiet_noise(x: np.ndarray) -> np.ndarray:
+    """As :func:`sample_noise`, from the lower quartile of |second differences| instead of their median (a
+    Gaussian's |x| has its lower quartile at 0.3186 sigma): the noise of the quietest samples, which holds
+    while up to three quarters of a run still swing, as after every move of a lightly damped platform; a
+    reading on its counts most of the time falls back on the median's figure or its count / sqrt(12)."""
+    if x.shape[0] < 3:
+        return np.zeros(x.shape[1:])
+    d2 = np.abs(x[2:] - 2.0 * x[1:-1] + x[:-2])
+    quiet = np.quantile(d2, 0.25, axis=0) / 0.3186 / math.sqrt(6.0)
+    # a reading that mostly sits on its counts (an encoder of a still platform): its median, else its count
+    d1 = np.abs(np.diff(x, axis=0))
+    step = np.min(np.where(d1 > 0, d1, np.inf), axis=0)
+    step = np.where(np.isfinite(step), step / math.sqrt(12.0), 0.0)
+    return np.where(quiet > 0, quiet, np.maximum(sample_noise(x), step))
 
 
 def slow_drift(x: np.ndarray, w: int, rest: np.ndarray) -> np.ndarray:
@@ -176,6 +197,98 @@ class Activity:
         return cls(w, ranges, _centred(np.sqrt(var.max(axis=1)), w, size))
 
 
+MEDIAN_ABS = 0.6745  # median |x| / sigma of a Gaussian x
+
+
+@dataclass(frozen=True)
+class EndsTest:
+    """Whether a still stretch rests all through: each end (its first and last ``q`` samples) against the rest
+    of the stretch, every channel at once (the tensions, whose ripple is the paper's criterion, the lengths,
+    swivels, roll and pitch: a platform that still moves moves them all). At rest the difference of the two
+    means of a column has the variance ``sigma^2 (1/q + 1/r)`` of white noise of the sample sigma (r samples in
+    the rest) plus ``slow``, the variance of the slow wander of a mean (a sway) at the distance of the two
+    parts; the sum over the
+    columns of the squared differences over those variances is then chi2 with one degree of freedom per
+    column, and an end whose sum exceeds its ``1 - p`` quantile still moves (a wobble settling after a move,
+    the start of the next one): it is cut, and ``margin`` samples more with it (the motion that the noise hid
+    next to the one it showed).
+
+    ``sigma`` and ``slow`` are per channel (``tension`` and the :func:`still_channels`), per column, SI:
+    ``sigma`` the channel's sample noise (:func:`quiet_noise`), ``slow`` the variance per span of the
+    difference of two consecutive span means beyond what the white noise gives, from their median change
+    (:func:`slow_drift`) over the samples at rest."""
+
+    span: int
+    q: int
+    margin: int
+    limit: float
+    sigma: dict[str, np.ndarray]
+    slow: dict[str, np.ndarray]
+
+    @classmethod
+    def of_samples(cls, tau: np.ndarray, channels: dict[str, np.ndarray], span: int, rest: np.ndarray,
+                   options: WindowOptions, act: Activity) -> EndsTest:
+        """The test of a run (tensions (N, n) N, ``channels`` as :func:`still_channels`, ``rest`` (N,) the
+        samples the ranges call still, ``act`` their :class:`Activity`), ends ``options.ends_s`` and margin
+        ``options.ends_margin_s`` long for a span of ``span`` samples of ``options.span_s``. The slow wander
+        is measured where the spans also move within ``noise_factor`` quiet sigmas alone, not the floors: a
+        platform still swinging by a millimetre passes those, and would pass for a sway."""
+        from scipy.special import chdtri  # chi2's inverse survival function, without importing scipy.stats
+
+        every = {"tension": tau} | dict(channels)
+        floors = {"length": options.length_tol, "swivel": options.swivel_tol, "tilt": options.tilt_tol}
+        # a sigma at least a twelfth of the channel's range floor: a reading that sits on its counts does not
+        # make a few counts of quasi-static motion at a window's end a move
+        sigma = {c: np.maximum(quiet_noise(x), floors.get(c, 0.0) / 12.0) for c, x in every.items()}
+        strict = rest.copy()
+        for c, r in act.ranges.items():
+            strict &= np.all(r <= options.noise_factor * sigma[c], axis=1)
+        slow = {c: np.clip((slow_drift(x, span, strict) / MEDIAN_ABS) ** 2 / 2.0 - sigma[c] ** 2 / span, 0.0, None)
+                for c, x in every.items()}
+        per = options.span_s / span  # s per sample
+        q = max(1, int(round(options.ends_s / per)))
+        columns = sum(int(np.prod(x.shape[1:])) for x in every.values())
+        return cls(span, q, int(round(options.ends_margin_s / per)), float(chdtri(columns, options.ends_p)),
+                   sigma, slow)
+
+    def scores(self, block: dict[str, np.ndarray]) -> tuple[float, float]:
+        """The chi2 of the start and of the end of a block (channels (L, c) as ``sigma``) against the rest of
+        it, over the limit (<= 1: at rest); (inf, inf) when it holds fewer than 2 q samples."""
+        L = next(iter(block.values())).shape[0]
+        q, r = self.q, L - self.q
+        if r < self.q:
+            return math.inf, math.inf
+        dist = min(0.5 * L / self.span, 1.0)  # spans between the centres of an end and of the rest (at most 1)
+        head = tail = 0.0
+        for c, x in block.items():
+            x = x.reshape(L, -1)
+            var = np.maximum(self.sigma[c] ** 2 * (1.0 / q + 1.0 / r) + self.slow[c] * dist**2, 1e-300)
+            total = x.sum(axis=0)
+            first, last = x[:q].sum(axis=0), x[-q:].sum(axis=0)
+            head += float(np.sum((first / q - (total - first) / r) ** 2 / var))
+            tail += float(np.sum((last / q - (total - last) / r) ** 2 / var))
+        return head / self.limit, tail / self.limit
+
+    def trim(self, tau: np.ndarray, channels: dict[str, np.ndarray], min_len: int = 2) -> tuple[int, int]:
+        """Samples (a, b) to cut from the start and the end of a still stretch (tensions (L, n), channels
+        (L, c)): one at a time from the end further off, until both ends rest, then ``margin`` more at each end
+        that was cut; the whole stretch (a + b = L) when fewer than ``min_len`` samples would be left."""
+        every = {"tension": tau} | dict(channels)
+        L = tau.shape[0]
+        a, b = 0, 0
+        while L - a - b >= max(min_len, 2 * self.q):
+            head, tail = self.scores({c: x[a : L - b] for c, x in every.items()})
+            if max(head, tail) <= 1.0:
+                a += self.margin if a else 0
+                b += self.margin if b else 0
+                return (a, b) if L - a - b >= min_len else (a, L - a)
+            if head >= tail:
+                a += 1
+            else:
+                b += 1
+        return a, L - a
+
+
 @dataclass(frozen=True)
 class Stillness:
     """The stillness test of one run: span (samples), range per channel (SI, per column) and ripple tolerance
@@ -185,6 +298,7 @@ class Stillness:
     span: int
     thresholds: dict[str, np.ndarray]
     ripple_tol: float
+    ends: EndsTest | None = None
 
     @classmethod
     def of_samples(
@@ -206,7 +320,7 @@ class Stillness:
         rest = (kin <= 1.0) & (ripple <= 1.0)
         thr = {c: np.maximum(noise[c], spread[c] + options.drift_factor * slow_drift(x, w, rest))
                for c, x in channels.items()}
-        return cls(w, thr, ripple_tol)
+        return cls(w, thr, ripple_tol, EndsTest.of_samples(tau, channels, w, rest, options, act))
 
     @classmethod
     def of_run(
@@ -230,6 +344,11 @@ class Stillness:
         for c, x in channels.items():
             kin = max(kin, float(np.max((x.max(axis=0) - x.min(axis=0)) / self.thresholds[c])))
         return kin, float(tau.std(axis=0).max()) / self.ripple_tol
+
+    def trim(self, tau: np.ndarray, channels: dict[str, np.ndarray], min_len: int = 2) -> tuple[int, int]:
+        """Samples to cut from the start and the end of a still stretch (tensions (L, n), channels (L, c)) so
+        that what is left rests (:meth:`EndsTest.trim`); (0, 0) without an ends test."""
+        return (0, 0) if self.ends is None else self.ends.trim(tau, channels, min_len)
 
     def still(self, tau: np.ndarray, channels: dict[str, np.ndarray]) -> bool:
         """Whether a block of ``span`` samples is still: both scores of :meth:`judge` <= 1."""
@@ -288,6 +407,19 @@ def _merge_same(wins: list[Window], tau: np.ndarray, dl: np.ndarray, still: Stil
                 out[-1] = Window(prev.first, win.last, quasi=prev.quasi and win.quasi)
                 continue
         out.append(win)
+    return out
+
+
+def _rest_only(wins: list[Window], tau: np.ndarray, ch: dict[str, np.ndarray], still: Stillness,
+               min_len: int) -> list[Window]:
+    """The windows with the ends that still move cut off (:meth:`Stillness.trim`); a window left shorter
+    than ``min_len`` samples is dropped."""
+    out = []
+    for win in wins:
+        s = win.slice
+        a, b = still.trim(tau[s], {c: x[s] for c, x in ch.items()}, min_len)
+        if win.size - a - b >= min_len:
+            out.append(Window(win.first + a, win.last - b, win.setpoint, win.quasi))
     return out
 
 
@@ -405,7 +537,7 @@ def search_windows(
     score = np.maximum(kin, ripple)
     min_len = min_samples(opt, dt)
     wins = [Window(a, b) for a, b in _runs(score <= 1.0) if b - a + 1 >= min_len]
-    wins = _merge_same(wins, tau, dl, still)
+    wins = _rest_only(_merge_same(wins, tau, dl, still), tau, ch, still, min_len)
     sp = None if setpoints is None or not len(setpoints) else np.asarray(setpoints, dtype=float)
     if sp is None:
         if tau_ref is not None and N:
@@ -413,7 +545,7 @@ def search_windows(
             if away.size:
                 wins = [win for win in wins if win.last >= away[0] + w] or wins
         wins = sorted(wins + _gap_quasi(wins, score, w, opt), key=lambda c: c.first)
-        return WindowSearch(wins, list(wins), 0, [], still.thresholds, still.ripple_tol)
+        return WindowSearch(wins, list(wins), 0, [], still.thresholds, still.ripple_tol, still.ends)
     dist = np.full((len(wins), sp.shape[0]), np.inf)
     for i, win in enumerate(wins):
         dist[i] = _relative(sp, tau[win.slice].mean(axis=0))
@@ -424,7 +556,7 @@ def search_windows(
     extra, missing = _fill_missing(sp, wins, tau, kin, ripple, still, dt, min_len, opt)
     found = sorted(wins + extra, key=lambda c: c.first)
     used = [win for win in found if win.setpoint >= 0 or opt.use_unmatched]
-    return WindowSearch(found, used, sp.shape[0], missing, still.thresholds, still.ripple_tol)
+    return WindowSearch(found, used, sp.shape[0], missing, still.thresholds, still.ripple_tol, still.ends)
 
 
 def find_windows(
