@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.diagnose import RunRows, residuals
+from calib.diagnose import Residuals, RunRows, residuals
 from calib.effects import Effect, EffectModel, ParamSpec, Projected
 from calib.effects.builtin import AhrsYawDrift, DeviceAccuracy, ReferenceNoise
 from calib.selfcal.model import CHANNELS
@@ -147,13 +147,20 @@ class RunFit:
     poses: np.ndarray
     sigma: dict[str, np.ndarray]
     chi2: float = 0.0
+    res: Residuals | None = field(default=None, repr=False, compare=False)  # residuals at this state, if known
+
+    def residuals(self) -> Residuals:
+        """The run's weighted residuals at its state (those of its last evaluation when known)."""
+        if self.res is None:
+            self.res = residuals(self.problem, self.theta, self.poses)
+        return self.res
 
     def params(self) -> dict[str, dict[str, float]]:
         return self.problem.model.report(self.theta)
 
     def rms(self) -> dict[str, float]:
         """Rms residual per channel in physical units (N, m, rad), the rows and the reference row."""
-        res = residuals(self.problem, self.theta, self.poses, jacobian=False)
+        res = self.residuals()
         return {c: float(np.sqrt(np.mean(res.si[res.channel == c] ** 2))) for c in GROUPS
                 if (res.channel == c).any()}
 
@@ -231,23 +238,27 @@ def start_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect],
     return out
 
 
-def _cost(runs: list[RunFit]) -> float:
-    """Joint chi2 (weighted residuals' sum of squares, priors included)."""
-    return float(sum(np.sum(residuals(rf.problem, rf.theta, rf.poses, jacobian=False).r ** 2) for rf in runs))
+def _evaluate(runs: list[RunFit]) -> tuple[list, float]:
+    """Each run's Residuals with their Jacobian (the model's predictions carry their derivatives anyway, so
+    an accepted LM trial is not evaluated twice) and the joint chi2 (weighted residuals' sum of squares,
+    priors included)."""
+    blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
+    return blocks, float(sum(np.sum(b.r ** 2) for b in blocks))
 
 
-def stack(runs: list[RunFit], q: int, fixed_shared: bool = False, blocks_out: list | None = None
-          ) -> tuple[np.ndarray, np.ndarray, list]:
+def stack(runs: list[RunFit], q: int, fixed_shared: bool = False, blocks_out: list | None = None,
+          blocks: list | None = None) -> tuple[np.ndarray, np.ndarray, list]:
     """Joint weighted residuals and Jacobian; columns: shared (q, unless fixed), then per run own theta and
-    poses. Also the per-run column slices (own, poses); ``blocks_out`` receives each run's Residuals."""
-    rs, blocks, cols = [], [], []
+    poses. Also the per-run column slices (own, poses); ``blocks_out`` receives each run's Residuals;
+    ``blocks``: the runs' Residuals already evaluated at their state."""
+    rs, cols = [], []
+    if blocks is None:
+        blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
     start = 0 if fixed_shared else q
-    for rf in runs:
+    for rf, res in zip(runs, blocks, strict=True):
         k = rf.poses.shape[0]
         p_own = rf.theta.shape[0] - q
-        res = residuals(rf.problem, rf.theta, rf.poses)
         rs.append(res.r)
-        blocks.append(res)
         cols.append((slice(start, start + p_own), slice(start + p_own, start + p_own + 6 * k)))
         start += p_own + 6 * k
     if blocks_out is not None:
@@ -275,7 +286,7 @@ def _apply(runs: list[RunFit], x: np.ndarray, q: int, cols, fixed_shared: bool) 
         theta[:p_own] += x[so]
         if not fixed_shared and q:
             theta[p_own:] += x[:q]
-        out.append(replace(rf, theta=theta, poses=rf.poses + x[sp].reshape(-1, 6)))
+        out.append(replace(rf, theta=theta, poses=rf.poses + x[sp].reshape(-1, 6), res=None))
     return out
 
 
@@ -286,13 +297,15 @@ def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
 
 
 def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = False, max_iter: int = 60,
-            tol: float = 1e-5) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
+            tol: float = 1e-5, covariance: bool = True) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
     """Levenberg-Marquardt on the joint problem. Returns the runs, chi2, converged, iterations, the scaled
-    inverse normal matrix's shared block (covariance of the shared values) and the rank."""
+    inverse normal matrix's shared block (covariance of the shared values) and the rank (without
+    ``covariance``: zeros and 0, the SVD skipped)."""
     robot = runs[0].rows.robot
     q, _, lo, hi = _layout(shared, robot)
     lam, iterations, converged = 1e-5, 0, False
-    r, A, cols = stack(runs, q, fixed_shared)
+    blocks, _ = _evaluate(runs)
+    r, A, cols = stack(runs, q, fixed_shared, blocks=blocks)
     cost = float(r @ r)
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         scale = np.linalg.norm(A, axis=0)
@@ -307,7 +320,7 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
                 break  # the lightly damped step predicts nothing left to gain
             trial = _apply(runs, ds / scale, q, cols, fixed_shared)
             _clip(trial, q, lo, hi)
-            c1 = _cost(trial)
+            trial_blocks, c1 = _evaluate(trial)
             if np.isfinite(c1) and c1 < cost:
                 improved = True
                 break
@@ -316,12 +329,16 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
             converged = True
             break
         rel = (cost - c1) / max(cost, 1e-300)
-        runs, cost = trial, c1
+        runs, cost, blocks = trial, c1, trial_blocks
         lam = max(lam / 10.0, 1e-12)
         if rel < tol:
             converged = True
             break
-        r, A, _ = stack(runs, q, fixed_shared)
+        r, A, _ = stack(runs, q, fixed_shared, blocks=blocks)
+    for rf, b in zip(runs, blocks, strict=True):
+        rf.chi2, rf.res = float(b.r @ b.r), b
+    if not covariance:
+        return runs, cost, converged, iterations, np.zeros((q, q)), 0
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     As = A / scale
@@ -329,18 +346,13 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     keep = s > 1e-10 * s.max(initial=0.0)
     cov_s = (Vt[keep].T / s[keep] ** 2) @ Vt[keep] / np.outer(scale, scale)
     cov = cov_s[:q, :q] if not fixed_shared else np.zeros((q, q))
-    start = 0
-    for rf in runs:
-        mm = residuals(rf.problem, rf.theta, rf.poses, jacobian=False).r
-        rf.chi2 = float(mm @ mm)
-        start += mm.shape[0]
     return runs, cost, converged, iterations, cov, int(keep.sum())
 
 
 def components(rf: RunFit, redundancy: float, floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The run's weights rescaled by the variance component of each channel group (up and down), floored
     at the sensors' specification."""
-    res = residuals(rf.problem, rf.theta, rf.poses, jacobian=False)
+    res = rf.residuals()
     out = {}
     for c, sig in rf.sigma.items():
         m = res.channel == c
@@ -356,9 +368,11 @@ ROUNDS = 3  # variance-component rounds (each: fit, then new weights)
 
 
 def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, frozen: bool = False,
-             starts=None, sigmas=None, rounds: int = ROUNDS, max_iter: int = 60) -> JointFit:
+             starts=None, sigmas=None, rounds: int = ROUNDS, max_iter: int = 60, covariance: bool = True
+             ) -> JointFit:
     """Joint fit of the runs with the shared effects (values free, or ``frozen`` at their current values:
-    only each run's own unknowns fitted), with ``rounds`` of variance components (0: the given weights)."""
+    only each run's own unknowns fitted), with ``rounds`` of variance components (0: the given weights).
+    Without ``covariance`` (a fit only used as a start) the final covariance is zeros and n_free 0."""
     from calib.selfcal import sensor_noise
 
     shared = list(shared)
@@ -368,18 +382,19 @@ def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, 
     history = []
     it_total, conv = 0, False
     for rnd in range(rounds + 1):
-        runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, max_iter)
+        runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, max_iter,
+                                                  covariance=covariance or rnd < rounds)
         it_total += it
         history.append({rf.name: {"weights": {c: [float(v) for v in s] for c, s in rf.sigma.items()},
                                   "initial_pose": [float(v) for v in rf.theta[:6]]} for rf in runs})
-        m = sum(residuals(rf.problem, rf.theta, rf.poses, jacobian=False).r.shape[0] for rf in runs)
+        m = sum(rf.residuals().r.shape[0] for rf in runs)
         if rnd == rounds:
             break
         red = max(1.0 - rank / max(m, 1), 0.05)
         new = []
         for rf in runs:
             sig = components(rf, red, floor)
-            new.append(replace(rf, sigma=sig, problem=Problem(rf.problem.model, rf.rows.meas, sig)))
+            new.append(replace(rf, sigma=sig, problem=Problem(rf.problem.model, rf.rows.meas, sig), res=None))
         runs = new
     q = _layout(shared, robot)[0]
     values = runs[0].theta[runs[0].theta.shape[0] - q:] if q else np.zeros(0)
@@ -392,7 +407,7 @@ def held_out_score(rf: RunFit) -> float:
     Independent of the weights; lower is better."""
     from calib.selfcal import sensor_noise
 
-    res = residuals(rf.problem, rf.theta, rf.poses, jacobian=False)
+    res = rf.residuals()
     return score_of(res.si, res.channel, sensor_noise(rf.rows.robot))
 
 

@@ -147,7 +147,7 @@ class Judge:
         weights (no variance-component round), and that fit."""
         eff = self.effects(names)
         f = fit_runs(self.items, eff, starts=_starts(current, range(len(self.items))),
-                     sigmas=[rf.sigma for rf in current.runs], rounds=0, max_iter=QUICK_ITER)
+                     sigmas=[rf.sigma for rf in current.runs], rounds=0, max_iter=QUICK_ITER, covariance=False)
         return sum(held_out_score(rf) for rf in f.runs), f
 
     def judge(self, t: Trial) -> Trial:
@@ -164,8 +164,8 @@ class Judge:
         with them frozen (least squares on its own columns); the figure is run j's held-out score."""
         f = t.fit
         q = f.values.shape[0]
-        blocks: list = []
-        r, A, cols = stack(f.runs, q, blocks_out=blocks)
+        blocks = [rf.residuals() for rf in f.runs]
+        r, A, cols = stack(f.runs, q, blocks=blocks)
         scale = np.linalg.norm(A, axis=0)
         scale[scale == 0] = 1.0
         As = A / scale
