@@ -206,19 +206,19 @@ def test_a_tolerance_needs_its_unit_and_a_bad_one_is_one_sentence(value, said, t
 
 def test_exploratory_solves_leave_the_runs_solution_and_export_names_it(run, tmp_path, capsys):
     saved = (run / "solution.json").read_bytes()
-    for extra in (["--effects", "tension_offset"], ["--noise", "estimate"], ["--method", "lse", "--stride", "20"]):
+    for extra in (["--effects", "tension_offset"], ["--noise", "paper"], ["--method", "lse", "--stride", "20"]):
         assert main(["solve", str(run), *extra]) == 0
         out = capsys.readouterr().out
         assert f"not saved: {run / 'solution.json'} stays the run's solution (--save to replace it)" in out
         assert (run / "solution.json").read_bytes() == saved
     assert main(["export", str(run), "--format", "npz", "-o", str(tmp_path / "a.npz")]) == 0
-    assert (f"with its solution {run / 'solution.json'} (method tlse, noise paper, effects none"
+    assert (f"with its solution {run / 'solution.json'} (method tlse, noise estimate, effects device_accuracy"
             in capsys.readouterr().out)
-    assert main(["solve", str(run), "--noise", "estimate", "--save", "--json"]) == 0
+    assert main(["solve", str(run), "--noise", "paper", "--save", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert json.loads((run / "solution.json").read_text()) == doc and doc["noise"]["source"] == "estimate"
+    assert json.loads((run / "solution.json").read_text()) == doc and doc["noise"]["source"] == "paper"
     assert main(["export", str(run), "--format", "npz", "-o", str(tmp_path / "b.npz")]) == 0
-    assert "(method tlse, noise estimate, effects " in capsys.readouterr().out
+    assert "(method tlse, noise paper, effects " in capsys.readouterr().out
 
 
 # ---- 14: run.yaml records --pause, and previous_offsets names the run the offsets came from -----------------

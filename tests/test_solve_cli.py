@@ -22,7 +22,7 @@ def parsed_run(irma_data, tmp_path_factory):
 
 
 def test_solve_json_follows_the_spec(parsed_run, capsys):
-    assert main(["solve", str(parsed_run), "--json", "--noise", "paper"]) == 0  # eq. 18: 10 N on the tensions
+    assert main(["solve", str(parsed_run), "--json", "--noise", "paper", "--save"]) == 0  # eq. 18: 10 N on the tensions
     doc = json.loads(capsys.readouterr().out)
     for key in ("method", "initial_pose", "reference_sample", "sensor_offsets", "poses", "windows", "chi2",
                 "dof", "residuals", "effects", "timing"):
@@ -55,7 +55,7 @@ def test_raw_log_import_then_solve(irma_data, tmp_path, capsys):
     run = tmp_path / "log"
     import_irma(irma_data / "sc_8_final.log", run)
     ref = ",".join(str(v) for v in ZETA_0_REAL)
-    assert main(["solve", str(run), "--reference", ref, "--noise", "paper"]) == 0  # the paper's eq. 20 figure
+    assert main(["solve", str(run), "--reference", ref, "--noise", "paper", "--save"]) == 0  # the paper's eq. 20 figure
     text = capsys.readouterr().out
     assert "initial pose" in text and "eps_p" in text
     assert "windows: 8 planned, 9 found, 8 used" in text and text.count("no setpoint - not used") == 1
@@ -89,7 +89,7 @@ def test_misfit_scales_the_printed_sigma_to_the_order_of_the_real_error(irma_dat
     assert np.max(err / formal) < 3  # the model error is in the weights: the formal bounds are of its order
     # issue 29's windows: the raw log's y is 2.02 sigmas from zeta_0_real (10.6 mm at 5.3 mm), the rest < 2
     assert np.all(err <= 2.0 * scaled) or (log.endswith(".log") and np.all(err <= 2.1 * scaled))
-    assert main(["solve", str(run), "--noise", "paper"]) == 0
+    assert main(["solve", str(run), "--noise", "paper", "--save"]) == 0
     text = capsys.readouterr().out
     assert "(*)" not in text and json.loads((run / "solution.json").read_text())["sigma_scale"] == 1.0
     assert main(["solve", str(run), "--noise", "estimate"]) == 0

@@ -238,7 +238,7 @@ def test_the_detector_waits_for_the_ends_test_the_search_applies(robot):
     rng = np.random.default_rng(4)
     sp = _setpoints(rng, 3)
     t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, noise=0.5, decay=2.5)
-    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp, options=WindowOptions(ends_p=1e-3))
     still = Stillness(5, ws.thresholds, ws.ripple_tol, ws.ends)
     det = EquilibriumDetector(DT, DetectorConfig.for_robot(robot, stillness=still))
     det.start(0.0)

@@ -48,7 +48,7 @@ def load_prior(path: Path | None, robot, classes) -> list:
 
 
 def diagnose_runs(args) -> int:
-    from acquisition.cli.diagnose import effect_classes, parse_effects
+    from acquisition.cli.effect_options import effect_classes, parse_effects
     from acquisition.diagnose_report import format_selection, selection_json
     from calib.multirun import NOT_CANDIDATES
     from calib.robot_model import model_document, write_model
@@ -97,7 +97,7 @@ def diagnose_runs(args) -> int:
 def solve_with_model_file(args, run, reference, solve_kwargs: dict[str, Any]):
     """`cdpr solve RUN --model MODEL.yaml`: the run solved with the model's effects as priors and its own
     unknowns refitted (weights by variance components); the Solution and a line on the model."""
-    from acquisition.cli.diagnose import effect_classes
+    from acquisition.cli.effect_options import effect_classes
     from calib.diagnose import run_rows
     from calib.robot_model import solve_with_model
     from calib.selfcal import solve

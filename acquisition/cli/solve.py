@@ -79,7 +79,7 @@ def _solve(args) -> int:
     run = read_run(args.run)
     with_effects = bool(getattr(args, "effects", None))
     if getattr(args, "effects_from", None) and not with_effects:
-        from acquisition.cli.diagnose import effect_classes
+        from acquisition.cli.effect_options import effect_classes
 
         names = sorted(set(effect_classes(args.effects_from)) - set(effect_classes([])))
         warnings.warn(f"--effects-from defines {', '.join(names) or 'no new effect'}; without --effects none "
@@ -133,7 +133,7 @@ def _solve(args) -> int:
 
 def _default_options(args) -> bool:
     """True for a solve with every option at its default: the solve `cdpr startup` makes, not an exploration."""
-    return (args.method == "tlse" and args.noise == "paper" and args.stride == 1 and args.reference_sample is None
+    return (args.method == "tlse" and args.noise == default_noise(args.method) and args.stride == 1 and args.reference_sample is None
             and not getattr(args, "effects", None) and not getattr(args, "effects_from", None))
 
 
