@@ -133,7 +133,8 @@ def _solve(args) -> int:
 
 def _default_options(args) -> bool:
     """True for a solve with every option at its default: the solve `cdpr startup` makes, not an exploration."""
-    return (args.method == "tlse" and args.noise == default_noise(args.method) and args.stride == 1 and args.reference_sample is None
+    return (args.method == "tlse" and args.noise == default_noise(args.method) and args.stride == 1
+            and args.reference_sample is None
             and not getattr(args, "effects", None) and not getattr(args, "effects_from", None))
 
 
