@@ -105,24 +105,6 @@ class Learned(Projected):
                 for s, sd in zip(self.inner.params(robot), self.sd, strict=True)]
 
 
-def learned_effects(shared: Sequence[Effect], robot, values: np.ndarray, sd: np.ndarray | None = None
-                    ) -> list[Effect]:
-    """The shared effects at the values (q,) of a fit (the inner effects of Learned ones), frozen or with
-    priors of sd (q,)."""
-    out, q = [], 0
-    for e in shared:
-        inner = e.inner if isinstance(e, Learned) else e
-        full = e.full_values(robot, values[q:q + len(e.params(robot))]) if isinstance(e, Projected) else \
-            values[q:q + len(e.params(robot))]
-        nq = len(e.params(robot))
-        s = None if sd is None else sd[q:q + nq]
-        if isinstance(e, Projected) and not isinstance(e, Learned) and s is not None:
-            s = np.sqrt(np.clip(np.diag(e.basis @ np.diag(s**2) @ e.basis.T), 0, None))
-        out.append(Learned(inner, robot, full, s))
-        q += nq
-    return out
-
-
 def own_effects(rows: RunRows, shared: Sequence[Effect]) -> list[Effect]:
     """A run's own unknowns besides its poses: device errors (priors aside where a shared effect overlaps),
     the reference window's noise, the yaw drift rate."""

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from calib.effects import Effect, EffectModel
+from calib.effects import Effect
 from calib.errors import CdprError
 from calib.multirun import JointFit, Learned, RunFit, fit_runs
 
@@ -172,8 +172,3 @@ def solve_with_model(rows, effects: list[Effect], name: str = "run") -> RunFit:
     """One run solved with a model's effects as priors and its own unknowns refitted (initial pose, poses,
     device errors, reference noise, yaw drift rate), weights by variance components."""
     return fit_runs([(name, rows)], effects).runs[0]
-
-
-def model_of(rf: RunFit) -> EffectModel:
-    """The measurement model a solved run was fitted with (to write its Solution)."""
-    return rf.problem.model
