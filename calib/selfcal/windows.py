@@ -323,7 +323,8 @@ class Stillness:
         rest = (kin <= 1.0) & (ripple <= 1.0)
         thr = {c: np.maximum(noise[c], spread[c] + options.drift_factor * slow_drift(x, w, rest))
                for c, x in channels.items()}
-        return cls(w, thr, ripple_tol, EndsTest.of_samples(tau, channels, w, rest, options, act))
+        ends = EndsTest.of_samples(tau, channels, w, rest, options, act) if options.ends_p > 0 else None
+        return cls(w, thr, ripple_tol, ends)  # ends_p 0: no test, and none of its noise figures computed
 
     @classmethod
     def of_run(
