@@ -37,6 +37,7 @@ import numpy as np
 from calib.robot import NoiseLevels, Robot
 from calib.selfcal._solve import (
     APPROACH_LENGTH,
+    APPROACH_SWIVEL,
     APPROACH_TENSION,
     METHODS,
     NOISE,
@@ -106,6 +107,7 @@ __all__ = [
     "compare_pose",
     "noise_levels",
     "APPROACH_LENGTH",
+    "APPROACH_SWIVEL",
     "APPROACH_TENSION",
     "approach_directions",
     "measurement_rows",
