@@ -189,6 +189,11 @@ def physical(robot: Robot, poses: np.ndarray, p: int) -> Physical:
     return Physical(kin.lengths, kin.swivel, tm.tau, jac.lengths, jac.swivel, tm.jacobian, z, z.copy(), z.copy())
 
 
+def _rows(ph: Physical, rows: slice) -> Physical:
+    """The physical quantities of some of the poses (views)."""
+    return Physical(*(getattr(ph, f.name)[rows] for f in dataclasses.fields(Physical)))
+
+
 def wrap(a: np.ndarray) -> np.ndarray:
     """Angles wrapped to (-pi, pi]."""
     return np.angle(np.exp(1j * a))
@@ -292,8 +297,10 @@ class EffectModel:
         directions of cable motion and load change before each row, for the effects that depend on them."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)
-        robot, at = self._physical(theta, z)
-        _, ref = self._physical(theta, theta[None, :6])
+        k = z.shape[0]
+        # the poses and zeta_0 in one call (everything is per pose): the model's geometry and statics once
+        robot, both = self._physical(theta, np.vstack([z, theta[None, :6]]))
+        at, ref = _rows(both, slice(0, k)), _rows(both, slice(k, k + 1))
         for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta
             getattr(ref, "t" + name)[..., :6] += getattr(ref, "d" + name)
         out: dict[str, ChannelPrediction] = {}
