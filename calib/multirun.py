@@ -278,29 +278,107 @@ def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
             rf.theta[-q:] = np.clip(rf.theta[-q:], lo, hi)
 
 
+@dataclass
+class Arrow:
+    """Normal equations of the joint problem by blocks, on unit-norm columns: per run, the pose blocks U
+    (k, 6, 6), their coupling W (k, 6, t) with the run's theta columns (own, then shared unless fixed), the
+    theta block V (t, t) and the gradients gp (k, 6), gt (t,); the column norms of the joint Jacobian (the
+    scale, in :func:`stack`'s column order) and each run's columns there (own, poses)."""
+
+    U: list[np.ndarray]
+    W: list[np.ndarray]
+    V: list[np.ndarray]
+    gp: list[np.ndarray]
+    gt: list[np.ndarray]
+    scale: np.ndarray
+    cols: list[tuple[slice, slice]]
+    q: int  # shared columns in the problem (0 when fixed)
+
+    @classmethod
+    def of(cls, runs: list[RunFit], blocks: list[Residuals], q: int, fixed_shared: bool) -> Arrow:
+        """From the runs' Residuals: a pose's columns only meet that pose's rows, so the pose blocks of the
+        normal matrix are 6 x 6 (no dense m x (6k + p) product)."""
+        qq = 0 if fixed_shared else q
+        raw, cols, start = [], [], qq
+        for rf, res in zip(runs, blocks, strict=True):
+            k = rf.poses.shape[0]
+            p_own = rf.theta.shape[0] - q
+            X = res.A[:, :6 * k].reshape(-1, k, 6).transpose(1, 2, 0)  # (k, 6, m)
+            T = res.A[:, 6 * k:6 * k + p_own + qq]
+            raw.append((X @ X.transpose(0, 2, 1), X @ T, T.T @ T, X @ res.r, T.T @ res.r))
+            cols.append((slice(start, start + p_own), slice(start + p_own, start + p_own + 6 * k)))
+            start += p_own + 6 * k
+        d2 = np.zeros(start)
+        for (U, _, V, _, _), (so, sp) in zip(raw, cols, strict=True):
+            d2[sp] = np.diagonal(U, axis1=1, axis2=2).ravel()
+            p_own = so.stop - so.start
+            d2[so] = np.diag(V)[:p_own]
+            d2[:qq] += np.diag(V)[p_own:]
+        scale = np.sqrt(d2)
+        scale[scale == 0] = 1.0
+        out = cls([], [], [], [], [], scale, cols, qq)
+        for (U, W, V, gp, gt), (so, sp) in zip(raw, cols, strict=True):
+            sp_, st = scale[sp].reshape(-1, 6), np.r_[scale[so], scale[:qq]]
+            out.U.append(U / (sp_[:, :, None] * sp_[:, None, :]))
+            out.W.append(W / (sp_[:, :, None] * st[None, None, :]))
+            out.V.append(V / np.outer(st, st))
+            out.gp.append(gp / sp_)
+            out.gt.append(gt / st)
+        return out
+
+    def step(self, damping: float) -> tuple[np.ndarray, float]:
+        """The step ds (scaled columns) solving (N + damping diag(N)) ds = -g by eliminating each run's pose
+        blocks (a Schur complement on [shared, own_1, own_2, ...]), and the decrease -(2 g.ds + ds.N.ds) the
+        undamped quadratic model predicts for it."""
+        qq = self.q
+        own = [so.stop - so.start for so, _ in self.cols]
+        at = np.cumsum([qq, *own])
+        M, rhs = np.zeros((at[-1], at[-1])), np.zeros(at[-1])
+        dg = np.zeros(at[-1])
+        parts = []
+        for j, (U, W, V, gp, gt) in enumerate(zip(self.U, self.W, self.V, self.gp, self.gt, strict=True)):
+            Ud = U.copy()
+            Ud[:, range(6), range(6)] += damping * np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12)
+            sol = np.linalg.solve(Ud, np.concatenate([W, gp[..., None]], axis=2))
+            Y, y = sol[..., :-1], sol[..., -1]
+            idx = np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)]
+            M[np.ix_(idx, idx)] += V - np.einsum("kip,kiq->pq", W, Y)
+            rhs[idx] += gt - np.einsum("kip,ki->p", W, y)
+            dg[idx] += np.diag(V)
+            parts.append((idx, Y, y))
+        M[range(at[-1]), range(at[-1])] += damping * np.maximum(dg, 1e-12)
+        x = -np.linalg.solve(M, rhs)
+        ds = np.zeros(self.scale.shape[0])
+        ds[:qq] = x[:qq]
+        gain = 0.0
+        for (so, sp), (idx, Y, y), U, W, V, gp, gt in zip(self.cols, parts, self.U, self.W, self.V, self.gp,
+                                                          self.gt, strict=True):
+            dt = x[idx]
+            dp = -(y + Y @ dt)
+            ds[so], ds[sp] = dt[:so.stop - so.start], dp.ravel()
+            Ud = (U @ dp[..., None])[..., 0]
+            quad = float(np.sum(dp * Ud) + 2.0 * np.sum(dp * (W @ dt)) + dt @ V @ dt)
+            gain -= 2.0 * (float(np.sum(gp * dp)) + float(gt @ dt)) + quad
+        return ds, gain
+
+
 def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = False, max_iter: int = 60,
             tol: float = 1e-5, covariance: bool = True) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
-    """Levenberg-Marquardt on the joint problem. Returns the runs, chi2, converged, iterations, the scaled
-    inverse normal matrix's shared block (covariance of the shared values) and the rank (without
-    ``covariance``: zeros and 0, the SVD skipped)."""
+    """Levenberg-Marquardt on the joint problem (its normal equations by blocks, :class:`Arrow`). Returns
+    the runs, chi2, converged, iterations, the scaled inverse normal matrix's shared block (covariance of
+    the shared values) and the rank (without ``covariance``: zeros and 0, the SVD skipped)."""
     robot = runs[0].rows.robot
     q, _, lo, hi = _layout(shared, robot)
     lam, iterations, converged = 1e-5, 0, False
-    blocks, _ = _evaluate(runs)
-    r, A, cols = stack(runs, q, fixed_shared, blocks=blocks)
-    cost = float(r @ r)
+    blocks, cost = _evaluate(runs)
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
-        scale = np.linalg.norm(A, axis=0)
-        scale[scale == 0] = 1.0
-        As = A / scale
-        N = As.T @ As
-        g = As.T @ r
+        arrow = Arrow.of(runs, blocks, q, fixed_shared)
         improved = False
         for trial_no in range(LAMBDA_TRIES):
-            ds = -np.linalg.solve(N + (lam + RIDGE) * np.diag(np.maximum(np.diag(N), 1e-12)), g)
-            if trial_no == 0 and -float(2.0 * g @ ds + ds @ N @ ds) < tol * cost:
+            ds, gain = arrow.step(lam + RIDGE)
+            if trial_no == 0 and gain < tol * cost:
                 break  # the lightly damped step predicts nothing left to gain
-            trial = _apply(runs, ds / scale, q, cols, fixed_shared)
+            trial = _apply(runs, ds / arrow.scale, q, arrow.cols, fixed_shared)
             _clip(trial, q, lo, hi)
             trial_blocks, c1 = _evaluate(trial)
             if np.isfinite(c1) and c1 < cost:
@@ -316,11 +394,11 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
         if rel < tol:
             converged = True
             break
-        r, A, _ = stack(runs, q, fixed_shared, blocks=blocks)
     for rf, b in zip(runs, blocks, strict=True):
         rf.chi2, rf.res = float(b.r @ b.r), b
     if not covariance:
         return runs, cost, converged, iterations, np.zeros((q, q)), 0
+    _, A, _ = stack(runs, q, fixed_shared, blocks=blocks)
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     As = A / scale
