@@ -138,7 +138,7 @@ class Effect:
         the step, is far below the rounding error of a step of 1e-6 of a parameter's typical size)."""
         specs = self.params(robot)
         cols = [[], [], []]
-        base = recompute(values)
+        base = base_quantities(recompute, values)
         for j, s in enumerate(specs):
             h = self.fd_steps * s.scale
             vp = values.copy()
@@ -177,6 +177,13 @@ class Effect:
         return [Implausible(f"{self.name}.{s.name}", float(v), s.unit, *s.plausible)
                 for s, v in zip(self.params(robot), values, strict=True)
                 if not s.plausible[0] <= v <= s.plausible[1]]
+
+
+def base_quantities(recompute, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(L, sigma, tau) at the effect's own values: those the model computed already when ``recompute``
+    carries them (``recompute.base``), else recomputed."""
+    base = getattr(recompute, "base", None)
+    return recompute(values) if base is None else base
 
 
 def physical(robot: Robot, poses: np.ndarray, p: int) -> Physical:
@@ -284,6 +291,7 @@ class EffectModel:
                 tm = tension_model(r, kin=kin, derivatives=False)
                 return kin.lengths, kin.swivel, tm.tau
 
+            recompute.base = (ph.L, ph.sigma, ph.tau)  # at theta itself: computed above, the same way
             dL, ds, dt = e.physical_columns(robot, np.asarray(theta[sl]), poses, recompute)
             ph.tL[..., sl], ph.tsigma[..., sl], ph.ttau[..., sl] = dL, ds, dt
         return robot, ph
