@@ -110,35 +110,21 @@ class Residuals:
 
 def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: bool = True) -> Residuals:
     """Dense weighted residuals and Jacobian (columns: the k pose blocks, then theta). Order: per group,
-    channel and component, the observed rows; then the reference row's observed entries; then the priors."""
+    channel and component, the observed rows; then the reference row's observed entries; then the priors
+    (``Problem.observed``)."""
     ev = problem.evaluate(theta, poses, derivatives=jacobian)
+    obs = problem.observed
     k, p = poses.shape[0], theta.shape[0]
-    rs, sis, ch, ix, rw, jac = [], [], [], [], [], []  # jac: (rows of A, pose index or -1, J rows, G rows)
-    for g, r, J, G in ev.groups:
-        for c in g.channels:
-            sl = g.slices[c]
-            w = g.weight[:, sl]
-            a, i = np.nonzero(w.T > 0)  # component-major: component a, then the rows observed in it
-            cols = sl.start + a
+    ok, m0, q = obs.ref, obs.n_ref, problem.prior_idx.size
+    rs, sis, jac = [], [], []
+    for (g, r, J, G), entries in zip(ev.groups, obs.groups, strict=True):
+        for i, cols, w in entries:
             rs.append(r[i, cols])
-            sis.append(r[i, cols] / w[i, a])
-            ch.append(np.full(a.size, c, dtype=object))
-            ix.append(a)
-            rw.append(g.idx[i])
+            sis.append(r[i, cols] / w)
             if jacobian:
                 jac.append((g.idx[i], J[i, cols], G[i, cols]))
-    n = problem.model.robot.n
-    widths = [3 if c == "orientation" else n for c in problem.ref_channels]
-    ref_ch = np.repeat(np.array(problem.ref_channels, dtype=object), widths)
-    ref_ix = np.concatenate([np.arange(wd) for wd in widths]) if widths else np.zeros(0, int)
-    m0 = ref_ch.size
-    ok = np.flatnonzero(problem.ref_weight[:m0] > 0)
-    q = problem.prior_idx.size
     rs += [ev.r0[ok], ev.r0[m0:m0 + q]]
     sis += [ev.r0[ok] / problem.ref_weight[ok], ev.r0[m0:m0 + q] * problem.prior_sd]
-    ch += [ref_ch[ok], np.full(q, "prior", dtype=object)]  # prior pseudo-readings: channel "prior", row -2
-    ix += [ref_ix[ok], np.asarray(problem.prior_idx, int)]
-    rw += [np.full(ok.size, -1), np.full(q, -2)]
     if jacobian:
         m = sum(x[0].size for x in jac)
         A = np.zeros((m + ok.size + q, 6 * k + p))
@@ -152,9 +138,7 @@ def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: 
         A[start + ok.size:, 6 * k:] = ev.g0[m0:m0 + q]
     else:
         A = np.zeros((0, 0))
-    chan = np.concatenate(ch).astype(str)
-    return Residuals(np.concatenate(rs), A, np.concatenate(sis), chan, np.concatenate(ix).astype(int),
-                     np.concatenate(rw).astype(int))
+    return Residuals(np.concatenate(rs), A, np.concatenate(sis), obs.channel, obs.index, obs.row)
 
 
 OBSERVABLE = 1e-2  # a typical-size change must move the weighted residuals by this much (noise units)

@@ -39,6 +39,9 @@ from calib.selfcal.problem import Problem
 GROUPS = CHANNELS  # the channel groups whose noise the variance components set
 LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
 RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
+# the normal matrix's eigenvalue ratio above which the joint Jacobian has full rank without an SVD (its singular
+# values above 1e-7 of the largest, far from the SVD's cut at 1e-10; eigvalsh errs by ~1e-16 of the largest)
+FULL_RANK = 1e-14
 PIN = 1e-6  # a device prior that steps aside is pinned at its absent value: sd = PIN * its typical size
 # which device priors a shared effect overlaps (the same columns): they step aside while it is fitted
 OVERLAPS = {"tension_offset": ("b_",), "ahrs_mounting": ("b_roll", "b_pitch")}
@@ -402,11 +405,18 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     As = A / scale
-    U, s, Vt = np.linalg.svd(As, full_matrices=False)
-    keep = s > 1e-10 * s.max(initial=0.0)
-    cov_s = (Vt[keep].T / s[keep] ** 2) @ Vt[keep] / np.outer(scale, scale)
-    cov = cov_s[:q, :q] if not fixed_shared else np.zeros((q, q))
-    return runs, cost, converged, iterations, cov, int(keep.sum())
+    N = As.T @ As
+    ev = np.linalg.eigvalsh(N)
+    if ev[0] > FULL_RANK * ev[-1]:  # every singular value of As above 1e-7 of the largest: full rank
+        rank = N.shape[0]
+        cov_s = np.linalg.solve(N, np.eye(N.shape[0])[:, :q])[:q] if q and not fixed_shared else None
+    else:  # a direction the data barely see: the pseudo-inverse and rank of the SVD (cut at 1e-10)
+        _, s, Vt = np.linalg.svd(As, full_matrices=False)
+        keep = s > 1e-10 * s.max(initial=0.0)
+        rank = int(keep.sum())
+        cov_s = ((Vt[keep, :q].T / s[keep] ** 2) @ Vt[keep, :q]) if not fixed_shared else None
+    cov = np.zeros((q, q)) if cov_s is None else cov_s / np.outer(scale[:q], scale[:q])
+    return runs, cost, converged, iterations, cov, rank
 
 
 def components(rf: RunFit, redundancy: float, floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -11,6 +11,7 @@ after the reference row: a residual and a parameter more, so the degrees of free
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -87,6 +88,21 @@ class Evaluation:
         return 0.5 * (sum(float(np.sum(r * r)) for _, r, _, _ in self.groups) + float(self.r0 @ self.r0))
 
 
+@dataclass
+class Observed:
+    """The observed entries of a problem's residuals in a fixed order: per group, per channel (row positions
+    in the group (e,), columns (e,), weights (e,)); then the reference row's observed entries (``ref``,
+    indices into r0's first ``n_ref``) and the priors; their labels per entry: channel, component, row
+    (-1: the reference row, -2: a prior)."""
+
+    groups: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
+    ref: np.ndarray
+    n_ref: int
+    channel: np.ndarray
+    index: np.ndarray
+    row: np.ndarray
+
+
 class Problem:
     """Residuals of eq. 13 weighted as eq. 17 for a measurement model and readings.
 
@@ -157,6 +173,32 @@ class Problem:
         a = np.zeros(shape) if a is None else np.asarray(a, float)
         b = np.zeros(shape) if b is None else np.asarray(b, float)
         return {"approach": np.stack([np.atleast_2d(a), np.atleast_2d(b)], axis=-1)}
+
+    @functools.cached_property
+    def observed(self) -> Observed:
+        """Where the observed entries are (fixed by the weights): their order and labels (:class:`Observed`)."""
+        per_group, ch, ix, rw = [], [], [], []
+        for g in self.groups:
+            entries = []
+            for c in g.channels:
+                sl = g.slices[c]
+                a, i = np.nonzero(g.weight[:, sl].T > 0)  # component-major: component a, its observed rows
+                entries.append((i, sl.start + a, g.weight[i, sl.start + a]))
+                ch.append(np.full(a.size, c))
+                ix.append(a)
+                rw.append(g.idx[i])
+            per_group.append(entries)
+        n = self.model.robot.n
+        widths = [channel_width(c, n) for c in self.ref_channels]
+        ref_ch = np.repeat(np.array(self.ref_channels), widths) if widths else np.zeros(0, str)
+        ref_ix = np.concatenate([np.arange(w) for w in widths]) if widths else np.zeros(0, int)
+        ok = np.flatnonzero(self.ref_weight[:ref_ch.size] > 0)
+        q = self.prior_idx.size
+        ch += [ref_ch[ok], np.full(q, "prior")]  # prior pseudo-readings: channel "prior", row -2
+        ix += [ref_ix[ok], np.asarray(self.prior_idx, int)]
+        rw += [np.full(ok.size, -1), np.full(q, -2)]
+        return Observed(per_group, ok, ref_ch.size, np.concatenate(ch).astype(str),
+                        np.concatenate(ix).astype(int), np.concatenate(rw).astype(int))
 
     @property
     def n_residuals(self) -> int:
