@@ -344,11 +344,19 @@ class Arrow:
             Ud[:, range(6), range(6)] += damping * np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12)
             sol = np.linalg.solve(Ud, np.concatenate([W, gp[..., None]], axis=2))
             Y, y = sol[..., :-1], sol[..., -1]
-            idx = np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)]
-            M[np.ix_(idx, idx)] += V - np.einsum("kip,kiq->pq", W, Y)
-            rhs[idx] += gt - np.einsum("kip,ki->p", W, y)
-            dg[idx] += np.diag(V)
-            parts.append((idx, Y, y))
+            t = W.shape[2]
+            Wf = W.reshape(-1, t)
+            S, rr = V - Wf.T @ Y.reshape(-1, t), gt - Wf.T @ y.ravel()
+            o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]  # the run's own block, then the shared one
+            M[o, o] += S[:no, :no]
+            M[o, :qq] += S[:no, no:]
+            M[:qq, o] += S[no:, :no]
+            M[:qq, :qq] += S[no:, no:]
+            rhs[o] += rr[:no]
+            rhs[:qq] += rr[no:]
+            dg[o] += np.diag(V)[:no]
+            dg[:qq] += np.diag(V)[no:]
+            parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
         M[range(at[-1]), range(at[-1])] += damping * np.maximum(dg, 1e-12)
         x = -np.linalg.solve(M, rhs)
         ds = np.zeros(self.scale.shape[0])
