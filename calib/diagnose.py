@@ -108,11 +108,12 @@ class Residuals:
     row: np.ndarray
 
 
-def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: bool = True) -> Residuals:
+def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: bool = True,
+              physical: tuple | None = None) -> Residuals:
     """Dense weighted residuals and Jacobian (columns: the k pose blocks, then theta). Order: per group,
     channel and component, the observed rows; then the reference row's observed entries; then the priors
-    (``Problem.observed``)."""
-    ev = problem.evaluate(theta, poses, derivatives=jacobian)
+    (``Problem.observed``). ``physical``: as :meth:`Problem.evaluate`'s."""
+    ev = problem.evaluate(theta, poses, derivatives=jacobian, physical=physical)
     obs = problem.observed
     k, p = poses.shape[0], theta.shape[0]
     ok, m0, q = obs.ref, obs.n_ref, problem.prior_idx.size

@@ -296,18 +296,25 @@ class EffectModel:
             ph.tL[..., sl], ph.tsigma[..., sl], ph.ttau[..., sl] = dL, ds, dt
         return robot, ph
 
+    def physical(self, theta: np.ndarray, poses: np.ndarray) -> tuple[Robot, Physical]:
+        """The robot with the robot effects at theta applied, and the physical quantities at poses (k, 6) with
+        their theta columns (p,): what ``predict`` computes for its poses and zeta_0 (problems that share the
+        robot and its robot effects can compute them for all their poses at once, ``physical=``)."""
+        return self._physical(np.asarray(theta, dtype=float), np.asarray(poses, dtype=float).reshape(-1, 6))
+
     def predict(
         self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None,
-        approach: np.ndarray | None = None,
+        approach: np.ndarray | None = None, physical: tuple[Robot, Physical] | None = None,
     ) -> dict[str, ChannelPrediction]:
         """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included; ``times`` (k,)
         s after the reference sample, for the effects that depend on time; ``approach`` (k, n, 2) the
-        directions of cable motion and load change before each row, for the effects that depend on them."""
+        directions of cable motion and load change before each row, for the effects that depend on them;
+        ``physical``: ``self.physical(theta, [poses; zeta_0])`` if already computed."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)
         k = z.shape[0]
         # the poses and zeta_0 in one call (everything is per pose): the model's geometry and statics once
-        robot, both = self._physical(theta, np.vstack([z, theta[None, :6]]))
+        robot, both = physical if physical is not None else self._physical(theta, np.vstack([z, theta[None, :6]]))
         at, ref = _rows(both, slice(0, k)), _rows(both, slice(k, k + 1))
         for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta
             getattr(ref, "t" + name)[..., :6] += getattr(ref, "d" + name)

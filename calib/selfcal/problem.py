@@ -206,10 +206,20 @@ class Problem:
         return int(sum(np.count_nonzero(g.weight) for g in self.groups) + np.count_nonzero(self.ref_weight)
                    + self.prior_idx.size)
 
-    def evaluate(self, theta: np.ndarray, poses: np.ndarray, derivatives: bool = True) -> Evaluation:
+    @property
+    def single(self) -> bool:
+        """One group of rows whose channels include the reference row's (one model call per evaluation)."""
+        return len(self.groups) == 1 and set(self.ref_channels) <= set(self.groups[0].channels)
+
+    def evaluate(self, theta: np.ndarray, poses: np.ndarray, derivatives: bool = True,
+                 physical: tuple | None = None) -> Evaluation:
         """Weighted residuals (and Jacobian blocks) at theta (p,) and poses (k, 6). The reference pose is
         predicted in the same model call as the first group whose channels include its own (one call less
-        per evaluation: the diagnosis's refits spend most of their time in these calls)."""
+        per evaluation: the diagnosis's refits spend most of their time in these calls). ``physical``
+        (a :attr:`single` problem of an EffectModel): the model's ``physical(theta, [zeta_0; poses; zeta_0])``
+        already computed (:mod:`calib.multirun` computes it for several runs at once)."""
+        if physical is not None and not self.single:
+            raise ValueError("precomputed physical quantities need a problem with one group of rows")
         out = []
         pred0 = None
         for g in self.groups:
@@ -219,6 +229,8 @@ class Problem:
                 z = np.vstack([theta[None, :6], z])
                 times = None if times is None else np.r_[0.0, times]
                 extra = self._joint_approach(self._approach(None), extra, g.idx.size)
+                if physical is not None:
+                    extra = {**extra, "physical": physical}
             pred = self.model.predict(z, theta, g.channels, times, **extra)
             if joint:
                 pred0 = {c: _take(pred[c], slice(0, 1)) for c in self.ref_channels}
