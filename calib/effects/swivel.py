@@ -176,17 +176,29 @@ class SwivelGain(ChannelGain):
     bound = 0.002
 
 
-def _lever(robot: Robot, poses: np.ndarray, step: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+def _lever_in_plane(rho_u: np.ndarray, rho_k: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """r (1 + cos psi) rho_u / |rho| (m) from the anchor's in-plane coordinates (eq. 4-5)."""
+    ratio = rho_k / rho_u
+    half = ratio + np.sqrt(ratio * ratio + 1.0 - 2.0 * r / rho_u)
+    h2 = half * half
+    cp, sp = (1.0 - h2) / (1.0 + h2), 2.0 * half / (1.0 + h2)
+    return r * (1.0 + cp) * rho_u / np.hypot(rho_u - r * (1.0 + cp), rho_k - r * sp)
+
+
+def _lever(robot: Robot, poses: np.ndarray, step: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
     """The cable's lever about each swivel axis per radian of the pulley plane's lag, r (1 + cos psi) rho_u /
-    |rho| (m), at poses (k, 6): (k, n) and its pose derivatives (k, n, 6) by central differences (one
-    vectorised inverse kinematics of the 12 k displaced poses)."""
-    z = np.asarray(poses, float).reshape(-1, 6)
-    k = z.shape[0]
-    d = np.eye(6) * step
-    zz = np.concatenate([z[None], z[None] + d[:, None], z[None] - d[:, None]]).reshape(-1, 6)
-    kin = inverse_kinematics(robot, zz)
-    lev = (robot.r[None] * (1.0 + np.cos(kin.psi)) * kin.rho_u / kin.rho_norm).reshape(13, k, robot.n)
-    return lev[0], ((lev[1:7] - lev[7:]) / (2.0 * step)).transpose(1, 2, 0)
+    |rho| (m), at poses (k, 6): (k, n), and its pose derivatives (k, n, 6): the in-plane coordinates' exact
+    pose gradients (d rho_u = u.dq, d rho_k = k.dq) times the lever's derivatives in them (central
+    differences of a closed form, relative step ``step``: no further inverse kinematics)."""
+    kin = inverse_kinematics(robot, np.asarray(poses, float).reshape(-1, 6))
+    r = robot.r[None, :]
+    lev = _lever_in_plane(kin.rho_u, kin.rho_k, r)
+    hu, hk = step * kin.rho_u, step * np.maximum(np.abs(kin.rho_k), kin.rho_u)
+    du = (_lever_in_plane(kin.rho_u + hu, kin.rho_k, r) - _lever_in_plane(kin.rho_u - hu, kin.rho_k, r)) / (2 * hu)
+    dk = (_lever_in_plane(kin.rho_u, kin.rho_k + hk, r) - _lever_in_plane(kin.rho_u, kin.rho_k - hk, r)) / (2 * hk)
+    fk = np.broadcast_to(robot.frames[None, :, 2], kin.u.shape)
+    g = pose_gradients(kin, np.stack([kin.u, fk], axis=2))  # (k, n, 2, 6)
+    return lev, du[..., None] * g[:, :, 0] + dk[..., None] * g[:, :, 1]
 
 
 class SwivelFriction(Effect):
