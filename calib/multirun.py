@@ -32,7 +32,7 @@ import numpy as np
 
 from calib.diagnose import Residuals, RunRows, residuals
 from calib.effects import Effect, EffectModel, ParamSpec, Projected
-from calib.effects.base import Physical
+from calib.effects.base import Physical, physical_rows
 from calib.effects.builtin import AhrsYawDrift, DeviceAccuracy, ReferenceNoise
 from calib.selfcal.model import CHANNELS
 from calib.selfcal.problem import Problem
@@ -250,8 +250,7 @@ def _rows_of(ph: Physical, rows: slice, p0: int, p: int, q: int) -> Physical:
             out[..., p - q:] = t[rows, :, p0 - q:]
         return out
 
-    return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
-                    cols(ph.tL), cols(ph.tsigma), cols(ph.ttau), ph.ahrs[rows], ph.dahrs[rows])
+    return replace(physical_rows(ph, rows), tL=cols(ph.tL), tsigma=cols(ph.tsigma), ttau=cols(ph.ttau))
 
 
 def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False) -> tuple[list, float]:

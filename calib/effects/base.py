@@ -88,6 +88,7 @@ class Physical:
     ttau: np.ndarray
     ahrs: np.ndarray | None = None  # (k, 3) the orientations in the AHRS's convention, rad
     dahrs: np.ndarray | None = None  # (k, 3, 3) their derivatives with respect to the poses' angles
+    terms: dict | None = None  # effect name -> its per-pose terms (``Effect.pose_terms``), all rows at once
 
 
 @dataclass
@@ -158,6 +159,12 @@ class Effect:
         """Reading stage: change ``preds`` in place (values, d_pose, d_theta; fill d_theta[..., ctx.cols])."""
         raise NotImplementedError
 
+    def pose_terms(self, robot: Robot, poses: np.ndarray):
+        """Reading stage: what ``transform`` needs that depends on the robot and the poses (k, 6) only, as a
+        dataclass of arrays with k leading rows (``Context.at.terms[name]``): computed with the physical
+        quantities, for every row at once (several runs' rows in one call); None: nothing."""
+        return None
+
     def absolute_length(self, ref: Physical, values: np.ndarray, lengths: np.ndarray) -> np.ndarray:
         """Reading stage: the absolute length (n,) the encoders count at zeta_0, given the geometric (or
         previously transformed) one; default unchanged."""
@@ -207,9 +214,16 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> P
     return Physical(kin.lengths, kin.swivel, tau, jac.lengths, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
 
 
-def _rows(ph: Physical, rows: slice) -> Physical:
-    """The physical quantities of some of the poses (views)."""
-    return Physical(*(getattr(ph, f.name)[rows] for f in dataclasses.fields(Physical)))
+def _dataclass_rows(d, rows: slice):
+    """A dataclass of arrays with the poses first, at some of the poses (views; None stays None)."""
+    return type(d)(*(None if (v := getattr(d, f.name)) is None else v[rows] for f in dataclasses.fields(d)))
+
+
+def physical_rows(ph: Physical, rows: slice) -> Physical:
+    """The physical quantities of some of the poses (views), the effects' pose terms included."""
+    out = _dataclass_rows(dataclasses.replace(ph, terms=None), rows)
+    out.terms = None if ph.terms is None else {n: _dataclass_rows(t, rows) for n, t in ph.terms.items()}
+    return out
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -291,6 +305,8 @@ class EffectModel:
         p = theta.shape[0]
         robot = self.true_robot(theta)
         ph = physical(robot, poses, p, tension)
+        ph.terms = {e.name: t for e in self.effects if e.stage == "reading"
+                    and (t := e.pose_terms(robot, poses)) is not None}
         for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
             if e.stage != "robot":
                 continue
@@ -332,7 +348,7 @@ class EffectModel:
         if physical is None:
             physical = self._physical(theta, np.vstack([z, theta[None, :6]]), self.needs_tension(channels))
         robot, both = physical
-        at, ref = _rows(both, slice(0, k)), _rows(both, slice(k, k + 1))
+        at, ref = physical_rows(both, slice(0, k)), physical_rows(both, slice(k, k + 1))
         for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta
             getattr(ref, "t" + name)[..., :6] += getattr(ref, "d" + name)
         out: dict[str, ChannelPrediction] = {}
@@ -423,6 +439,9 @@ class Projected(Effect):
 
         cols = self.inner.physical_columns(robot, full, poses, recompute_full)
         return tuple(c @ self.basis for c in cols)
+
+    def pose_terms(self, robot: Robot, poses: np.ndarray):
+        return self.inner.pose_terms(robot, poses)
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         q = self.basis.shape[0]
