@@ -250,7 +250,9 @@ def _rows_of(ph: Physical, rows: slice, p0: int, p: int, q: int) -> Physical:
             out[..., p - q:] = t[rows, :, p0 - q:]
         return out
 
-    return replace(physical_rows(ph, rows), tL=cols(ph.tL), tsigma=cols(ph.tsigma), ttau=cols(ph.ttau))
+    out = physical_rows(ph, rows)
+    out.tL, out.tsigma, out.ttau = cols(ph.tL), cols(ph.tsigma), cols(ph.ttau)
+    return out
 
 
 def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False) -> tuple[list, float]:

@@ -221,9 +221,11 @@ def _dataclass_rows(d, rows: slice):
 
 def physical_rows(ph: Physical, rows: slice) -> Physical:
     """The physical quantities of some of the poses (views), the effects' pose terms included."""
-    out = _dataclass_rows(dataclasses.replace(ph, terms=None), rows)
-    out.terms = None if ph.terms is None else {n: _dataclass_rows(t, rows) for n, t in ph.terms.items()}
-    return out
+    a, t = ph.ahrs is not None, ph.terms
+    return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
+                    ph.tL[rows], ph.tsigma[rows], ph.ttau[rows], ph.ahrs[rows] if a else None,
+                    ph.dahrs[rows] if a else None,
+                    None if t is None else {n: _dataclass_rows(v, rows) for n, v in t.items()})
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
