@@ -23,6 +23,7 @@ misfit does not dominate the others' (with window-scatter weights the swivel enc
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -324,6 +325,9 @@ def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
             rf.theta[-q:] = np.clip(rf.theta[-q:], lo, hi)
 
 
+_DIAG6 = np.arange(6)
+
+
 @dataclass
 class Arrow:
     """Normal equations of the joint problem by blocks, on unit-norm columns: per run, the pose blocks U
@@ -372,6 +376,13 @@ class Arrow:
             out.gt.append(gt / st)
         return out
 
+    @functools.cached_property
+    def _fixed(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per run, what every damping's step shares: the pose blocks' diagonals (floored), [W, gp] and V's
+        diagonal."""
+        return [(np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12), np.concatenate([W, gp[..., None]], axis=2),
+                 np.diag(V).copy()) for U, W, V, gp in zip(self.U, self.W, self.V, self.gp, strict=True)]
+
     def step(self, damping: float) -> tuple[np.ndarray, float]:
         """The step ds (scaled columns) solving (N + damping diag(N)) ds = -g by eliminating each run's pose
         blocks (a Schur complement on [shared, own_1, own_2, ...]), and the decrease -(2 g.ds + ds.N.ds) the
@@ -382,10 +393,11 @@ class Arrow:
         M, rhs = np.zeros((at[-1], at[-1])), np.zeros(at[-1])
         dg = np.zeros(at[-1])
         parts = []
-        for j, (U, W, V, gp, gt) in enumerate(zip(self.U, self.W, self.V, self.gp, self.gt, strict=True)):
+        for j, (U, W, V, gt, (dU, WG, dV)) in enumerate(zip(self.U, self.W, self.V, self.gt, self._fixed,
+                                                             strict=True)):
             Ud = U.copy()
-            Ud[:, range(6), range(6)] += damping * np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12)
-            sol = np.linalg.solve(Ud, np.concatenate([W, gp[..., None]], axis=2))
+            Ud[:, _DIAG6, _DIAG6] += damping * dU
+            sol = np.linalg.solve(Ud, WG)
             Y, y = sol[..., :-1], sol[..., -1]
             t = W.shape[2]
             Wf = W.reshape(-1, t)
@@ -397,8 +409,8 @@ class Arrow:
             M[:qq, :qq] += S[no:, no:]
             rhs[o] += rr[:no]
             rhs[:qq] += rr[no:]
-            dg[o] += np.diag(V)[:no]
-            dg[:qq] += np.diag(V)[no:]
+            dg[o] += dV[:no]
+            dg[:qq] += dV[no:]
             parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
         M[range(at[-1]), range(at[-1])] += damping * np.maximum(dg, 1e-12)
         x = -np.linalg.solve(M, rhs)
