@@ -86,6 +86,9 @@ class Physical:
     tL: np.ndarray
     tsigma: np.ndarray
     ttau: np.ndarray
+    ahrs: np.ndarray | None = None  # (k, 3) the orientations in the AHRS's convention, rad
+    dahrs: np.ndarray | None = None  # (k, 3, 3) their derivatives with respect to the poses' angles
+    terms: dict | None = None  # effect name -> its per-pose terms (``Effect.pose_terms``), all rows at once
 
 
 @dataclass
@@ -158,6 +161,12 @@ class Effect:
         """Reading stage: change ``preds`` in place (values, d_pose, d_theta; fill d_theta[..., ctx.cols])."""
         raise NotImplementedError
 
+    def pose_terms(self, robot: Robot, poses: np.ndarray):
+        """Reading stage: what ``transform`` needs that depends on the robot and the poses (k, 6) only, as a
+        dataclass of arrays with k leading rows (``Context.at.terms[name]``): computed with the physical
+        quantities, for every row at once (several runs' rows in one call); None: nothing."""
+        return None
+
     def absolute_length(self, ref: Physical, values: np.ndarray, lengths: np.ndarray) -> np.ndarray:
         """Reading stage: the absolute length (n,) the encoders count at zeta_0, given the geometric (or
         previously transformed) one; default unchanged."""
@@ -203,12 +212,22 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> P
     else:
         tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
     z = np.zeros((k, n, p))
-    return Physical(kin.lengths, kin.swivel, tau, jac.lengths, jac.swivel, dtau, z, z.copy(), z.copy())
+    ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention)
+    return Physical(kin.lengths, kin.swivel, tau, jac.lengths, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
 
 
-def _rows(ph: Physical, rows: slice) -> Physical:
-    """The physical quantities of some of the poses (views)."""
-    return Physical(*(getattr(ph, f.name)[rows] for f in dataclasses.fields(Physical)))
+def _dataclass_rows(d, rows: slice):
+    """A dataclass of arrays with the poses first, at some of the poses (views; None stays None)."""
+    return type(d)(*(None if (v := getattr(d, f.name)) is None else v[rows] for f in dataclasses.fields(d)))
+
+
+def physical_rows(ph: Physical, rows: slice) -> Physical:
+    """The physical quantities of some of the poses (views), the effects' pose terms included."""
+    a, t = ph.ahrs is not None, ph.terms
+    return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
+                    ph.tL[rows], ph.tsigma[rows], ph.ttau[rows], ph.ahrs[rows] if a else None,
+                    ph.dahrs[rows] if a else None,
+                    None if t is None else {n: _dataclass_rows(v, rows) for n, v in t.items()})
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -290,6 +309,8 @@ class EffectModel:
         p = theta.shape[0]
         robot = self.true_robot(theta)
         ph = physical(robot, poses, p, tension)
+        ph.terms = {e.name: t for e in self.effects if e.stage == "reading"
+                    and (t := e.pose_terms(robot, poses)) is not None}
         for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
             if e.stage != "robot":
                 continue
@@ -332,7 +353,7 @@ class EffectModel:
         if physical is None:
             physical = self._physical(theta, np.vstack([z, theta[None, :6]]), self.needs_tension(channels))
         robot, both = physical
-        at, ref = _rows(both, slice(0, k)), _rows(both, slice(k, k + 1))
+        at, ref = physical_rows(both, slice(0, k)), physical_rows(both, slice(k, k + 1))
         for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta
             getattr(ref, "t" + name)[..., :6] += getattr(ref, "d" + name)
         out: dict[str, ChannelPrediction] = {}
@@ -344,7 +365,7 @@ class EffectModel:
             elif name == "swivel":
                 out[name] = ChannelPrediction(wrap(at.sigma - ref.sigma), at.dsigma.copy(), at.tsigma - ref.tsigma)
             elif name == "orientation":
-                out[name] = orientation_prediction(robot, z, theta)
+                out[name] = orientation_prediction(robot, z, theta, (at.ahrs, at.dahrs, ref.ahrs, ref.dahrs))
             else:
                 raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
         readers = sorted(
@@ -423,6 +444,9 @@ class Projected(Effect):
 
         cols = self.inner.physical_columns(robot, full, poses, recompute_full)
         return tuple(c @ self.basis for c in cols)
+
+    def pose_terms(self, robot: Robot, poses: np.ndarray):
+        return self.inner.pose_terms(robot, poses)
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         q = self.basis.shape[0]
