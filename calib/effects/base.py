@@ -31,7 +31,7 @@ import numpy as np
 
 from calib.kinematics import convert_euler, inverse_kinematics, kinematic_jacobians
 from calib.robot import Robot
-from calib.selfcal.model import CHANNELS, ChannelPrediction, orientation_prediction
+from calib.selfcal.model import CHANNELS, ChannelPrediction, encoder_lengths, orientation_prediction
 from calib.statics import tension_model
 
 
@@ -73,8 +73,9 @@ class Implausible:
 
 @dataclass
 class Physical:
-    """Absolute physical quantities at k poses with the current robot: cable lengths L (k, n) m, swivel
-    angles (k, n) rad, modelled tensions tau (k, n) N; their pose derivatives (k, n, 6) and theta
+    """Absolute physical quantities at k poses with the current robot: cable lengths L (k, n) m as the
+    encoders count them (unstretched by the robot's axial stiffness: calib.selfcal.model.encoder_lengths),
+    swivel angles (k, n) rad, modelled tensions tau (k, n) N; their pose derivatives (k, n, 6) and theta
     derivatives (k, n, p) (robot-effect columns; zeta_0 columns are zero here)."""
 
     L: np.ndarray
@@ -186,7 +187,8 @@ def physical(robot: Robot, poses: np.ndarray, p: int) -> Physical:
     tm = tension_model(robot, kin=kin, jac=jac)
     k, n = kin.lengths.shape
     z = np.zeros((k, n, p))
-    return Physical(kin.lengths, kin.swivel, tm.tau, jac.lengths, jac.swivel, tm.jacobian, z, z.copy(), z.copy())
+    L, dL = encoder_lengths(robot, kin.lengths, tm.tau, jac.lengths, tm.jacobian)
+    return Physical(L, kin.swivel, tm.tau, dL, jac.swivel, tm.jacobian, z, z.copy(), z.copy())
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -277,7 +279,7 @@ class EffectModel:
                         r = e2.modify(r, np.asarray(th[sl2]))
                 kin = inverse_kinematics(r, poses)
                 tm = tension_model(r, kin=kin, derivatives=False)
-                return kin.lengths, kin.swivel, tm.tau
+                return encoder_lengths(r, kin.lengths, tm.tau)[0], kin.swivel, tm.tau
 
             dL, ds, dt = e.physical_columns(robot, np.asarray(theta[sl]), poses, recompute)
             ph.tL[..., sl], ph.tsigma[..., sl], ph.ttau[..., sl] = dL, ds, dt
