@@ -4,7 +4,7 @@ The YAML file (every section optional; nothing is on by default)::
 
     effects:                                   # what the controller and the run log never see
       cable_elasticity: {EA: 20000.0}          # N, axial stiffness of every cable (nominal: the robot
-                                               #   description's axial_stiffness, inextensible without one)
+                                               #   description's axial_stiffness, else 2e6 N)
       length_scale: {k: [0.01, 0, 0, -0.01]}   # per winch: reported length change = (1 + k) x true change
       tension_offset: {offset: [2, 0, -1, 0]}  # N, per load-cell channel
       tension_gain: {gain: [0.02, 0, 0, 0]}    # relative, per channel: reading = (1 + gain) tau + offset
@@ -127,15 +127,15 @@ class SensorNoise:
     ahrs_sigma: tuple[float, float, float] = (0.03, 0.03, 0.1)  # deg: roll, pitch, yaw
 
 
-INEXTENSIBLE_EA = 1.0e12  # N: a cable the description gives no axial stiffness (the model's inextensible cable)
 
 
-def described_ea(robot: Robot) -> float:
+def described_ea(robot: Robot) -> float | None:
     """The one axial stiffness EA (N) the simulator gives every cable of ``robot``: its description's
-    ``cables[].axial_stiffness`` (the figure the measurement model uses too), :data:`INEXTENSIBLE_EA`
-    without one."""
+    ``cables[].axial_stiffness`` (the figure the measurement model uses too); None without one (the
+    simulator's nominal ``PhysicsParams.ea`` then, which the model does not know: an inextensible default
+    made a braked platform set at a given pose diverge, tests/test_sim_backend.py)."""
     if robot.axial_stiffness is None:
-        return INEXTENSIBLE_EA
+        return None
     ea = np.asarray(robot.axial_stiffness, float)
     if not np.all(ea == ea[0]) or not np.isfinite(ea[0]):
         raise SimConfigError(f"robot '{robot.name}': cables[].axial_stiffness = {ea.tolist()}: the simulator "
@@ -191,8 +191,8 @@ class SimConfig:
         if self.wobble is not None and robot is not None:
             lin, ang = damping_for(robot, self.wobble)
             p = dataclasses.replace(p, linear_damping=lin, angular_damping=ang)
-        if robot is not None and not self.ea_given:
-            p = dataclasses.replace(p, ea=described_ea(robot))
+        if robot is not None and not self.ea_given and (ea := described_ea(robot)) is not None:
+            p = dataclasses.replace(p, ea=ea)
         if self.effects.cable_elasticity is not None:
             p = dataclasses.replace(p, ea=self.effects.cable_elasticity)
         if self.effects.cable_sag is not None:

@@ -12,7 +12,8 @@ from calib.effects.builtin import DeviceAccuracy
 from calib.robot import RobotDescriptionError, load_robot, robot_from_dict
 from calib.selfcal.model import MeasurementModel
 from calib.statics import tension_model
-from sim_backend.config import INEXTENSIBLE_EA, SimConfigError, sim_config_from_dict
+from sim_backend.config import SimConfigError, sim_config_from_dict
+from sim_backend.physics import PhysicsParams
 
 RIGID = load_robot("irma4u")
 EA = np.array([2.0e4, 3.0e4, 2.5e4, 4.0e4])  # N: soft ropes, so that the stretch is millimetres
@@ -65,7 +66,7 @@ def test_the_model_predicts_the_unstretched_lengths_with_exact_derivatives(make)
 def test_the_simulator_takes_the_described_stiffness_unless_told_otherwise():
     plain = sim_config_from_dict({}, 4, "<test>")
     assert plain.physics_params(_elastic(3.0e4)).ea == 3.0e4
-    assert plain.physics_params(RIGID).ea == INEXTENSIBLE_EA  # no figure: the model's inextensible cable
+    assert plain.physics_params(RIGID).ea == PhysicsParams().ea  # no figure: the simulator's nominal 2e6 N
     assert sim_config_from_dict({"physics": {"ea": 5.0e5}}, 4).physics_params(_elastic(3.0e4)).ea == 5.0e5
     hidden = sim_config_from_dict({"effects": {"cable_elasticity": {"EA": 2.0e4}}}, 4)
     assert hidden.physics_params(_elastic(3.0e4)).ea == 2.0e4  # a hidden effect: what the model does not know
