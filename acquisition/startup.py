@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.clock import Clock
+from acquisition.clock import Clock, loop_runtime
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from acquisition.report import ProgressBar
@@ -545,7 +545,12 @@ class StartupRoutine:
             self._log_open = False
 
     def run(self) -> StartupResult:
-        """The whole procedure; raises :class:`StartupStopped` after a safe stop."""
+        """The whole procedure; raises :class:`StartupStopped` after a safe stop. The interpreter is set up for
+        the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap)."""
+        with loop_runtime():
+            return self._procedure()
+
+    def _procedure(self) -> StartupResult:
         wall0 = time.perf_counter()
         self._total_estimate = self._estimate_total()
         if self.progress is not None:
