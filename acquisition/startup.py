@@ -546,7 +546,6 @@ class StartupRoutine:
         self._statuses = self.rig.statuses()
         self._tau_init = snap.tau.copy()
         self._last = snap
-        self._prepare_log()
         return snap
 
     def enable(self) -> None:
@@ -556,6 +555,7 @@ class StartupRoutine:
         self.rig.command(self.controller.torque_for(self._tau_init))
         for d in self.rig.drives:
             d.enable()
+        self._prepare_log()  # on the log worker while the pretension begins (not in the drives' enabling tick)
 
     def _prepare_log(self) -> None:
         """Create the run folder, run.yaml and samples.csv's header on the log worker (the RunWriter of
