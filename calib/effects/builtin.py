@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from calib.effects.base import Context, Effect, Implausible, ParamSpec
+from calib.effects.base import Context, Effect, Implausible, ParamSpec, base_quantities
 from calib.kinematics import euler_axes, inverse_kinematics, rotation, rotation_to_euler
 from calib.robot import Robot
 from calib.selfcal.model import ChannelPrediction
@@ -356,7 +356,7 @@ class ComOffset(Effect):
         return robot.replace(com=robot.com + values)
 
     def physical_columns(self, robot, values, poses, recompute):
-        L, _, tau = recompute(values)
+        L, _, tau = base_quantities(recompute, values)
         cols = []
         for j in range(3):
             v = values.copy()
@@ -384,7 +384,7 @@ class MassScale(Effect):
         return robot.replace(mass=robot.mass * (1.0 + float(values[0])))
 
     def physical_columns(self, robot, values, poses, recompute):
-        L, _, tau = recompute(values)
+        L, _, tau = base_quantities(recompute, values)
         z = np.zeros(L.shape + (1,))
         return z, z.copy(), (tau / (1.0 + float(values[0])))[..., None]
 
@@ -402,6 +402,7 @@ class DeviceAccuracy(Effect):
     effect: the diagnosis keeps it in every fit, so that only what exceeds the devices' specifications is
     reported as a missing effect."""
 
+    reads_tension = False  # its readings add to the predictions, never read the tensions
     name = "device_accuracy"
     order = 45
     description = ("per-device constant errors within the datasheet accuracy (load cells N, AHRS roll/pitch rad,"
@@ -444,6 +445,7 @@ class ReferenceNoise(Effect):
     Not a candidate effect: the estimate-noise solve and the diagnosis keep it in every fit of a run
     (:meth:`for_rows`); rows without a reference window (equilibrium rows given directly) have none."""
 
+    reads_tension = False  # its readings add to the predictions, never read the tensions
     name = "reference_noise"
     order = 46
     description = "noise of the reference window's means in the relative channels (m, rad)"

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.effects.base import Context, Effect, ParamSpec
+from calib.effects.base import Context, Effect, ParamSpec, _dataclass_rows
 from calib.kinematics import (
     KinematicJacobians,
     Kinematics,
@@ -35,7 +35,7 @@ from calib.kinematics import (
 )
 from calib.robot import Robot
 from calib.selfcal.model import ChannelPrediction
-from calib.statics import tension_model
+from calib.statics import point_load_tensions
 
 
 def _direction(ctx: Context, which: int, shape: tuple[int, int]) -> np.ndarray:
@@ -138,13 +138,10 @@ def sag_terms(robot: Robot, poses: np.ndarray) -> SagTerms:
     drho = chord_jacobian(robot, kin, jac)  # (k, n, 3, 6)
     lc = kin.rho_norm
     dlc = np.einsum("kna,knaj->knj", kin.t, drho)
-    k, n = lc.shape
-    tw = np.zeros((k, n))
-    dtw = np.zeros((k, n, 6))
-    for i in range(n):  # half of cable i's weight hangs at anchor i: a unit point mass there, times lc_i / 2
-        tm = tension_model(robot.replace(mass=1.0, com=robot.a_local[i].copy()), kin=kin, jac=jac)
-        tw += 0.5 * lc[:, i, None] * tm.tau
-        dtw += 0.5 * (lc[:, i, None, None] * tm.jacobian + tm.tau[..., None] * dlc[:, i, None, :])
+    # half of cable i's weight hangs at anchor i: a point mass lc_i / 2 (per kg/m) there; d tw also has the
+    # term of the masses' own change, sum_i tau^(i) d(lc_i / 2), tau^(i) the tensions of 1 kg at anchor i
+    each, tw, dtw = point_load_tensions(robot, kin, jac, robot.a_local, 0.5 * lc)
+    dtw = dtw + 0.5 * np.einsum("kni,kij->knj", each, dlc)
     g = float(robot.gravity)
     cell = -0.5 * g * kin.rho[..., 2]
     dcell = -0.5 * g * drho[:, :, 2]
@@ -173,12 +170,22 @@ class CableSag(Effect):
         # rope 0.016 kg/m. A heavier fit is no cable of this robot.
         return [ParamSpec("density", "kg/m", 0.0, -2.0, 2.0, 0.01, plausible=(0.0, 0.07))]
 
+    def pose_terms(self, robot: Robot, poses: np.ndarray) -> SagTerms:
+        return sag_terms(robot, poses)
+
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         if "tension" not in preds and "length" not in preds:
             return
         rho = float(values[0])
         c = ctx.cols.start
-        at = sag_terms(ctx.robot, ctx.poses)
+        k = ctx.poses.shape[0]
+        if ctx.at.terms is not None and self.name in ctx.at.terms:  # computed with the physical quantities
+            at, ref = ctx.at.terms[self.name], ctx.ref.terms[self.name]
+        elif "length" in preds:  # the rows and zeta_0 in one evaluation
+            both = sag_terms(ctx.robot, np.vstack([ctx.poses, ctx.theta[None, :6]]))
+            at, ref = _dataclass_rows(both, slice(0, k)), _dataclass_rows(both, slice(k, k + 1))
+        else:
+            at = sag_terms(ctx.robot, ctx.poses)
         if "tension" in preds:
             pr = preds["tension"]
             pr.value = pr.value + rho * (at.tw + at.cell)
@@ -186,7 +193,6 @@ class CableSag(Effect):
             pr.d_theta = pr.d_theta.copy()
             pr.d_theta[..., c] += at.tw + at.cell
         if "length" in preds:
-            ref = sag_terms(ctx.robot, ctx.theta[None, :6])
             g = float(ctx.robot.gravity)
             p = ctx.theta.shape[0]
 
