@@ -41,9 +41,9 @@ from calib.selfcal.problem import Problem
 GROUPS = CHANNELS  # the channel groups whose noise the variance components set
 LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
 RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
-# the normal matrix's eigenvalue ratio above which the joint Jacobian has full rank without an SVD (its singular
-# values above 1e-7 of the largest, far from the SVD's cut at 1e-10; eigvalsh errs by ~1e-16 of the largest)
-FULL_RANK = 1e-14
+# the normal matrix's eigenvalue ratio above which its inverse is taken by a solve (condition below 1e8: the
+# covariance to ~1e-8, its rank full, far from the SVD's cut at 1e-10); below it, the SVD of the Jacobian
+FULL_RANK = 1e-8
 PIN = 1e-6  # a device prior that steps aside is pinned at its absent value: sd = PIN * its typical size
 # which device priors a shared effect overlaps (the same columns): they step aside while it is fitted
 OVERLAPS = {"tension_offset": ("b_",), "ahrs_mounting": ("b_roll", "b_pitch")}
@@ -471,7 +471,7 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     As = A / scale
     N = As.T @ As
     ev = np.linalg.eigvalsh(N)
-    if ev[0] > FULL_RANK * ev[-1]:  # every singular value of As above 1e-7 of the largest: full rank
+    if ev[0] > FULL_RANK * ev[-1]:  # condition below 1e8: a solve is accurate, and the rank is full
         rank = N.shape[0]
         cov_s = np.linalg.solve(N, np.eye(N.shape[0])[:, :q])[:q] if q and not fixed_shared else None
     else:  # a direction the data barely see: the pseudo-inverse and rank of the SVD (cut at 1e-10)

@@ -31,7 +31,7 @@ import numpy as np
 
 from calib.kinematics import convert_euler, inverse_kinematics, kinematic_jacobians
 from calib.robot import Robot
-from calib.selfcal.model import CHANNELS, ChannelPrediction, orientation_prediction
+from calib.selfcal.model import CHANNELS, ChannelPrediction, encoder_lengths, orientation_prediction
 from calib.statics import tension_model
 
 
@@ -73,8 +73,9 @@ class Implausible:
 
 @dataclass
 class Physical:
-    """Absolute physical quantities at k poses with the current robot: cable lengths L (k, n) m, swivel
-    angles (k, n) rad, modelled tensions tau (k, n) N; their pose derivatives (k, n, 6) and theta
+    """Absolute physical quantities at k poses with the current robot: cable lengths L (k, n) m as the
+    encoders count them (unstretched by the robot's axial stiffness: calib.selfcal.model.encoder_lengths),
+    swivel angles (k, n) rad, modelled tensions tau (k, n) N; their pose derivatives (k, n, 6) and theta
     derivatives (k, n, p) (robot-effect columns; zeta_0 columns are zero here)."""
 
     L: np.ndarray
@@ -204,14 +205,15 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> P
     kin = inverse_kinematics(robot, poses)
     jac = kinematic_jacobians(robot, kin)
     k, n = kin.lengths.shape
-    if tension:
+    if tension or np.any(robot.compliance):  # an elastic cable's encoder length needs its tension
         tm = tension_model(robot, kin=kin, jac=jac)
         tau, dtau = tm.tau, tm.jacobian
     else:
         tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
     z = np.zeros((k, n, p))
     ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention)
-    return Physical(kin.lengths, kin.swivel, tau, jac.lengths, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
+    L, dL = encoder_lengths(robot, kin.lengths, tau, jac.lengths, dtau)
+    return Physical(L, kin.swivel, tau, dL, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
 
 
 def _dataclass_rows(d, rows: slice):
@@ -322,7 +324,7 @@ class EffectModel:
                         r = e2.modify(r, np.asarray(th[sl2]))
                 kin = inverse_kinematics(r, poses)
                 tm = tension_model(r, kin=kin, derivatives=False)
-                return kin.lengths, kin.swivel, tm.tau
+                return encoder_lengths(r, kin.lengths, tm.tau)[0], kin.swivel, tm.tau
 
             recompute.base = (ph.L, ph.sigma, ph.tau)  # at theta itself: computed above, the same way
             dL, ds, dt = e.physical_columns(robot, np.asarray(theta[sl]), poses, recompute)
