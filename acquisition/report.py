@@ -106,6 +106,26 @@ class StartupSummary:
         }
 
 
+def sequential_outcome(seq: dict | None, final_sigma: float | None = None) -> str:
+    """One sentence on why a sequential startup stopped ('' for a fixed plan). ``final_sigma`` (m): the
+    position 1-sigma of the run's final solve, the one the summary prints; said in place of the stop rule's
+    own (the same solve on the samples up to the last window), and said apart when the two disagree on the
+    tolerance."""
+    if not seq:
+        return ""
+    w, tol = seq["windows"], 1000 * seq["tolerance_m"]
+    sigma = 1000 * w[-1]["position_sigma_m"] if w and w[-1]["position_sigma_m"] is not None else float("inf")
+    if seq["stop"] == "tolerance" and final_sigma is not None and 1000 * final_sigma >= tol:
+        return (f"sequential: stopped after {len(w)} poses at a 1-sigma of the initial position of {sigma:.2f} mm "
+                f"< tolerance {tol:g} mm, but the whole run's solve gives {1000 * final_sigma:.2f} mm.")
+    sigma = sigma if final_sigma is None else 1000 * final_sigma
+    if seq["stop"] == "tolerance":
+        return (f"sequential: 1-sigma of the initial position {sigma:.2f} mm < tolerance {tol:g} mm after "
+                f"{len(w)} poses.")
+    return (f"sequential: the plan is exhausted after {len(w)} poses with a 1-sigma of the initial position of "
+            f"{sigma:.2f} mm, above the tolerance {tol:g} mm.")
+
+
 def _fmt_vec(v: Sequence[float], digits: int = 4) -> str:
     return "[" + ", ".join(f"{float(x):.{digits}f}" for x in v) + "]"
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import html
-import io
 import json
 import math
 import os
@@ -41,10 +40,12 @@ from typing import Any
 import numpy as np
 import yaml
 
+from acquisition.plans import STUDY_PLANS, PlanRequest, PlanRequestError, parse_length
 from acquisition.report import ProgressBar, _svg
+from acquisition.session import StartupRequest
 from calib.errors import CdprError
 
-PLANS = ("grid2", "grid3", "optimal", "sequential")
+PLANS = STUDY_PLANS
 FORMAT = "cdpr-study/1"
 RUN_FORMAT = "cdpr-study-run/1"
 CONFIG_FILE = "config.json"
@@ -96,24 +97,30 @@ class RunTask:
 
 
 def plan_args(plan: str, tolerance: str | None = None) -> list[str]:
-    """The ``cdpr startup`` options that select ``plan``."""
-    if plan in ("grid2", "grid3"):
-        return ["--grid", plan[-1]]
-    if plan == "optimal":
+    """The ``cdpr startup`` options that select ``plan`` (a study's plan name, :data:`acquisition.plans.STUDY_PLANS`);
+    raises StudyError for a plan a study does not know."""
+    request = plan_request(plan, tolerance)
+    if request.kind == "grid":
+        return ["--grid", str(request.grid)]
+    if request.kind == "optimal":
         return ["--plan", "optimal"]
-    if plan == "sequential":
-        if tolerance is None:
-            raise StudyError("--plan sequential needs --tolerance (the 1-sigma to stop at, e.g. 3mm).")
-        return ["--tolerance", tolerance]
-    raise StudyError(f"--plan {plan!r} is not one of {', '.join(PLANS)}.")
+    return ["--tolerance", str(tolerance)]
 
 
-def startup_args(task: RunTask, out: str, truth: str, sim_config: str | None) -> list[str]:
-    """The ``cdpr startup`` command line of one run (``cdpr`` left out)."""
-    args = ["startup", "--backend", "sim", "--robot", task.config.robot, "--seed", str(task.seed), "--out", out,
-            "--truth", truth, "--json", "--no-html", "--sim-plant", "inline",
-            *plan_args(task.plan, task.config.tolerance)]
-    return args + (["--sim-config", sim_config] if sim_config else [])
+def plan_request(plan: str, tolerance: str | None = None) -> PlanRequest:
+    """The startup's plan of a study's ``plan`` name, ``tolerance`` a length with its unit (e.g. "3mm").
+    Raises StudyError."""
+    try:
+        return PlanRequest.named(plan, None if tolerance is None else parse_length(tolerance, "--tolerance"))
+    except PlanRequestError as exc:
+        raise StudyError(str(exc)) from exc
+
+
+def startup_request(task: RunTask, out: str, truth: str, sim_config: str | None) -> StartupRequest:
+    """The startup of one run: the simulated prototype in this process, no HTML report, no progress line."""
+    return StartupRequest(backend="sim", plan=plan_request(task.plan, task.config.tolerance), out=Path(out),
+                          robot=task.config.robot, seed=task.seed, truth=truth, sim_config=sim_config,
+                          sim_plant="inline", html=False, progress=False)
 
 
 def study_sim_config(path: str | None, effects: Sequence[str], n: int) -> dict[str, Any]:
@@ -181,11 +188,12 @@ def _children_cpu() -> float:
 
 
 def run_in_this_process(task: RunTask) -> dict[str, Any]:
-    """One run: ``cdpr startup --backend sim`` in a temporary folder (deleted after) with the simulated plant
-    in this process (``--sim-plant inline``, see the module docstring). Returns :func:`run_result` or
-    :func:`failed_result`; a usage error of the startup (exit status 2) comes back with status ``usage`` and
-    its sentence: it would fail every run, so the study stops on it instead of recording it."""
-    from acquisition.cli import main
+    """One run: a simulated startup (:func:`acquisition.session.run_startup`) in a temporary folder (deleted
+    after) with the simulated plant in this process (see the module docstring). Returns :func:`run_result` or
+    :func:`failed_result`; a refused startup (bad input, exit status 2 at the command line) comes back with
+    status ``usage`` and its sentence: it would fail every run, so the study stops on it instead of recording
+    it."""
+    from acquisition import session
 
     with tempfile.TemporaryDirectory(prefix=f"cdpr-study-{task.name}-") as tmp:
         sim_file = None
@@ -193,17 +201,13 @@ def run_in_this_process(task: RunTask) -> dict[str, Any]:
             sim_file = os.path.join(tmp, "sim-config.yaml")
             Path(sim_file).write_text(yaml.safe_dump(task.config.sim_config))
         truth = os.path.join(tmp, "truth.json")
-        out, err = io.StringIO(), io.StringIO()
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                code = main(startup_args(task, os.path.join(tmp, "run"), truth, sim_file))
-            except SystemExit as exc:  # argparse's own errors
-                code = exc.code if isinstance(exc.code, int) else 2
-        if code == 0:
-            return run_result(task, json.loads(out.getvalue()), json.loads(Path(truth).read_text()))
-    sentence = (err.getvalue().strip().splitlines() or [f"exit status {code}"])[-1].removeprefix("cdpr: ")
-    status = "usage" if code == 2 else "safe_stop" if sentence.startswith("safe stop") else "failed"
-    return failed_result(task, status, sentence)
+        try:
+            outcome = session.run_startup(startup_request(task, os.path.join(tmp, "run"), truth, sim_file))
+        except CdprError as exc:
+            status = ("usage" if exc.exit_status == 2 else
+                      "safe_stop" if getattr(exc, "safe_stop", False) else "failed")
+            return failed_result(task, status, str(exc))
+        return run_result(task, outcome.summary.to_dict(), outcome.truth)
 
 
 def run_result(task: RunTask, summary: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
@@ -211,7 +215,8 @@ def run_result(task: RunTask, summary: dict[str, Any], truth: dict[str, Any]) ->
     pose averaged over the reference window (the pose at the reference sample for a truth file without it),
     the printed 1-sigma (m), the robot time (s) and the windows held.
 
-    summary: what ``cdpr startup --json`` printed; truth: the ``--truth`` file."""
+    summary: the startup's summary (``cdpr startup --json``); truth: the simulator's truth (the ``--truth``
+    file)."""
     sol = summary["solution"]
     # the solve estimates the pose of the reference window's mean readings: its truth is the true pose
     # averaged over that window (the pose at its middle sample differs by the platform's own motion, tens of

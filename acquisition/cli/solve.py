@@ -14,16 +14,10 @@ from pathlib import Path
 from acquisition.cli.args import parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import read_run
-from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, solve
+from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, default_noise, solve
 from calib.selfcal.result import chi2_sf
 
 SOLUTION_FILE = "solution.json"
-
-
-def default_noise(method: str) -> str:
-    """The weights a solve takes unless told: the run's own noise of a window mean ('estimate', whose 1-sigma
-    covers the truth as often as it says) for the window methods, the paper's (eq. 18) for lse's samples."""
-    return "paper" if method == "lse" else "estimate"
 
 
 def register(sub) -> None:
