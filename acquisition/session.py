@@ -24,19 +24,14 @@ from typing import Any
 import numpy as np
 
 from acquisition.clock import RealClock, SimClock
+from acquisition.connect import ahrs_rate_for, connect, feedback_every
 from acquisition.equilibrium import DetectorConfig
 from acquisition.outputs import check_output, claim_output
 from acquisition.plans import PlanRequest, make_plan, parse_pause
-from acquisition.report import (
-    ProgressBar,
-    ReportRenderer,
-    StartupSummary,
-    read_offsets,
-    sequential_outcome,
-    write_offsets,
-)
+from acquisition.progress import ProgressBar
+from acquisition.report import ReportRenderer, StartupSummary, read_offsets, sequential_outcome, write_offsets
 from acquisition.safety import SafetyLimits, SafetySupervisor
-from acquisition.startup import StartupConfig, StartupRoutine, StartupStopped, ahrs_rate_for, connect, feedback_every
+from acquisition.startup import StartupConfig, StartupRoutine, StartupStopped
 from calib.constants import CONTROL_RATE, HOLD_TIME, MAX_TENSION_RATE
 from calib.errors import CdprError
 
@@ -275,7 +270,8 @@ class _Acquisition:
             supervisor.restore_signals()
 
     def _solve_and_report(self, result) -> StartupSummary:
-        from acquisition.runlog import read_run, write_solution
+        from acquisition.runlog import read_run
+        from acquisition.runwriter import write_solution
         from calib.selfcal import SelfCalFailure, SelfCalInputError, default_noise, solve
 
         req, cfg, out = self.req, self.cfg, self.out

@@ -28,15 +28,16 @@ import numpy as np
 from acquisition.clock import Clock
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
+from acquisition.estimates import EstimateWorker
 from acquisition.plans import Pause, Plan
-from acquisition.report import ProgressBar
-from acquisition.runlog import RunWriter
+from acquisition.progress import ProgressBar
+from acquisition.runwriter import RunWriter
 from acquisition.safety import SafeStop, SafetyLimits, SafetySupervisor
 from acquisition.trajectory import PEAK_RATE, TensionTrajectory
 from calib.constants import CONTROL_RATE, EXPECTED_SETTLE, HOLD_TIME, MAX_TENSION_RATE, MIN_TRANSITION
 from calib.errors import CdprError
 from calib.robot import Robot
-from calib.sequential import OnlineSolve, WindowMean, detected_windows, run_estimate, sequential_acquisition
+from calib.sequential import OnlineSolve, WindowMean, detected_windows, sequential_acquisition
 
 METHODS = ("equilibrium", "kinematic")
 
@@ -96,61 +97,6 @@ class StartupResult:
     # sequential plan: per window the position 1-sigma (m) and estimate, and why it stopped ("tolerance" or
     # "exhausted"); None for a fixed plan
     sequential: dict[str, Any] | None = None
-
-
-ESTIMATE_TIMEOUT = 30.0  # s the platform is held at most while the run's own solve computes on a real clock
-
-
-def _ignore_interrupts() -> None:
-    """In the estimate worker: SIGINT and SIGTERM are the routine's (its safe stop), not the worker's."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-
-
-class EstimateWorker:
-    """The run's own solve (:func:`run_estimate`) of a sequential startup. On a real clock it is computed in a
-    worker process while the control loop keeps ticking at the held tensions (the drives keep their SYNC, the
-    supervisor its readings; the solve of a long run takes a second or more); in lockstep (the simulated
-    prototype, which waits for every tick) in line, which keeps the run deterministic."""
-
-    def __init__(self, lockstep: bool):
-        self.lockstep = lockstep
-        self._pool = None
-
-    def compute(self, args: tuple, tick: Callable[[], object], now: Callable[[], float],
-                timeout: float = ESTIMATE_TIMEOUT):
-        """run_estimate(*args); on a real clock ``tick()`` is called until it is ready (None after ``timeout``
-        s of ``now()`` or if the worker died)."""
-        if self.lockstep:
-            return run_estimate(*args)
-        from concurrent.futures.process import BrokenProcessPool
-
-        if self._pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            # spawned, not forked: the process has the bus's threads running; Ctrl-C is the routine's to handle
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=_ignore_interrupts)
-        future = self._pool.submit(run_estimate, *args)
-        t0 = now()
-        while not future.done():
-            if now() - t0 > timeout:
-                future.cancel()
-                return None
-            tick()
-        try:
-            return future.result()
-        except BrokenProcessPool:
-            self._pool = None
-            return None
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = None
 
 
 class StartupRoutine:
@@ -564,60 +510,3 @@ class StartupRoutine:
                 pass
 
 
-# ---- connecting the devices -----------------------------------------------------------------------------
-
-
-def feedback_every(rate: float, log_every: int, overflow: int = 240) -> tuple[int, int]:
-    """How often (in SYNCs) the winch drives and the swivel encoders send their readings: (drives, encoders).
-
-    The loop closes on the load cells at every tick; the drives' position, torque and statusword serve the
-    log, the equilibrium detector (at the log ticks) and the fault checks (EMCY comes at once anyway), the
-    swivel angles only the log. So the encoders send at every log tick and the drives as often as that
-    allows at 50 Hz or more; both periods divide the log period and the SYNC counter overflow, and the
-    first SYNC after connecting (counter 1) carries them all (the log ticks are those SYNCs too).
-    Halves the CAN frames per tick at 200 Hz (13.6 -> 6.8, heartbeats included).
-    """
-    base = math.gcd(int(log_every), int(overflow)) if overflow else 1
-    encoders = base
-    drives = max(d for d in range(1, base + 1) if base % d == 0 and rate / d >= 50.0)
-    return drives, encoders
-
-
-def ahrs_rate_for(log_period: float, base: int = 400) -> int:
-    """The AHRS output rate (Hz) the routine needs: the lowest rate the MTi offers (a divisor of its ``base``
-    rate) that puts a sample on every log tick, i.e. a whole number of samples per log period (s); the roll,
-    pitch and yaw serve only the log. 10 Hz for the paper's 100 ms; 100 Hz when no divisor fits."""
-    for rate in range(1, base + 1):
-        k = rate * log_period
-        if base % rate == 0 and k > 1.0 - 1e-9 and abs(k - round(k)) < 1e-9:
-            return rate
-    return 100
-
-
-def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, timeout: float = 0.5,
-            every: tuple[int, int] = (1, 1), recorder=None, bus=None) -> Rig:
-    """Open and check every device of a :class:`drivers.config.DeviceConfig`; a :class:`Rig` over them.
-    ``every``: the drives and the encoders send their readings every n-th SYNC (see :func:`feedback_every`).
-    ``recorder``: an ``acquisition.busrecord.BusRecorder`` that gets every CAN frame and serial byte from the
-    first on; ``bus``: a python-can bus to use instead of the one ``devices.can`` names (a replay's).
-
-    The CAN drivers take their time stamps (heartbeat supervision) from the loop's clock; in lockstep the
-    serial drivers' own wall-time staleness rule is switched off (the supervisor judges staleness on the
-    loop's clock) and they read their ports in the loop's thread when it waits for a reading (no reader
-    thread to wake at every tick). Raises ``drivers.interfaces.DeviceError`` (one sentence) when a device does
-    not answer.
-    """
-    from drivers.interfaces import DeviceError
-    from drivers.open import open_devices
-
-    devices.check_robot(robot.n)
-    if devices.loadcells is None or devices.ahrs is None:
-        raise DeviceError(f"{devices.source}: the device configuration needs 'loadcells' and 'ahrs'.")
-    opened = open_devices(devices, robot.sensors.length_per_motor_rev, robot.sensors.swivel_counts_per_rev,
-                          clock=clock.now, every=every, control_period=period, polled=lockstep,
-                          stale_periods=1e9 if lockstep else 3.0, bus=bus, listener=recorder,
-                          serial_tap=None if recorder is None else recorder.serial_tap)
-    rig = Rig(opened.drives, opened.encoders, opened.loadcells, opened.ahrs, opened.send_sync, period, lockstep,
-              ahrs_period=1.0 / float(devices.ahrs.rate), timeout=timeout)
-    rig.closer = opened.close
-    return rig

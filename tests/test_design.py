@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from acquisition.cli import main
+from acquisition.estimates import EstimateWorker
 from acquisition.runlog import read_run
 from acquisition.session import simulated_startup
-from acquisition.startup import EstimateWorker
 from calib.design import (
     LOOP_POSE_NOISE,
     PoseNoise,

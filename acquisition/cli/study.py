@@ -30,12 +30,11 @@ from acquisition.study import (
     StudyProgress,
     dask_client,
     plan_args,
-    render_study_html,
-    render_table,
     run_study,
     study_sim_config,
     study_statistics,
 )
+from acquisition.study_report import render_study_html, render_table
 
 
 def register(sub) -> None:
