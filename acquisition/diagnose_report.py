@@ -278,7 +278,7 @@ def device_errors_line(robot, dev: dict[str, float]) -> str:
     """The devices' fitted constant errors against their datasheet bounds (load cells N, AHRS tilt deg, AHRS
     yaw drift deg/h); an error outside its bound is named with how many times the bound it is: the base
     model does not hold there."""
-    from calib.effects.builtin import YAW_RATE_BOUND
+    from calib.effects.priors import YAW_RATE_BOUND
 
     sn = robot.sensors
     parts, outside = [], []

@@ -37,7 +37,7 @@ import numpy as np
 
 from calib.constants import EXPECTED_SETTLE, HOLD_TIME, MAX_TENSION_RATE, MIN_TRANSITION, QUINTIC_PEAK_RATE
 from calib.effects import EffectModel
-from calib.effects.builtin import DeviceAccuracy
+from calib.effects.priors import DeviceAccuracy
 from calib.equilibrium import inverse_geometrico_static
 from calib.planning import PlanningError, PosePlan, home, order_setpoints
 from calib.robot import Robot

@@ -43,7 +43,7 @@ import numpy as np
 from scipy import stats
 
 from calib.effects import BUILTIN, Effect, EffectModel, Implausible, Projected
-from calib.effects.builtin import DeviceAccuracy, ReferenceNoise
+from calib.effects.priors import DeviceAccuracy, ReferenceNoise
 from calib.prediction import LEVEL, Prediction, leave_one_pose_out
 from calib.robot import Robot
 from calib.selfcal.lm import levenberg_marquardt
@@ -619,7 +619,7 @@ def diagnose(
 ) -> Diagnosis:
     """Fit, locate the misfit and rank the candidate effects (module doc). theta0/poses0: initial guess.
     With ``device_priors`` every fit holds the devices' constant errors within their datasheet accuracy
-    (:class:`calib.effects.builtin.DeviceAccuracy`), so an effect must exceed those to be reported."""
+    (:class:`calib.effects.priors.DeviceAccuracy`), so an effect must exceed those to be reported."""
     if candidates is None:
         candidates = [cls() for cls in BUILTIN.values()]
     if device_priors and not any(isinstance(e, DeviceAccuracy) for e in included):

@@ -32,7 +32,8 @@ import numpy as np
 
 from calib.diagnose import Residuals, RunRows, residuals
 from calib.effects import Effect, EffectModel, ParamSpec, Projected
-from calib.effects.builtin import AhrsYawDrift, DeviceAccuracy, ReferenceNoise
+from calib.effects.builtin import AhrsYawDrift
+from calib.effects.priors import DeviceAccuracy, ReferenceNoise
 from calib.selfcal.model import CHANNELS
 from calib.selfcal.problem import Problem
 

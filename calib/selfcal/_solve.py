@@ -21,10 +21,10 @@ REFINE = 2  # estimate-noise solves: pose-free kinematic noise at the solution, 
 VCE_ROUNDS_ROWS = 4  # then variance-component rounds on the window means (noise.rescaled_sigma; settles in 2-3)
 def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[str, np.ndarray],
                           windows: np.ndarray | None, ref_size: int):
-    """The model with the reference window's noise for these sigmas (builtin.ReferenceNoise.for_rows, in
+    """The model with the reference window's noise for these sigmas (priors.ReferenceNoise.for_rows, in
     place of any earlier one) and theta to match (its values start at 0)."""
     from calib.effects import EffectModel
-    from calib.effects.builtin import ReferenceNoise
+    from calib.effects.priors import ReferenceNoise
 
     kept = [e for e in getattr(model, "effects", []) if not isinstance(e, ReferenceNoise)]
     n_kept = EffectModel(robot, kept).n_params if kept else 6

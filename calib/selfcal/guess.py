@@ -177,7 +177,7 @@ def prepare(robot: Robot, run: Any, options: SolveOptions | None = None, **chang
         # the noise of window means leaves out the devices' constant errors: carry them as parameters with
         # their datasheet priors (the diagnosis's base model), or the chi2 and the sigmas would ignore them
         from calib.effects import EffectModel
-        from calib.effects.builtin import DeviceAccuracy
+        from calib.effects.priors import DeviceAccuracy
 
         model = EffectModel(robot, [DeviceAccuracy()])
     model = model or MeasurementModel(robot)
