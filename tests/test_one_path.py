@@ -7,7 +7,6 @@ from __future__ import annotations
 import ast
 import subprocess
 import sys
-from pathlib import Path
 
 from test_import_graph import PACKAGES, ROOT, import_graph
 
