@@ -10,7 +10,6 @@ import numpy as np
 
 from acquisition.cli.errors import UsageError
 from acquisition.outputs import OutputExistsError, Replaced, check_output, claim_output
-from acquisition.plans import GRID_POINTS, check_grid, parse_length  # noqa: F401 (the commands' option checks)
 
 
 def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.cli import Interrupted
-from acquisition.cli.args import add_force, parse_length
+from acquisition.cli.args import add_force
 from acquisition.cli.errors import OperationError
-from acquisition.plans import PLANS, PlanRequest
+from acquisition.plans import PLANS, PlanRequest, parse_length
 from acquisition.report import ReportRenderer, StartupSummary, render_text
 from acquisition.session import SIM_PLANT, StartupRequest, StartupSession
 from calib.constants import CONTROL_RATE, HOLD_TIME, MAX_TENSION_RATE

@@ -99,7 +99,7 @@ def run(args) -> int:
     if args.tolerance is not None and "sequential" not in plans:
         raise UsageError("--tolerance applies to --plan sequential only.")
     if args.tolerance is not None:
-        from acquisition.cli.args import parse_length
+        from acquisition.plans import parse_length
 
         parse_length(args.tolerance, "--tolerance")
     try:
