@@ -41,9 +41,9 @@ def import_runs(data: Path, out: Path) -> list[Path]:
 
 def diagnose(paths, max_effects):
     from acquisition.runlog import read_run
-    from calib.diagnose import run_rows
     from calib.effects import available_effects
     from calib.multirun import NOT_CANDIDATES
+    from calib.runrows import run_rows
     from calib.runselect import Judge, select
 
     classes = available_effects()

@@ -350,11 +350,11 @@ def separating_poses(robot: Robot, meas: Measurements, noise: dict[str, np.ndarr
                      poses0: np.ndarray, effects: tuple, cands: CandidateSet, count: int = 3,
                      spacing: float = 0.2) -> Separation:
     """The ``count`` candidate equilibria (at least ``spacing`` m apart) where two effects, each fitted to
-    the rows ``meas`` (with the devices' constant errors, :func:`calib.diagnose.fit`), predict the most
+    the rows ``meas`` (with the devices' constant errors, :func:`calib.fitting.fit`), predict the most
     different readings relative to the noise once the row's pose is refitted: at each candidate setpoint the
     platform of each fitted model rests at that model's equilibrium (direct statics of its true robot)."""
-    from calib.diagnose import fit
     from calib.equilibrium import direct_statics
+    from calib.fitting import fit
     w = np.concatenate([1.0 / np.broadcast_to(noise[c], (channel_width(c, robot.n),)) for c in CHANNELS])
     vals, jacs, ok = [], [], np.ones(cands.size, bool)
     for e in effects:

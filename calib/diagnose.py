@@ -42,195 +42,27 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from calib.effects import BUILTIN, Effect, EffectModel, Implausible, Projected
+from calib.effects import BUILTIN, Effect, Implausible, Projected
 from calib.effects.priors import DeviceAccuracy, ReferenceNoise
+from calib.fitting import (
+    REFIT_ITER,
+    Fit,
+    Residuals,
+    fit,
+    pose_error,
+    predict_unseen,
+    refit,
+    residuals,
+    score_basis,
+    score_test,
+)
 from calib.prediction import LEVEL, Prediction, leave_one_pose_out
 from calib.robot import Robot
-from calib.selfcal.lm import levenberg_marquardt
+from calib.runrows import run_rows
 from calib.selfcal.model import CHANNELS
-from calib.selfcal.problem import Measurements, Problem
+from calib.selfcal.problem import Measurements
 
 OVERLAP = 0.95  # share of an explained direction another candidate must reproduce to be a confusion
-
-
-@dataclass
-class Fit:
-    """A fitted model: effects, theta (p,), poses (k, 6), theta covariance, chi2, residual count."""
-
-    effects: list[Effect]
-    model: EffectModel
-    problem: Problem
-    theta: np.ndarray
-    poses: np.ndarray
-    cov_theta: np.ndarray
-    chi2: float
-    n_residuals: int
-    converged: bool
-    iterations: int = 0
-
-    @property
-    def n_free(self) -> int:
-        return self.model.n_params + 6 * self.poses.shape[0]
-
-    @property
-    def dof(self) -> int:
-        return self.n_residuals - self.n_free
-
-    @property
-    def names(self) -> list[str]:
-        return [e.name for e in self.effects]
-
-    def params(self) -> dict[str, dict[str, float]]:
-        return self.model.report(self.theta)
-
-    def param_sigmas(self) -> dict[str, dict[str, float]]:
-        """1-sigma uncertainty of each effect parameter (for restricted effects, of the full parameters)."""
-        out = {}
-        for e, sl, specs in zip(self.model.effects, self.model.slices, self.model.specs, strict=True):
-            cov = self.cov_theta[sl, sl]
-            if isinstance(e, Projected):
-                cov, specs = e.covariance(cov), e.inner.params(self.model.robot)
-            sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-            out[e.name] = {s.name: float(v) for s, v in zip(specs, sd, strict=True)}
-        return out
-
-
-@dataclass
-class Residuals:
-    """Weighted residuals (m,) and dense Jacobian (m, 6k + p) at a solution, observed entries only, with
-    labels: channel name, cable/component index, row index (-1: the reference row)."""
-
-    r: np.ndarray
-    A: np.ndarray
-    si: np.ndarray
-    channel: np.ndarray
-    index: np.ndarray
-    row: np.ndarray
-
-
-def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: bool = True) -> Residuals:
-    """Dense weighted residuals and Jacobian (columns: the k pose blocks, then theta)."""
-    ev = problem.evaluate(theta, poses, derivatives=jacobian)
-    k, p = poses.shape[0], theta.shape[0]
-    rs, As, sis, ch, ix, rw = [], [], [], [], [], []
-    for g, r, J, G in ev.groups:
-        for c in g.channels:
-            sl = g.slices[c]
-            w = g.weight[:, sl]
-            for a in range(w.shape[1]):
-                ok = w[:, a] > 0
-                rows = g.idx[ok]
-                rs.append(r[ok, sl.start + a])
-                sis.append(r[ok, sl.start + a] / w[ok, a])
-                ch += [c] * rows.size
-                ix += [a] * rows.size
-                rw += rows.tolist()
-                if jacobian:
-                    blk = np.zeros((rows.size, 6 * k + p))
-                    for m, (i, jrow, grow) in enumerate(
-                        zip(rows, J[ok, sl.start + a], G[ok, sl.start + a], strict=True)
-                    ):
-                        blk[m, 6 * i : 6 * i + 6] = jrow
-                        blk[m, 6 * k :] = grow
-                    As.append(blk)
-    start = 0
-    n = problem.model.robot.n
-    for c in problem.ref_channels:
-        width = 3 if c == "orientation" else n
-        for a in range(width):
-            j = start + a
-            if problem.ref_weight[j] > 0:
-                rs.append(ev.r0[j : j + 1])
-                sis.append(ev.r0[j : j + 1] / problem.ref_weight[j])
-                ch.append(c)
-                ix.append(a)
-                rw.append(-1)
-                if jacobian:
-                    blk = np.zeros((1, 6 * k + p))
-                    blk[0, 6 * k :] = ev.g0[j]
-                    As.append(blk)
-        start += width
-    for j, col in enumerate(problem.prior_idx):  # prior pseudo-readings: channel "prior", row -2
-        rs.append(ev.r0[start + j : start + j + 1])
-        sis.append(ev.r0[start + j : start + j + 1] * problem.prior_sd[j])
-        ch.append("prior")
-        ix.append(int(col))
-        rw.append(-2)
-        if jacobian:
-            blk = np.zeros((1, 6 * k + p))
-            blk[0, 6 * k :] = ev.g0[start + j]
-            As.append(blk)
-    A = np.vstack(As) if jacobian else np.zeros((0, 0))
-    return Residuals(np.concatenate(rs), A, np.concatenate(sis), np.array(ch), np.array(ix), np.array(rw))
-
-
-OBSERVABLE = 1e-2  # a typical-size change must move the weighted residuals by this much (noise units)
-
-
-def observable_basis(MC: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Observable directions of an effect's projected columns MC (m, q) with typical parameter sizes
-    scales (q,): basis B (q, r) in parameter units, left singular vectors (m, r), singular values (r,)."""
-    if MC.shape[1] == 0:
-        return np.zeros((0, 0)), np.zeros((MC.shape[0], 0)), np.zeros(0)
-    U, s, Vt = np.linalg.svd(MC * scales, full_matrices=False)
-    keep = s > max(OBSERVABLE, 1e-6 * s.max(initial=0.0))
-    return scales[:, None] * Vt[keep].T, U[:, keep], s[keep]
-
-
-def restrict_to_observable(robot: Robot, meas: Measurements, sigma, effects: list[Effect], theta0: np.ndarray,
-              poses0: np.ndarray) -> list[Effect]:
-    """The effects, each restricted to the parameter directions this data can observe (Projected) where
-    some are not (after projecting out the pose and zeta_0 directions)."""
-    model = EffectModel(robot, effects)
-    problem = Problem(model, meas, sigma)
-    res = residuals(problem, theta0, poses0)
-    k = poses0.shape[0]
-    Q = orthonormal_columns(res.A[:, : 6 * k + 6])
-    out = []
-    for e, sl, specs in zip(effects, model.slices, model.specs, strict=True):
-        C = res.A[:, 6 * k + sl.start : 6 * k + sl.stop]
-        B, _, _ = observable_basis(C - Q @ (Q.T @ C), np.array([sp.scale for sp in specs]))
-        if B.shape[1] == len(specs) or isinstance(e, Projected):
-            out.append(e)
-        else:
-            out.append(Projected(e, B))
-    return out
-
-
-def orthonormal_columns(A: np.ndarray) -> np.ndarray:
-    scale = np.linalg.norm(A, axis=0)
-    scale[scale == 0] = 1.0
-    U, s, _ = np.linalg.svd(A / scale, full_matrices=False)
-    return U[:, s > 1e-10 * s.max(initial=0.0)]
-
-
-def fit(
-    robot: Robot, meas: Measurements, sigma: dict[str, np.ndarray], effects: Sequence[Effect],
-    theta0: np.ndarray, poses0: np.ndarray, max_iter: int = 200, restrict: bool = True,
-) -> Fit:
-    """Fit zeta_0, the row poses and the effects' parameters from a guess (theta0 may be zeta_0 or the
-    theta of a model with fewer effects: missing effect values start absent). With ``restrict``, effects
-    with unobservable parameter directions are fitted in their observable subspace (the rest absent)."""
-    effects = list(effects)
-    theta0 = np.asarray(theta0, float)
-    poses0 = np.asarray(poses0, float).reshape(-1, 6)
-    model = EffectModel(robot, effects)
-    if theta0.shape[0] < model.n_params:
-        theta0 = np.r_[theta0, model.absent_values()[theta0.shape[0] - 6 :]]
-    if restrict and effects:
-        new = restrict_to_observable(robot, meas, sigma, effects, theta0, poses0)
-        if any(a is not b for a, b in zip(new, effects, strict=True)):
-            # restart the restricted effects at their absent values, keep the others' values
-            vals = []
-            for a, b, sl in zip(new, effects, model.slices, strict=True):
-                vals.append(np.zeros(a.basis.shape[1]) if a is not b else theta0[sl])
-            effects = new
-            model = EffectModel(robot, effects)
-            theta0 = np.r_[theta0[:6], np.concatenate(vals) if vals else np.zeros(0)]
-    problem = Problem(model, meas, sigma)
-    res = levenberg_marquardt(problem, theta0, poses0, max_iter=max_iter)
-    return Fit(effects, model, problem, res.theta, res.poses, res.cov_theta, 2.0 * res.cost,
-               problem.n_residuals, bool(res.converged), int(res.iterations))
 
 
 @dataclass
@@ -316,49 +148,6 @@ class Candidate:
 
 def _num(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
-
-
-@dataclass
-class ScoreBasis:
-    """Orthonormal basis of the nuisance directions (poses and theta) at a solution, and the residual."""
-
-    Q: np.ndarray
-    r: np.ndarray
-
-
-def score_basis(res: Residuals) -> ScoreBasis:
-    return ScoreBasis(orthonormal_columns(res.A), res.r)
-
-
-@dataclass
-class Score:
-    """A score test: LM statistic, its dof (observable directions), the unit vector of the explained part
-    of the residual (m,), an orthonormal basis of the effect's projected span (m, dof) and the expected
-    parameter change (the effect's values after one Gauss-Newton step from absent, q)."""
-
-    lm: float
-    dof: int
-    direction: np.ndarray
-    span: np.ndarray
-    values: np.ndarray
-
-
-def score_test(fit0: Fit, effect: Effect, basis: ScoreBasis) -> Score:
-    """Score test of adding ``effect`` to ``fit0`` (no refit)."""
-    model = EffectModel(fit0.model.robot, fit0.effects + [effect])
-    problem = Problem(model, fit0.problem.meas, fit0.problem.sigma)
-    absent = model.absent_values()[fit0.theta.shape[0] - 6 :]
-    theta = np.r_[fit0.theta, absent]
-    res = residuals(problem, theta, fit0.poses)
-    C = res.A[:, 6 * fit0.poses.shape[0] + fit0.theta.shape[0] :]
-    Q = basis.Q
-    B, Uk, s = observable_basis(C - Q @ (Q.T @ C), np.array([sp.scale for sp in model.specs[-1]]))
-    proj = Uk.T @ basis.r
-    lm = float(proj @ proj)
-    u = Uk @ proj
-    nu = np.linalg.norm(u)
-    values = absent + (B @ (-proj / s) if s.size else 0.0)  # r is prediction - reading: the step is -pinv(C) r
-    return Score(lm, int(Uk.shape[1]), (u / nu if nu > 0 else u), Uk, values)
 
 
 @dataclass
@@ -456,21 +245,6 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements, ref_sample: int 
                 entry[key] = [int(v) for v in d]
         rows.append(entry)
     return channels, cables, rows
-
-
-REFIT_ITER = 30  # a candidate's refit that has not converged after this many LM iterations is not evidence
-
-
-def refit(fit0: Fit, effect: Effect, max_iter: int = 200) -> Fit:
-    """``fit0`` with one more effect, started from fit0's solution (the effect absent)."""
-    return fit(fit0.model.robot, fit0.problem.meas, fit0.problem.sigma, fit0.effects + [effect], fit0.theta,
-               fit0.poses, max_iter=max_iter)
-
-
-def predict_unseen(f: Fit) -> Prediction:
-    """Leave-one-pose-out chi2 of a fit (:mod:`calib.prediction`)."""
-    res = residuals(f.problem, f.theta, f.poses)
-    return leave_one_pose_out(res.r, res.A, res.row, f.poses.shape[0])
 
 
 def _bounds(effect: Effect, robot: Robot) -> dict[str, tuple[float, float]]:
@@ -833,72 +607,6 @@ def _verdict_text(diag: Diagnosis, more: bool = False) -> str:
 
 
 PARTIAL = 0.9  # a single effect explaining less than this share of the excess only explains part of it
-
-
-def pose_error(a: np.ndarray, b: np.ndarray) -> float:
-    """Distance between the positions of two poses, m."""
-    return float(np.linalg.norm(np.asarray(a, float)[:3] - np.asarray(b, float)[:3]))
-
-
-@dataclass
-class RunRows:
-    """What both the diagnosis and ``cdpr solve --effects`` fit on a run: the rows of a method's windows,
-    their noise (``source`` names it), the rigid solve whose solution is the start of every fit."""
-
-    robot: Robot
-    meas: Measurements
-    sigma: dict[str, np.ndarray]
-    source: str
-    solution: Any
-    reference: Effect | None = None  # the reference window's noise (ReferenceNoise), in every fit
-
-
-def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: int = 1,
-             reference_sample: int | None = None) -> RunRows:
-    """The rows, noise and start of a run: the windows, rows and initial guess are those of
-    ``calib.selfcal.solve(method)``; noise ``estimate`` is that solve's (the noise of window means,
-    calib.selfcal.noise, with its refinements and the reference window's noise), ``accuracy`` that noise
-    floored at the sensors' accuracy class, ``paper`` (eq. 18) and ``sensors`` as in solve."""
-    from calib.selfcal import measurement_rows, noise_levels, run_signals, sensor_noise, solve
-
-    robot = run.robot
-    sol = solve(robot, run, method=method, noise="estimate" if noise == "accuracy" else noise, stride=stride,
-                reference_sample=reference_sample)
-    sig = run_signals(robot, run)
-    meas = measurement_rows(sig, sol.windows, method, stride, sol.reference_sample)[0]
-    # the estimate-noise solve's own sigmas: the kinematic ones without the motion the rows' poses absorb
-    solved = {c: np.asarray(v, float) for c, v in sol.noise.items()}
-    if noise == "estimate":
-        sigma, source = solved, "estimate"
-    elif noise == "accuracy":  # the noise of a window mean floored at the sensors' accuracy
-        acc = sensor_noise(robot)
-        sigma = {c: np.maximum(v, acc[c]) for c, v in solved.items()}
-        source = "accuracy"
-    else:
-        sigma, source = noise_levels(robot, noise, sig, sol.windows)
-    reference = None
-    if noise in ("estimate", "accuracy") and sol.reference_noise:  # the solve's: the same priors in every fit
-        reference = ReferenceNoise(**sol.reference_noise)
-    return RunRows(robot, meas, sigma, source, sol, reference)
-
-
-def base_fit(rows: RunRows, included: Sequence[Effect] = ()) -> Fit:
-    """The diagnosis's base model on a run's rows: the devices' constant errors within their datasheet
-    accuracy, the reference window's noise (with the estimate-noise solve's priors) and the included
-    effects, started from the rigid solve."""
-    sol = rows.solution
-    base = [DeviceAccuracy()] + ([rows.reference] if rows.reference is not None else [])
-    return fit(rows.robot, rows.meas, rows.sigma, [*base, *included], sol.theta[:6], sol.poses)
-
-
-def effect_chain(rows: RunRows, effects: Sequence[Effect]) -> list[Fit]:
-    """The base fit, then the effects added one at a time, each fit started from the previous one: the
-    fits the diagnosis's forward selection makes, and those of ``cdpr solve --effects`` (same noise, same
-    priors, same start, so the same numbers)."""
-    fits = [base_fit(rows)]
-    for e in effects:
-        fits.append(refit(fits[-1], e))
-    return fits
 
 
 def diagnose_run(
