@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from calib.diagnose import Candidate, Diagnosis, misfit_location
+from calib.diagnose import Candidate, Diagnosis
+from calib.diagnose_words import misfit_location
 from calib.fitting import residuals
 from calib.kinematics import inverse_kinematics
 from calib.robot import Robot
