@@ -33,6 +33,15 @@ def add_force(parser) -> None:
     parser.add_argument("--force", action="store_true", help=FORCE_HELP)
 
 
+def add_effect_options(parser) -> None:
+    """The options `cdpr solve` gains from the effect library (issue 7): --effects and --effects-from (read
+    by acquisition/cli/effect_options.py only when given, so a plain solve loads no effect library)."""
+    parser.add_argument("--effects", default=None, metavar="A,B",
+                        help="physical effects to include in the model (see cdpr diagnose)")
+    parser.add_argument("--effects-from", action="append", default=[], metavar="MODULE",
+                        help="a Python file or module defining more effects (repeatable)")
+
+
 def check_output_option(path, force: bool, option: str, inputs=()) -> None:
     """Refuse, before any work, an output that exists and may not be replaced, or that is, holds or is inside
     one of the command's ``inputs`` (one sentence, exit 2)."""

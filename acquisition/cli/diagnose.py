@@ -121,14 +121,6 @@ def _diagnose(args) -> int:
 
 # ---- cdpr solve --effects --------------------------------------------------------------------------------
 
-def add_solve_options(parser) -> None:
-    """The options `cdpr solve` gains from the effect library."""
-    parser.add_argument("--effects", default=None, metavar="A,B",
-                        help="physical effects to include in the model (see cdpr diagnose)")
-    parser.add_argument("--effects-from", action="append", default=[], metavar="MODULE",
-                        help="a Python file or module defining more effects (repeatable)")
-
-
 def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: dict[str, Any]):
     """Solve with the effects of ``args.effects`` added one by one: the fits of
     :func:`calib.runrows.effect_chain` (the diagnosis's own refits: same noise, device priors and start),
