@@ -106,18 +106,21 @@ class StartupOutcome:
     truth: dict[str, Any] | None = None
 
 
-def run_startup(request: StartupRequest, report: ReportRenderer | None = None) -> StartupOutcome:
+def run_startup(request: StartupRequest, report: ReportRenderer | None = None,
+                note: Callable[[str], None] | None = None) -> StartupOutcome:
     """Run one startup (see the module docstring); ``report`` renders RUN/report.html (default: one made
-    here, rendered after the acquisition). Raises StartupRefused or StartupFailed."""
-    return StartupSession(request).run(report)
+    here, rendered after the acquisition); ``note`` is told, in one sentence, where an output replaced with
+    ``force`` was moved. Raises StartupRefused or StartupFailed."""
+    return StartupSession(request, note).run(report)
 
 
 class StartupSession:
     """One startup being run: :meth:`run`, and where it writes (``run_folder``, set once the run folder is
-    claimed: before that nothing was written)."""
+    claimed: before that nothing was written); ``note`` is told where a replaced output was moved."""
 
-    def __init__(self, request: StartupRequest):
+    def __init__(self, request: StartupRequest, note: Callable[[str], None] | None = None):
         self.request = request
+        self.note = note or (lambda sentence: None)
         self.run_folder: Path | None = None
 
     def run(self, report: ReportRenderer | None = None) -> StartupOutcome:
@@ -173,11 +176,13 @@ class StartupSession:
         elif req.config:
             raise StartupRefused("--config applies to --backend hw only (the simulator makes its own devices).")
         replaced = claim_output(out, req.force, "--out", inputs)
+        if replaced is not None:
+            self.note(replaced.sentence())
         previous = meta.get("previous_offsets")
         if replaced is not None and previous and Path(str(previous.get("run", ""))).absolute() == out.absolute():
             previous["run"] = str(replaced.kept)  # the offsets came from the run just moved aside
         self.run_folder = out
-        run = _Acquisition(req, robot, plan, cfg, out, meta, report)
+        run = _Acquisition(req, robot, plan, cfg, out, meta, report, self.note)
         return run.on_hardware() if req.backend == "hw" else run.on_simulator()
 
 
@@ -204,9 +209,9 @@ class _Acquisition:
     """The acquisition, solve and report of a checked request into its claimed run folder."""
 
     def __init__(self, req: StartupRequest, robot, plan, cfg: StartupConfig, out: Path, meta: dict,
-                 report: ReportRenderer):
+                 report: ReportRenderer, note: Callable[[str], None]):
         self.req, self.robot, self.plan, self.cfg, self.out = req, robot, plan, cfg, out
-        self.meta, self.report = meta, report
+        self.meta, self.report, self.note = meta, report, note
 
     def on_simulator(self) -> StartupOutcome:
         from sim_backend.backend import SimBackend
@@ -229,7 +234,9 @@ class _Acquisition:
                 summary = self._solve_and_report(result)
                 if req.truth and summary.solution:
                     truth = _truth_document(sim, result.ticks, summary.solution)
-                    claim_output(req.truth, req.force, "--truth")
+                    replaced = claim_output(req.truth, req.force, "--truth")
+                    if replaced is not None:
+                        self.note(replaced.sentence())
                     Path(req.truth).write_text(json.dumps(truth) + "\n")
                     summary.files["truth"] = str(req.truth)
         finally:

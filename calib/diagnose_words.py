@@ -1,15 +1,16 @@
 """The diagnosis in words (as lmfit keeps its reports in printfuncs.py): each candidate's decision from its
-:class:`calib.diagnose.Reason`, the verdict from the :class:`calib.diagnose.Verdict`, and where the misfit sits.
-Nothing here computes a statistic: the numbers are the diagnosis's (:mod:`calib.diagnose`)."""
+:class:`calib.evidence.Reason`, the verdict from the :class:`calib.diagnose.Verdict`, and where the misfit sits.
+Nothing here computes a statistic: the numbers are the diagnosis's (:mod:`calib.diagnose`, :mod:`calib.evidence`)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from calib.diagnose import Candidate, Diagnosis
+# the diagnosis's objects come in as they are (calib.evidence.Candidate, calib.diagnose.Diagnosis): this module
+# imports neither, so that their properties (Candidate.decision, Diagnosis.verdict) can import it
+Candidate = Diagnosis = Any
 
 
 def decision_text(c: Candidate) -> str:

@@ -112,7 +112,7 @@ def _model_solve(model: Path):
 
 
 def run(args) -> int:
-    session = StartupSession(request_of(args))
+    session = StartupSession(request_of(args), note=lambda sentence: sys.stderr.write(f"cdpr: note: {sentence}\n"))
     try:
         with ReportRenderer() as report:
             if not args.no_html:
