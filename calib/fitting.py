@@ -73,60 +73,38 @@ class Residuals:
     row: np.ndarray
 
 
-def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: bool = True) -> Residuals:
-    """Dense weighted residuals and Jacobian (columns: the k pose blocks, then theta)."""
-    ev = problem.evaluate(theta, poses, derivatives=jacobian)
+def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: bool = True,
+              physical: tuple | None = None) -> Residuals:
+    """Dense weighted residuals and Jacobian (columns: the k pose blocks, then theta). Order: per group,
+    channel and component, the observed rows; then the reference row's observed entries; then the priors
+    (``Problem.observed``). ``physical``: as :meth:`Problem.evaluate`'s."""
+    ev = problem.evaluate(theta, poses, derivatives=jacobian, physical=physical)
+    obs = problem.observed
     k, p = poses.shape[0], theta.shape[0]
-    rs, As, sis, ch, ix, rw = [], [], [], [], [], []
-    for g, r, J, G in ev.groups:
-        for c in g.channels:
-            sl = g.slices[c]
-            w = g.weight[:, sl]
-            for a in range(w.shape[1]):
-                ok = w[:, a] > 0
-                rows = g.idx[ok]
-                rs.append(r[ok, sl.start + a])
-                sis.append(r[ok, sl.start + a] / w[ok, a])
-                ch += [c] * rows.size
-                ix += [a] * rows.size
-                rw += rows.tolist()
-                if jacobian:
-                    blk = np.zeros((rows.size, 6 * k + p))
-                    for m, (i, jrow, grow) in enumerate(
-                        zip(rows, J[ok, sl.start + a], G[ok, sl.start + a], strict=True)
-                    ):
-                        blk[m, 6 * i : 6 * i + 6] = jrow
-                        blk[m, 6 * k :] = grow
-                    As.append(blk)
-    start = 0
-    n = problem.model.robot.n
-    for c in problem.ref_channels:
-        width = 3 if c == "orientation" else n
-        for a in range(width):
-            j = start + a
-            if problem.ref_weight[j] > 0:
-                rs.append(ev.r0[j : j + 1])
-                sis.append(ev.r0[j : j + 1] / problem.ref_weight[j])
-                ch.append(c)
-                ix.append(a)
-                rw.append(-1)
-                if jacobian:
-                    blk = np.zeros((1, 6 * k + p))
-                    blk[0, 6 * k :] = ev.g0[j]
-                    As.append(blk)
-        start += width
-    for j, col in enumerate(problem.prior_idx):  # prior pseudo-readings: channel "prior", row -2
-        rs.append(ev.r0[start + j : start + j + 1])
-        sis.append(ev.r0[start + j : start + j + 1] * problem.prior_sd[j])
-        ch.append("prior")
-        ix.append(int(col))
-        rw.append(-2)
-        if jacobian:
-            blk = np.zeros((1, 6 * k + p))
-            blk[0, 6 * k :] = ev.g0[start + j]
-            As.append(blk)
-    A = np.vstack(As) if jacobian else np.zeros((0, 0))
-    return Residuals(np.concatenate(rs), A, np.concatenate(sis), np.array(ch), np.array(ix), np.array(rw))
+    ok, m0, q = obs.ref, obs.n_ref, problem.prior_idx.size
+    rs, sis, jac = [], [], []
+    for (g, r, J, G), entries in zip(ev.groups, obs.groups, strict=True):
+        for i, cols, w in entries:
+            rs.append(r[i, cols])
+            sis.append(r[i, cols] / w)
+            if jacobian:
+                jac.append((g.idx[i], J[i, cols], G[i, cols]))
+    rs += [ev.r0[ok], ev.r0[m0:m0 + q]]
+    sis += [ev.r0[ok] / problem.ref_weight[ok], ev.r0[m0:m0 + q] * problem.prior_sd]
+    if jacobian:
+        m = sum(x[0].size for x in jac)
+        A = np.zeros((m + ok.size + q, 6 * k + p))
+        start = 0
+        for i, Jr, Gr in jac:
+            rows = np.arange(start, start + i.size)
+            A[rows[:, None], 6 * i[:, None] + np.arange(6)] = Jr
+            A[rows, 6 * k:] = Gr
+            start += i.size
+        A[start:start + ok.size, 6 * k:] = ev.g0[ok]
+        A[start + ok.size:, 6 * k:] = ev.g0[m0:m0 + q]
+    else:
+        A = np.zeros((0, 0))
+    return Residuals(np.concatenate(rs), A, np.concatenate(sis), obs.channel, obs.index, obs.row)
 
 
 OBSERVABLE = 1e-2  # a typical-size change must move the weighted residuals by this much (noise units)

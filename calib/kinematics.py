@@ -28,8 +28,9 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cross product over the last axis (broadcasting), faster than np.cross on many small vectors."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., 0] = a1 * b2 - a2 * b1
+    c0 = a1 * b2 - a2 * b1  # its shape is the broadcast one (no np.broadcast_shapes call: many tiny arrays)
+    out = np.empty(c0.shape + (3,))
+    out[..., 0] = c0
     out[..., 1] = a2 * b0 - a0 * b2
     out[..., 2] = a0 * b1 - a1 * b0
     return out
@@ -82,12 +83,12 @@ def euler_axes(angles: np.ndarray, convention: str = "xyz") -> np.ndarray:
     h = np.zeros((k, 3, 3))
     if convention == "xyz":  # roll axis e_x; pitch axis Rx e_y; yaw axis Rx Ry e_z
         h[:, 0, 0] = 1.0
-        h[:, :, 1] = np.stack([np.zeros(k), c[:, 0], s[:, 0]], -1)
-        h[:, :, 2] = np.stack([s[:, 1], -s[:, 0] * c[:, 1], c[:, 0] * c[:, 1]], -1)
+        h[:, 1, 1], h[:, 2, 1] = c[:, 0], s[:, 0]
+        h[:, 0, 2], h[:, 1, 2], h[:, 2, 2] = s[:, 1], -s[:, 0] * c[:, 1], c[:, 0] * c[:, 1]
     elif convention == "zyx":  # yaw axis e_z; pitch axis Rz e_y; roll axis Rz Ry e_x
         h[:, 2, 2] = 1.0
-        h[:, :, 1] = np.stack([-s[:, 2], c[:, 2], np.zeros(k)], -1)
-        h[:, :, 0] = np.stack([c[:, 2] * c[:, 1], s[:, 2] * c[:, 1], -s[:, 1]], -1)
+        h[:, 0, 1], h[:, 1, 1] = -s[:, 2], c[:, 2]
+        h[:, 0, 0], h[:, 1, 0], h[:, 2, 0] = c[:, 2] * c[:, 1], s[:, 2] * c[:, 1], -s[:, 1]
     else:
         raise ValueError(f"unknown orientation convention {convention!r}")
     return h

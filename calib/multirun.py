@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from calib.effects import Effect, EffectModel, ParamSpec, Projected
+from calib.effects.base import Physical
 from calib.effects.builtin import AhrsYawDrift
 from calib.effects.priors import DeviceAccuracy, ReferenceNoise
 from calib.fitting import Residuals, residuals
@@ -41,6 +42,9 @@ from calib.selfcal.problem import Problem
 GROUPS = CHANNELS  # the channel groups whose noise the variance components set
 LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
 RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
+# the normal matrix's eigenvalue ratio above which the joint Jacobian has full rank without an SVD (its singular
+# values above 1e-7 of the largest, far from the SVD's cut at 1e-10; eigvalsh errs by ~1e-16 of the largest)
+FULL_RANK = 1e-14
 PIN = 1e-6  # a device prior that steps aside is pinned at its absent value: sd = PIN * its typical size
 # which device priors a shared effect overlaps (the same columns): they step aside while it is fitted
 OVERLAPS = {"tension_offset": ("b_",), "ahrs_mounting": ("b_roll", "b_pitch")}
@@ -222,11 +226,52 @@ def start_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect],
     return out
 
 
-def _evaluate(runs: list[RunFit]) -> tuple[list, float]:
+def one_robot(runs: list[RunFit], shared: Sequence[Effect]) -> bool:
+    """Whether the runs' physical quantities (kinematics, statics, robot effects) can be computed in one
+    model call for all their poses: one robot description, every problem one group of rows, and the robot
+    effects all shared (the same instances, last in every run's model)."""
+    m0, ns = runs[0].problem.model, len(shared)
+    if not all(isinstance(rf.problem.model, EffectModel) and rf.problem.single for rf in runs):
+        return False
+    desc = m0.robot.to_dict()
+    for rf in runs:
+        m = rf.problem.model
+        own, tail = m.effects[:len(m.effects) - ns], m.effects[len(m.effects) - ns:]
+        if (m.robot is not m0.robot and m.robot.to_dict() != desc) or any(e.stage == "robot" for e in own) \
+                or any(a is not b for a, b in zip(tail, m0.effects[len(m0.effects) - ns:], strict=True)):
+            return False
+    return True
+
+
+def _rows_of(ph: Physical, rows: slice, p0: int, p: int, q: int) -> Physical:
+    """Rows of physical quantities computed with a model of p0 parameters, laid out for one of p whose last q
+    are the same shared ones (the theta columns of robot effects are all among them)."""
+    def cols(t):
+        out = np.zeros(t[rows].shape[:2] + (p,))
+        if q:
+            out[..., p - q:] = t[rows, :, p0 - q:]
+        return out
+
+    return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
+                    cols(ph.tL), cols(ph.tsigma), cols(ph.ttau))
+
+
+def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False) -> tuple[list, float]:
     """Each run's Residuals with their Jacobian (the model's predictions carry their derivatives anyway, so
     an accepted LM trial is not evaluated twice) and the joint chi2 (weighted residuals' sum of squares,
-    priors included)."""
-    blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
+    priors included). ``batch`` (:func:`one_robot`; q the shared parameters): the physical quantities of all
+    runs' rows and zeta_0s in one model call (the same numbers, a third of the calls for three runs)."""
+    t0 = runs[0].theta
+    if batch and all(np.array_equal(rf.theta[rf.theta.shape[0] - q:], t0[t0.shape[0] - q:]) for rf in runs):
+        rows = [np.vstack([rf.theta[None, :6], rf.poses[rf.problem.groups[0].idx], rf.theta[None, :6]])
+                for rf in runs]
+        robot, ph = runs[0].problem.model.physical(t0, np.vstack(rows))
+        ends = np.cumsum([0] + [z.shape[0] for z in rows])
+        blocks = [residuals(rf.problem, rf.theta, rf.poses,
+                            physical=(robot, _rows_of(ph, slice(a, b), t0.shape[0], rf.theta.shape[0], q)))
+                  for rf, a, b in zip(runs, ends[:-1], ends[1:], strict=True)]
+    else:
+        blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
     return blocks, float(sum(np.sum(b.r ** 2) for b in blocks))
 
 
@@ -280,31 +325,118 @@ def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
             rf.theta[-q:] = np.clip(rf.theta[-q:], lo, hi)
 
 
+@dataclass
+class Arrow:
+    """Normal equations of the joint problem by blocks, on unit-norm columns: per run, the pose blocks U
+    (k, 6, 6), their coupling W (k, 6, t) with the run's theta columns (own, then shared unless fixed), the
+    theta block V (t, t) and the gradients gp (k, 6), gt (t,); the column norms of the joint Jacobian (the
+    scale, in :func:`stack`'s column order) and each run's columns there (own, poses)."""
+
+    U: list[np.ndarray]
+    W: list[np.ndarray]
+    V: list[np.ndarray]
+    gp: list[np.ndarray]
+    gt: list[np.ndarray]
+    scale: np.ndarray
+    cols: list[tuple[slice, slice]]
+    q: int  # shared columns in the problem (0 when fixed)
+
+    @classmethod
+    def of(cls, runs: list[RunFit], blocks: list[Residuals], q: int, fixed_shared: bool) -> Arrow:
+        """From the runs' Residuals: a pose's columns only meet that pose's rows, so the pose blocks of the
+        normal matrix are 6 x 6 (no dense m x (6k + p) product)."""
+        qq = 0 if fixed_shared else q
+        raw, cols, start = [], [], qq
+        for rf, res in zip(runs, blocks, strict=True):
+            k = rf.poses.shape[0]
+            p_own = rf.theta.shape[0] - q
+            X = res.A[:, :6 * k].reshape(-1, k, 6).transpose(1, 2, 0)  # (k, 6, m)
+            T = res.A[:, 6 * k:6 * k + p_own + qq]
+            raw.append((X @ X.transpose(0, 2, 1), X @ T, T.T @ T, X @ res.r, T.T @ res.r))
+            cols.append((slice(start, start + p_own), slice(start + p_own, start + p_own + 6 * k)))
+            start += p_own + 6 * k
+        d2 = np.zeros(start)
+        for (U, _, V, _, _), (so, sp) in zip(raw, cols, strict=True):
+            d2[sp] = np.diagonal(U, axis1=1, axis2=2).ravel()
+            p_own = so.stop - so.start
+            d2[so] = np.diag(V)[:p_own]
+            d2[:qq] += np.diag(V)[p_own:]
+        scale = np.sqrt(d2)
+        scale[scale == 0] = 1.0
+        out = cls([], [], [], [], [], scale, cols, qq)
+        for (U, W, V, gp, gt), (so, sp) in zip(raw, cols, strict=True):
+            sp_, st = scale[sp].reshape(-1, 6), np.r_[scale[so], scale[:qq]]
+            out.U.append(U / (sp_[:, :, None] * sp_[:, None, :]))
+            out.W.append(W / (sp_[:, :, None] * st[None, None, :]))
+            out.V.append(V / np.outer(st, st))
+            out.gp.append(gp / sp_)
+            out.gt.append(gt / st)
+        return out
+
+    def step(self, damping: float) -> tuple[np.ndarray, float]:
+        """The step ds (scaled columns) solving (N + damping diag(N)) ds = -g by eliminating each run's pose
+        blocks (a Schur complement on [shared, own_1, own_2, ...]), and the decrease -(2 g.ds + ds.N.ds) the
+        undamped quadratic model predicts for it."""
+        qq = self.q
+        own = [so.stop - so.start for so, _ in self.cols]
+        at = np.cumsum([qq, *own])
+        M, rhs = np.zeros((at[-1], at[-1])), np.zeros(at[-1])
+        dg = np.zeros(at[-1])
+        parts = []
+        for j, (U, W, V, gp, gt) in enumerate(zip(self.U, self.W, self.V, self.gp, self.gt, strict=True)):
+            Ud = U.copy()
+            Ud[:, range(6), range(6)] += damping * np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12)
+            sol = np.linalg.solve(Ud, np.concatenate([W, gp[..., None]], axis=2))
+            Y, y = sol[..., :-1], sol[..., -1]
+            t = W.shape[2]
+            Wf = W.reshape(-1, t)
+            S, rr = V - Wf.T @ Y.reshape(-1, t), gt - Wf.T @ y.ravel()
+            o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]  # the run's own block, then the shared one
+            M[o, o] += S[:no, :no]
+            M[o, :qq] += S[:no, no:]
+            M[:qq, o] += S[no:, :no]
+            M[:qq, :qq] += S[no:, no:]
+            rhs[o] += rr[:no]
+            rhs[:qq] += rr[no:]
+            dg[o] += np.diag(V)[:no]
+            dg[:qq] += np.diag(V)[no:]
+            parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
+        M[range(at[-1]), range(at[-1])] += damping * np.maximum(dg, 1e-12)
+        x = -np.linalg.solve(M, rhs)
+        ds = np.zeros(self.scale.shape[0])
+        ds[:qq] = x[:qq]
+        gain = 0.0
+        for (so, sp), (idx, Y, y), U, W, V, gp, gt in zip(self.cols, parts, self.U, self.W, self.V, self.gp,
+                                                          self.gt, strict=True):
+            dt = x[idx]
+            dp = -(y + Y @ dt)
+            ds[so], ds[sp] = dt[:so.stop - so.start], dp.ravel()
+            Ud = (U @ dp[..., None])[..., 0]
+            quad = float(np.sum(dp * Ud) + 2.0 * np.sum(dp * (W @ dt)) + dt @ V @ dt)
+            gain -= 2.0 * (float(np.sum(gp * dp)) + float(gt @ dt)) + quad
+        return ds, gain
+
+
 def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = False, max_iter: int = 60,
             tol: float = 1e-5, covariance: bool = True) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
-    """Levenberg-Marquardt on the joint problem. Returns the runs, chi2, converged, iterations, the scaled
-    inverse normal matrix's shared block (covariance of the shared values) and the rank (without
-    ``covariance``: zeros and 0, the SVD skipped)."""
+    """Levenberg-Marquardt on the joint problem (its normal equations by blocks, :class:`Arrow`). Returns
+    the runs, chi2, converged, iterations, the scaled inverse normal matrix's shared block (covariance of
+    the shared values) and the rank (without ``covariance``: zeros and 0, the SVD skipped)."""
     robot = runs[0].rows.robot
     q, _, lo, hi = _layout(shared, robot)
     lam, iterations, converged = 1e-5, 0, False
-    blocks, _ = _evaluate(runs)
-    r, A, cols = stack(runs, q, fixed_shared, blocks=blocks)
-    cost = float(r @ r)
+    batch = one_robot(runs, shared)
+    blocks, cost = _evaluate(runs, q, batch)
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
-        scale = np.linalg.norm(A, axis=0)
-        scale[scale == 0] = 1.0
-        As = A / scale
-        N = As.T @ As
-        g = As.T @ r
+        arrow = Arrow.of(runs, blocks, q, fixed_shared)
         improved = False
         for trial_no in range(LAMBDA_TRIES):
-            ds = -np.linalg.solve(N + (lam + RIDGE) * np.diag(np.maximum(np.diag(N), 1e-12)), g)
-            if trial_no == 0 and -float(2.0 * g @ ds + ds @ N @ ds) < tol * cost:
+            ds, gain = arrow.step(lam + RIDGE)
+            if trial_no == 0 and gain < tol * cost:
                 break  # the lightly damped step predicts nothing left to gain
-            trial = _apply(runs, ds / scale, q, cols, fixed_shared)
+            trial = _apply(runs, ds / arrow.scale, q, arrow.cols, fixed_shared)
             _clip(trial, q, lo, hi)
-            trial_blocks, c1 = _evaluate(trial)
+            trial_blocks, c1 = _evaluate(trial, q, batch)
             if np.isfinite(c1) and c1 < cost:
                 improved = True
                 break
@@ -318,19 +450,26 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
         if rel < tol:
             converged = True
             break
-        r, A, _ = stack(runs, q, fixed_shared, blocks=blocks)
     for rf, b in zip(runs, blocks, strict=True):
         rf.chi2, rf.res = float(b.r @ b.r), b
     if not covariance:
         return runs, cost, converged, iterations, np.zeros((q, q)), 0
+    _, A, _ = stack(runs, q, fixed_shared, blocks=blocks)
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     As = A / scale
-    U, s, Vt = np.linalg.svd(As, full_matrices=False)
-    keep = s > 1e-10 * s.max(initial=0.0)
-    cov_s = (Vt[keep].T / s[keep] ** 2) @ Vt[keep] / np.outer(scale, scale)
-    cov = cov_s[:q, :q] if not fixed_shared else np.zeros((q, q))
-    return runs, cost, converged, iterations, cov, int(keep.sum())
+    N = As.T @ As
+    ev = np.linalg.eigvalsh(N)
+    if ev[0] > FULL_RANK * ev[-1]:  # every singular value of As above 1e-7 of the largest: full rank
+        rank = N.shape[0]
+        cov_s = np.linalg.solve(N, np.eye(N.shape[0])[:, :q])[:q] if q and not fixed_shared else None
+    else:  # a direction the data barely see: the pseudo-inverse and rank of the SVD (cut at 1e-10)
+        _, s, Vt = np.linalg.svd(As, full_matrices=False)
+        keep = s > 1e-10 * s.max(initial=0.0)
+        rank = int(keep.sum())
+        cov_s = ((Vt[keep, :q].T / s[keep] ** 2) @ Vt[keep, :q]) if not fixed_shared else None
+    cov = np.zeros((q, q)) if cov_s is None else cov_s / np.outer(scale[:q], scale[:q])
+    return runs, cost, converged, iterations, cov, rank
 
 
 def components(rf: RunFit, redundancy: float, floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -72,6 +72,7 @@ def generalised_statics(
     jac: KinematicJacobians | None = None,
     tau: np.ndarray | None = None,
     base: GeneralisedStatics | None = None,
+    load: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> GeneralisedStatics:
     """The equilibrium in Euler-axis coordinates: forces, then moments projected on H's columns.
 
@@ -81,15 +82,21 @@ def generalised_statics(
       sum tau_i da'_i x t_i  = (S - tr(S) I) H        with S = sum tau_i a'_i t_i^T,
       sum tau_i a'_i x dt_i  = [sum c_i a'_i]x | (sum c_i |a'_i|^2 I - sum c_i a'_i a'_i^T) H
                                - sum c_i (a'_i x t_i) dl_i^T - sum e_i (a'_i x w_i) dsigma_i^T.
-    ``base``: A and b already computed for these poses (they are reused).
+    ``base``: A and b already computed for these poses (they are reused). ``load``: the weight (k,) N and
+    centre of mass (k, 3) m (platform frame) the cables hold at each pose, instead of the robot's own.
     """
     k, n = kin.lengths.shape
     H = kin.H
     Ht = H.transpose(0, 2, 1)
     a = kin.a_rel
     m_cab = cross(a, kin.t)  # (k, n, 3)
-    g = gravity_vector(robot)
-    s = np.einsum("kab,b->ka", kin.R, robot.com)
+    if load is None:
+        g = gravity_vector(robot)
+        s = np.einsum("kab,b->ka", kin.R, robot.com)
+    else:
+        g = np.zeros((k, 3))
+        g[:, 2] = -np.asarray(load[0], float)
+        s = np.einsum("kab,kb->ka", kin.R, np.asarray(load[1], float))
     m_g = cross(s, g)  # (k, 3)
     if base is None:
         A = np.empty((k, 6, n))
@@ -140,7 +147,7 @@ def generalised_statics(
     G[:, 3:, 3:] += np.einsum("kajm,ka->kjm", dH, m_tau)
     # gravity: d(H^T (s x g)) with ds/d(angle_m) = h_m x s
     ds = cross(Ht, s[:, None, :])  # (k, 3 angles, 3)
-    dm_g = cross(ds, g).transpose(0, 2, 1)  # (k, 3, 3 angles)
+    dm_g = cross(ds, g if g.ndim == 1 else g[:, None, :]).transpose(0, 2, 1)  # (k, 3, 3 angles)
     db = np.zeros((k, 6, 6))
     db[:, 3:, 3:] = np.matmul(Ht, dm_g) + np.einsum("kajm,ka->kjm", dH, m_g)
     return GeneralisedStatics(A, b, G, db)
@@ -177,6 +184,30 @@ def tension_model(
         return TensionModel(tau, None)
     st = generalised_statics(robot, kin, jac, tau, base=st)
     return TensionModel(tau, np.linalg.solve(Ac, st.db[:, c, :] - st.G[:, c, :]))
+
+
+def point_load_tensions(
+    robot: Robot, kin: Kinematics, jac: KinematicJacobians, points: np.ndarray, masses: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tension model (eq. 11-12) for point masses instead of the platform's weight: at k poses, the
+    tensions (k, n, m) that hold 1 kg at each of m platform points (m, 3) m alone, and the tensions (k, n)
+    that hold masses (k, m) kg at them together with their pose Jacobian (k, n, 6) at fixed masses (one
+    statics evaluation for all points: the equilibrium is linear in the load)."""
+    c = list(robot.controlled)
+    st = generalised_statics(robot, kin)
+    Ac = st.A[:, c, :]
+    g1 = np.array([0.0, 0.0, -robot.gravity])
+    sp = np.einsum("kab,mb->kma", kin.R, np.asarray(points, float))  # (k, m, 3)
+    B = np.empty((kin.R.shape[0], 6, sp.shape[1]))
+    B[:, :3] = g1[None, :, None]
+    B[:, 3:] = np.einsum("kaj,kma->kjm", kin.H, cross(sp, g1))
+    each = np.linalg.solve(Ac, B[:, c, :])  # (k, n, m)
+    masses = np.asarray(masses, float)
+    tau = np.einsum("knm,km->kn", each, masses)
+    total = masses.sum(axis=1)
+    com = np.einsum("km,ma->ka", masses, np.asarray(points, float)) / total[:, None]
+    st = generalised_statics(robot, kin, jac, tau, base=st, load=(robot.gravity * total, com))
+    return each, tau, np.linalg.solve(Ac, st.db[:, c, :] - st.G[:, c, :])
 
 
 def equilibrium_residual(

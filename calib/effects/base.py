@@ -121,6 +121,9 @@ class Effect:
     # a reading effect that edits the physical quantities (``Context.at``/``ref``: L, sigma and their
     # derivatives) rather than the readings: ``absolute_readings`` runs its transform at zeta_0
     edits_physical: bool = False
+    # the effect's readings of other channels use the modelled tensions (``Context.at.tau``, e.g. a stretch):
+    # a model predicting no tension skips the statics only when none of its reading effects does
+    reads_tension: bool = True
 
     def params(self, robot: Robot) -> list[ParamSpec]:
         raise NotImplementedError
@@ -138,7 +141,7 @@ class Effect:
         the step, is far below the rounding error of a step of 1e-6 of a parameter's typical size)."""
         specs = self.params(robot)
         cols = [[], [], []]
-        base = recompute(values)
+        base = base_quantities(recompute, values)
         for j, s in enumerate(specs):
             h = self.fd_steps * s.scale
             vp = values.copy()
@@ -179,14 +182,31 @@ class Effect:
                 if not s.plausible[0] <= v <= s.plausible[1]]
 
 
-def physical(robot: Robot, poses: np.ndarray, p: int) -> Physical:
-    """L, swivel and modelled tensions with pose derivatives at poses (k, 6); theta columns zero (p)."""
+def base_quantities(recompute, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(L, sigma, tau) at the effect's own values: those the model computed already when ``recompute``
+    carries them (``recompute.base``), else recomputed."""
+    base = getattr(recompute, "base", None)
+    return recompute(values) if base is None else base
+
+
+def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> Physical:
+    """L, swivel and modelled tensions with pose derivatives at poses (k, 6); theta columns zero (p). Without
+    ``tension`` the tensions and their derivatives are NaN (the statics skipped)."""
     kin = inverse_kinematics(robot, poses)
     jac = kinematic_jacobians(robot, kin)
-    tm = tension_model(robot, kin=kin, jac=jac)
     k, n = kin.lengths.shape
+    if tension:
+        tm = tension_model(robot, kin=kin, jac=jac)
+        tau, dtau = tm.tau, tm.jacobian
+    else:
+        tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
     z = np.zeros((k, n, p))
-    return Physical(kin.lengths, kin.swivel, tm.tau, jac.lengths, jac.swivel, tm.jacobian, z, z.copy(), z.copy())
+    return Physical(kin.lengths, kin.swivel, tau, jac.lengths, jac.swivel, dtau, z, z.copy(), z.copy())
+
+
+def _rows(ph: Physical, rows: slice) -> Physical:
+    """The physical quantities of some of the poses (views)."""
+    return Physical(*(getattr(ph, f.name)[rows] for f in dataclasses.fields(Physical)))
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -260,10 +280,14 @@ class EffectModel:
                 robot = e.modify(robot, np.asarray(theta[sl]))
         return robot
 
-    def _physical(self, theta: np.ndarray, poses: np.ndarray) -> tuple[Robot, Physical]:
+    def needs_tension(self, channels: Sequence[str]) -> bool:
+        """Whether predicting ``channels`` needs the modelled tensions (the statics)."""
+        return "tension" in channels or any(e.stage == "reading" and e.reads_tension for e in self.effects)
+
+    def _physical(self, theta: np.ndarray, poses: np.ndarray, tension: bool = True) -> tuple[Robot, Physical]:
         p = theta.shape[0]
         robot = self.true_robot(theta)
-        ph = physical(robot, poses, p)
+        ph = physical(robot, poses, p, tension)
         for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
             if e.stage != "robot":
                 continue
@@ -279,21 +303,33 @@ class EffectModel:
                 tm = tension_model(r, kin=kin, derivatives=False)
                 return kin.lengths, kin.swivel, tm.tau
 
+            recompute.base = (ph.L, ph.sigma, ph.tau)  # at theta itself: computed above, the same way
             dL, ds, dt = e.physical_columns(robot, np.asarray(theta[sl]), poses, recompute)
             ph.tL[..., sl], ph.tsigma[..., sl], ph.ttau[..., sl] = dL, ds, dt
         return robot, ph
 
+    def physical(self, theta: np.ndarray, poses: np.ndarray) -> tuple[Robot, Physical]:
+        """The robot with the robot effects at theta applied, and the physical quantities at poses (k, 6) with
+        their theta columns (p,): what ``predict`` computes for its poses and zeta_0 (problems that share the
+        robot and its robot effects can compute them for all their poses at once, ``physical=``)."""
+        return self._physical(np.asarray(theta, dtype=float), np.asarray(poses, dtype=float).reshape(-1, 6))
+
     def predict(
         self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None,
-        approach: np.ndarray | None = None,
+        approach: np.ndarray | None = None, physical: tuple[Robot, Physical] | None = None,
     ) -> dict[str, ChannelPrediction]:
         """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included; ``times`` (k,)
         s after the reference sample, for the effects that depend on time; ``approach`` (k, n, 2) the
-        directions of cable motion and load change before each row, for the effects that depend on them."""
+        directions of cable motion and load change before each row, for the effects that depend on them;
+        ``physical``: ``self.physical(theta, [poses; zeta_0])`` if already computed."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)
-        robot, at = self._physical(theta, z)
-        _, ref = self._physical(theta, theta[None, :6])
+        k = z.shape[0]
+        # the poses and zeta_0 in one call (everything is per pose): the model's geometry and statics once
+        if physical is None:
+            physical = self._physical(theta, np.vstack([z, theta[None, :6]]), self.needs_tension(channels))
+        robot, both = physical
+        at, ref = _rows(both, slice(0, k)), _rows(both, slice(k, k + 1))
         for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta
             getattr(ref, "t" + name)[..., :6] += getattr(ref, "d" + name)
         out: dict[str, ChannelPrediction] = {}
@@ -353,6 +389,7 @@ class Projected(Effect):
         self.order = inner.order
         self.description = inner.description
         self.labels = list(labels) if labels is not None else [f"c{j + 1}" for j in range(self.basis.shape[1])]
+        self.reads_tension = inner.reads_tension
 
     def _absent(self, robot: Robot) -> np.ndarray:
         return np.array([s.absent for s in self.inner.params(robot)], float)

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from calib.effects.base import Context, Effect, Implausible, ParamSpec
+from calib.effects.base import Context, Effect, Implausible, ParamSpec, base_quantities
 from calib.kinematics import euler_axes, inverse_kinematics, rotation, rotation_to_euler
 from calib.robot import Robot
 from calib.selfcal.model import ChannelPrediction
@@ -361,7 +361,7 @@ class ComOffset(Effect):
         return robot.replace(com=robot.com + values)
 
     def physical_columns(self, robot, values, poses, recompute):
-        L, _, tau = recompute(values)
+        L, _, tau = base_quantities(recompute, values)
         cols = []
         for j in range(3):
             v = values.copy()
@@ -389,7 +389,7 @@ class MassScale(Effect):
         return robot.replace(mass=robot.mass * (1.0 + float(values[0])))
 
     def physical_columns(self, robot, values, poses, recompute):
-        L, _, tau = recompute(values)
+        L, _, tau = base_quantities(recompute, values)
         z = np.zeros(L.shape + (1,))
         return z, z.copy(), (tau / (1.0 + float(values[0])))[..., None]
 

@@ -21,7 +21,7 @@ rows without them (0) see neither direction-dependent effect.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -35,7 +35,7 @@ from calib.kinematics import (
 )
 from calib.robot import Robot
 from calib.selfcal.model import ChannelPrediction
-from calib.statics import tension_model
+from calib.statics import point_load_tensions
 
 
 def _direction(ctx: Context, which: int, shape: tuple[int, int]) -> np.ndarray:
@@ -138,19 +138,20 @@ def sag_terms(robot: Robot, poses: np.ndarray) -> SagTerms:
     drho = chord_jacobian(robot, kin, jac)  # (k, n, 3, 6)
     lc = kin.rho_norm
     dlc = np.einsum("kna,knaj->knj", kin.t, drho)
-    k, n = lc.shape
-    tw = np.zeros((k, n))
-    dtw = np.zeros((k, n, 6))
-    for i in range(n):  # half of cable i's weight hangs at anchor i: a unit point mass there, times lc_i / 2
-        tm = tension_model(robot.replace(mass=1.0, com=robot.a_local[i].copy()), kin=kin, jac=jac)
-        tw += 0.5 * lc[:, i, None] * tm.tau
-        dtw += 0.5 * (lc[:, i, None, None] * tm.jacobian + tm.tau[..., None] * dlc[:, i, None, :])
+    # half of cable i's weight hangs at anchor i: a point mass lc_i / 2 (per kg/m) there; d tw also has the
+    # term of the masses' own change, sum_i tau^(i) d(lc_i / 2), tau^(i) the tensions of 1 kg at anchor i
+    each, tw, dtw = point_load_tensions(robot, kin, jac, robot.a_local, 0.5 * lc)
+    dtw = dtw + 0.5 * np.einsum("kni,kij->knj", each, dlc)
     g = float(robot.gravity)
     cell = -0.5 * g * kin.rho[..., 2]
     dcell = -0.5 * g * drho[:, :, 2]
     h2 = kin.rho[..., 0] ** 2 + kin.rho[..., 1] ** 2
     dh2 = 2.0 * (kin.rho[..., 0, None] * drho[:, :, 0] + kin.rho[..., 1, None] * drho[:, :, 1])
     return SagTerms(tw, dtw, cell, dcell, lc * h2, dlc * h2[..., None] + lc[..., None] * dh2)
+
+
+def _terms_rows(t: SagTerms, rows: slice) -> SagTerms:
+    return SagTerms(*(getattr(t, f.name)[rows] for f in fields(SagTerms)))
 
 
 class CableSag(Effect):
@@ -178,7 +179,12 @@ class CableSag(Effect):
             return
         rho = float(values[0])
         c = ctx.cols.start
-        at = sag_terms(ctx.robot, ctx.poses)
+        k = ctx.poses.shape[0]
+        if "length" in preds:  # the rows and zeta_0 in one evaluation
+            both = sag_terms(ctx.robot, np.vstack([ctx.poses, ctx.theta[None, :6]]))
+            at, ref = _terms_rows(both, slice(0, k)), _terms_rows(both, slice(k, k + 1))
+        else:
+            at = sag_terms(ctx.robot, ctx.poses)
         if "tension" in preds:
             pr = preds["tension"]
             pr.value = pr.value + rho * (at.tw + at.cell)
@@ -186,7 +192,6 @@ class CableSag(Effect):
             pr.d_theta = pr.d_theta.copy()
             pr.d_theta[..., c] += at.tw + at.cell
         if "length" in preds:
-            ref = sag_terms(ctx.robot, ctx.theta[None, :6])
             g = float(ctx.robot.gravity)
             p = ctx.theta.shape[0]
 

@@ -26,6 +26,7 @@ class DeviceAccuracy(Effect):
     effect: the diagnosis keeps it in every fit, so that only what exceeds the devices' specifications is
     reported as a missing effect."""
 
+    reads_tension = False  # its readings add to the predictions, never read the tensions
     name = "device_accuracy"
     order = 45
     description = ("per-device constant errors within the datasheet accuracy (load cells N, AHRS roll/pitch rad,"
@@ -68,6 +69,7 @@ class ReferenceNoise(Effect):
     Not a candidate effect: the estimate-noise solve and the diagnosis keep it in every fit of a run
     (:meth:`for_rows`); rows without a reference window (equilibrium rows given directly) have none."""
 
+    reads_tension = False  # its readings add to the predictions, never read the tensions
     name = "reference_noise"
     order = 46
     description = "noise of the reference window's means in the relative channels (m, rad)"

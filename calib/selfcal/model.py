@@ -48,8 +48,8 @@ def orientation_prediction(robot: Robot, poses: np.ndarray, theta: np.ndarray) -
     conv = robot.ahrs_convention
     z = np.asarray(poses, dtype=float)
     k, p = z.shape[0], theta.shape[0]
-    val, dang = convert_euler(z[:, 3:], robot.orientation, conv)
-    ref, dref = convert_euler(theta[None, 3:6], robot.orientation, conv)
+    both, dboth = convert_euler(np.vstack([z[:, 3:], theta[None, 3:6]]), robot.orientation, conv)  # one call
+    val, dang, ref, dref = both[:k], dboth[:k], both[k:], dboth[k:]
     val[:, 2] = np.angle(np.exp(1j * (val[:, 2] - ref[0, 2])))
     dp = np.zeros((k, 3, 6))
     dp[:, :, 3:] = dang

@@ -106,8 +106,10 @@ def _expectations(size: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
     half_msm = 0.5 * (M[:, :-1] @ M[1:, :] + M[:, 1:] @ M[:-1, :])  # M S M / 2, S = up + down shift
     powers = _RHO_GRID[:, None] ** np.arange(size)[None, :]  # (grid, lags)
 
-    def diagonal_sums(A: np.ndarray) -> np.ndarray:
-        return np.array([np.trace(A)] + [np.trace(A, k) + np.trace(A, -k) for k in range(1, size)])
+    lag = np.abs(np.subtract.outer(np.arange(size), np.arange(size))).ravel()
+
+    def diagonal_sums(A: np.ndarray) -> np.ndarray:  # [tr A, tr_1 A + tr_-1 A, ...]: sums over |i - j| = lag
+        return np.bincount(lag, weights=A.ravel(), minlength=size)
 
     return powers @ diagonal_sums(M), powers @ diagonal_sums(half_msm)
 

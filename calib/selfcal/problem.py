@@ -11,6 +11,7 @@ after the reference row: a residual and a parameter more, so the degrees of free
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -87,6 +88,21 @@ class Evaluation:
         return 0.5 * (sum(float(np.sum(r * r)) for _, r, _, _ in self.groups) + float(self.r0 @ self.r0))
 
 
+@dataclass
+class Observed:
+    """The observed entries of a problem's residuals in a fixed order: per group, per channel (row positions
+    in the group (e,), columns (e,), weights (e,)); then the reference row's observed entries (``ref``,
+    indices into r0's first ``n_ref``) and the priors; their labels per entry: channel, component, row
+    (-1: the reference row, -2: a prior)."""
+
+    groups: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
+    ref: np.ndarray
+    n_ref: int
+    channel: np.ndarray
+    index: np.ndarray
+    row: np.ndarray
+
+
 class Problem:
     """Residuals of eq. 13 weighted as eq. 17 for a measurement model and readings.
 
@@ -158,16 +174,52 @@ class Problem:
         b = np.zeros(shape) if b is None else np.asarray(b, float)
         return {"approach": np.stack([np.atleast_2d(a), np.atleast_2d(b)], axis=-1)}
 
+    @functools.cached_property
+    def observed(self) -> Observed:
+        """Where the observed entries are (fixed by the weights): their order and labels (:class:`Observed`)."""
+        per_group, ch, ix, rw = [], [], [], []
+        for g in self.groups:
+            entries = []
+            for c in g.channels:
+                sl = g.slices[c]
+                a, i = np.nonzero(g.weight[:, sl].T > 0)  # component-major: component a, its observed rows
+                entries.append((i, sl.start + a, g.weight[i, sl.start + a]))
+                ch.append(np.full(a.size, c))
+                ix.append(a)
+                rw.append(g.idx[i])
+            per_group.append(entries)
+        n = self.model.robot.n
+        widths = [channel_width(c, n) for c in self.ref_channels]
+        ref_ch = np.repeat(np.array(self.ref_channels), widths) if widths else np.zeros(0, str)
+        ref_ix = np.concatenate([np.arange(w) for w in widths]) if widths else np.zeros(0, int)
+        ok = np.flatnonzero(self.ref_weight[:ref_ch.size] > 0)
+        q = self.prior_idx.size
+        ch += [ref_ch[ok], np.full(q, "prior")]  # prior pseudo-readings: channel "prior", row -2
+        ix += [ref_ix[ok], np.asarray(self.prior_idx, int)]
+        rw += [np.full(ok.size, -1), np.full(q, -2)]
+        return Observed(per_group, ok, ref_ch.size, np.concatenate(ch).astype(str),
+                        np.concatenate(ix).astype(int), np.concatenate(rw).astype(int))
+
     @property
     def n_residuals(self) -> int:
         """Number of residuals with a non-zero weight."""
         return int(sum(np.count_nonzero(g.weight) for g in self.groups) + np.count_nonzero(self.ref_weight)
                    + self.prior_idx.size)
 
-    def evaluate(self, theta: np.ndarray, poses: np.ndarray, derivatives: bool = True) -> Evaluation:
+    @property
+    def single(self) -> bool:
+        """One group of rows whose channels include the reference row's (one model call per evaluation)."""
+        return len(self.groups) == 1 and set(self.ref_channels) <= set(self.groups[0].channels)
+
+    def evaluate(self, theta: np.ndarray, poses: np.ndarray, derivatives: bool = True,
+                 physical: tuple | None = None) -> Evaluation:
         """Weighted residuals (and Jacobian blocks) at theta (p,) and poses (k, 6). The reference pose is
         predicted in the same model call as the first group whose channels include its own (one call less
-        per evaluation: the diagnosis's refits spend most of their time in these calls)."""
+        per evaluation: the diagnosis's refits spend most of their time in these calls). ``physical``
+        (a :attr:`single` problem of an EffectModel): the model's ``physical(theta, [zeta_0; poses; zeta_0])``
+        already computed (:mod:`calib.multirun` computes it for several runs at once)."""
+        if physical is not None and not self.single:
+            raise ValueError("precomputed physical quantities need a problem with one group of rows")
         out = []
         pred0 = None
         for g in self.groups:
@@ -177,6 +229,8 @@ class Problem:
                 z = np.vstack([theta[None, :6], z])
                 times = None if times is None else np.r_[0.0, times]
                 extra = self._joint_approach(self._approach(None), extra, g.idx.size)
+                if physical is not None:
+                    extra = {**extra, "physical": physical}
             pred = self.model.predict(z, theta, g.channels, times, **extra)
             if joint:
                 pred0 = {c: _take(pred[c], slice(0, 1)) for c in self.ref_channels}
