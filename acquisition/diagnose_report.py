@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from calib.diagnose import Candidate, Diagnosis
+from calib.evidence import Candidate
+from calib.diagnose import Diagnosis
 from calib.diagnose_words import misfit_location
 from calib.fitting import residuals
 from calib.kinematics import inverse_kinematics
