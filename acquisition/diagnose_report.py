@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from calib.evidence import Candidate
 from calib.diagnose import Diagnosis
 from calib.diagnose_words import misfit_location
+from calib.evidence import Candidate
 from calib.fitting import residuals
 from calib.kinematics import inverse_kinematics
 from calib.robot import Robot
