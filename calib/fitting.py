@@ -82,24 +82,22 @@ def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: 
     obs = problem.observed
     k, p = poses.shape[0], theta.shape[0]
     ok, m0, q = obs.ref, obs.n_ref, problem.prior_idx.size
-    rs, sis, jac = [], [], []
-    for (g, r, J, G), entries in zip(ev.groups, obs.groups, strict=True):
+    rs, sis, Js, Gs = [], [], [], []
+    for (_, r, J, G), entries in zip(ev.groups, obs.groups, strict=True):
         for i, cols, w in entries:
             rs.append(r[i, cols])
             sis.append(r[i, cols] / w)
             if jacobian:
-                jac.append((g.idx[i], J[i, cols], G[i, cols]))
+                Js.append(J[i, cols])
+                Gs.append(G[i, cols])
     rs += [ev.r0[ok], ev.r0[m0:m0 + q]]
     sis += [ev.r0[ok] / problem.ref_weight[ok], ev.r0[m0:m0 + q] * problem.prior_sd]
     if jacobian:
-        m = sum(x[0].size for x in jac)
-        A = np.zeros((m + ok.size + q, 6 * k + p))
-        start = 0
-        for i, Jr, Gr in jac:
-            rows = np.arange(start, start + i.size)
-            A[rows[:, None], 6 * i[:, None] + np.arange(6)] = Jr
-            A[rows, 6 * k:] = Gr
-            start += i.size
+        start = obs.pose_cols.shape[0]
+        A = np.zeros((start + ok.size + q, 6 * k + p))
+        if start:
+            A[np.arange(start)[:, None], obs.pose_cols] = np.concatenate(Js)
+            A[:start, 6 * k:] = np.concatenate(Gs)
         A[start:start + ok.size, 6 * k:] = ev.g0[ok]
         A[start + ok.size:, 6 * k:] = ev.g0[m0:m0 + q]
     else:

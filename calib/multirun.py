@@ -253,7 +253,7 @@ def _rows_of(ph: Physical, rows: slice, p0: int, p: int, q: int) -> Physical:
         return out
 
     return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
-                    cols(ph.tL), cols(ph.tsigma), cols(ph.ttau))
+                    cols(ph.tL), cols(ph.tsigma), cols(ph.ttau), ph.ahrs[rows], ph.dahrs[rows])
 
 
 def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False) -> tuple[list, float]:

@@ -86,6 +86,8 @@ class Physical:
     tL: np.ndarray
     tsigma: np.ndarray
     ttau: np.ndarray
+    ahrs: np.ndarray | None = None  # (k, 3) the orientations in the AHRS's convention, rad
+    dahrs: np.ndarray | None = None  # (k, 3, 3) their derivatives with respect to the poses' angles
 
 
 @dataclass
@@ -201,7 +203,8 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> P
     else:
         tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
     z = np.zeros((k, n, p))
-    return Physical(kin.lengths, kin.swivel, tau, jac.lengths, jac.swivel, dtau, z, z.copy(), z.copy())
+    ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention)
+    return Physical(kin.lengths, kin.swivel, tau, jac.lengths, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
 
 
 def _rows(ph: Physical, rows: slice) -> Physical:
@@ -341,7 +344,7 @@ class EffectModel:
             elif name == "swivel":
                 out[name] = ChannelPrediction(wrap(at.sigma - ref.sigma), at.dsigma.copy(), at.tsigma - ref.tsigma)
             elif name == "orientation":
-                out[name] = orientation_prediction(robot, z, theta)
+                out[name] = orientation_prediction(robot, z, theta, (at.ahrs, at.dahrs, ref.ahrs, ref.dahrs))
             else:
                 raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
         readers = sorted(

@@ -41,15 +41,21 @@ class ChannelPrediction:
     d_theta: np.ndarray
 
 
-def orientation_prediction(robot: Robot, poses: np.ndarray, theta: np.ndarray) -> ChannelPrediction:
+def orientation_prediction(robot: Robot, poses: np.ndarray, theta: np.ndarray,
+                           converted: tuple[np.ndarray, ...] | None = None) -> ChannelPrediction:
     """What the AHRS reads at poses (k, 6): its roll and pitch (absolute) and its yaw relative to the one at
     zeta_0 = theta[:6], all in the AHRS's own Euler convention (``robot.ahrs_convention``: a heading
-    reference offset is then a pure yaw offset), with derivatives (k, 3, 6) and (k, 3, len(theta))."""
+    reference offset is then a pure yaw offset), with derivatives (k, 3, 6) and (k, 3, len(theta)).
+    ``converted``: the poses' and zeta_0's angles in that convention with their Jacobians (``convert_euler``:
+    (k, 3), (k, 3, 3), (1, 3), (1, 3, 3)) if already computed."""
     conv = robot.ahrs_convention
     z = np.asarray(poses, dtype=float)
     k, p = z.shape[0], theta.shape[0]
-    both, dboth = convert_euler(np.vstack([z[:, 3:], theta[None, 3:6]]), robot.orientation, conv)  # one call
-    val, dang, ref, dref = both[:k], dboth[:k], both[k:], dboth[k:]
+    if converted is None:
+        both, dboth = convert_euler(np.vstack([z[:, 3:], theta[None, 3:6]]), robot.orientation, conv)  # one call
+        converted = both[:k], dboth[:k], both[k:], dboth[k:]
+    val, dang, ref, dref = converted
+    val = val.copy()
     val[:, 2] = np.angle(np.exp(1j * (val[:, 2] - ref[0, 2])))
     dp = np.zeros((k, 3, 6))
     dp[:, :, 3:] = dang

@@ -101,6 +101,7 @@ class Observed:
     channel: np.ndarray
     index: np.ndarray
     row: np.ndarray
+    pose_cols: np.ndarray  # (e, 6): the pose columns of each row entry (the first e entries)
 
 
 class Problem:
@@ -197,8 +198,10 @@ class Problem:
         ch += [ref_ch[ok], np.full(q, "prior")]  # prior pseudo-readings: channel "prior", row -2
         ix += [ref_ix[ok], np.asarray(self.prior_idx, int)]
         rw += [np.full(ok.size, -1), np.full(q, -2)]
+        row = np.concatenate(rw).astype(int)
+        pose = row[row >= 0]  # the entries of the rows come first: their pose's columns in a dense Jacobian
         return Observed(per_group, ok, ref_ch.size, np.concatenate(ch).astype(str),
-                        np.concatenate(ix).astype(int), np.concatenate(rw).astype(int))
+                        np.concatenate(ix).astype(int), row, 6 * pose[:, None] + np.arange(6))
 
     @property
     def n_residuals(self) -> int:
@@ -222,13 +225,10 @@ class Problem:
             raise ValueError("precomputed physical quantities need a problem with one group of rows")
         out = []
         pred0 = None
-        for g in self.groups:
-            z, times, extra = poses[g.idx], self._times(g.idx), self._approach(g.idx)
-            joint = pred0 is None and set(self.ref_channels) <= set(g.channels)
+        for g, (joint, times, extra) in zip(self.groups, self._group_inputs, strict=True):
+            z = poses[g.idx]
             if joint:
                 z = np.vstack([theta[None, :6], z])
-                times = None if times is None else np.r_[0.0, times]
-                extra = self._joint_approach(self._approach(None), extra, g.idx.size)
                 if physical is not None:
                     extra = {**extra, "physical": physical}
             pred = self.model.predict(z, theta, g.channels, times, **extra)
@@ -258,6 +258,22 @@ class Problem:
             if derivatives:
                 g0 = np.vstack([g0, self._prior_jac])
         return Evaluation(out, r0, g0)
+
+    @functools.cached_property
+    def _group_inputs(self) -> list[tuple[bool, np.ndarray | None, dict[str, np.ndarray]]]:
+        """Per group: whether the reference row is predicted with it (the first group whose channels include
+        the reference row's), and the rows' times and directions for the model (the reference row's first
+        when joint); fixed by the readings."""
+        out, joint_done = [], False
+        for g in self.groups:
+            times, extra = self._times(g.idx), self._approach(g.idx)
+            joint = not joint_done and set(self.ref_channels) <= set(g.channels)
+            if joint:
+                joint_done = True
+                times = None if times is None else np.r_[0.0, times]
+                extra = self._joint_approach(self._approach(None), extra, g.idx.size)
+            out.append((joint, times, extra))
+        return out
 
     def _joint_approach(self, ref: dict, rows: dict, m: int) -> dict[str, np.ndarray]:
         """The directions of the reference row stacked on those of m rows (zeros where one side has none)."""
