@@ -83,13 +83,12 @@ def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: 
     k, p = poses.shape[0], theta.shape[0]
     ok, m0, q = obs.ref, obs.n_ref, problem.prior_idx.size
     rs, sis, Js, Gs = [], [], [], []
-    for (_, r, J, G), entries in zip(ev.groups, obs.groups, strict=True):
-        for i, cols, w in entries:
-            rs.append(r[i, cols])
-            sis.append(r[i, cols] / w)
-            if jacobian:
-                Js.append(J[i, cols])
-                Gs.append(G[i, cols])
+    for (_, r, J, G), (flat, w) in zip(ev.groups, obs.groups, strict=True):
+        rs.append(r.ravel()[flat])
+        sis.append(rs[-1] / w)
+        if jacobian:
+            Js.append(J.reshape(-1, 6)[flat])
+            Gs.append(G.reshape(-1, p)[flat])
     rs += [ev.r0[ok], ev.r0[m0:m0 + q]]
     sis += [ev.r0[ok] / problem.ref_weight[ok], ev.r0[m0:m0 + q] * problem.prior_sd]
     if jacobian:

@@ -23,6 +23,7 @@ misfit does not dominate the others' (with window-scatter weights the swivel enc
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -31,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from calib.effects import Effect, EffectModel, ParamSpec, Projected
-from calib.effects.base import Physical
+from calib.effects.base import Physical, physical_rows
 from calib.effects.builtin import AhrsYawDrift
 from calib.effects.priors import DeviceAccuracy, ReferenceNoise
 from calib.fitting import Residuals, residuals
@@ -42,9 +43,9 @@ from calib.selfcal.problem import Problem
 GROUPS = CHANNELS  # the channel groups whose noise the variance components set
 LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
 RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
-# the normal matrix's eigenvalue ratio above which the joint Jacobian has full rank without an SVD (its singular
-# values above 1e-7 of the largest, far from the SVD's cut at 1e-10; eigvalsh errs by ~1e-16 of the largest)
-FULL_RANK = 1e-14
+# the normal matrix's eigenvalue ratio above which its inverse is taken by a solve (condition below 1e8: the
+# covariance to ~1e-8, its rank full, far from the SVD's cut at 1e-10); below it, the SVD of the Jacobian
+FULL_RANK = 1e-8
 PIN = 1e-6  # a device prior that steps aside is pinned at its absent value: sd = PIN * its typical size
 # which device priors a shared effect overlaps (the same columns): they step aside while it is fitted
 OVERLAPS = {"tension_offset": ("b_",), "ahrs_mounting": ("b_roll", "b_pitch")}
@@ -252,8 +253,9 @@ def _rows_of(ph: Physical, rows: slice, p0: int, p: int, q: int) -> Physical:
             out[..., p - q:] = t[rows, :, p0 - q:]
         return out
 
-    return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
-                    cols(ph.tL), cols(ph.tsigma), cols(ph.ttau), ph.ahrs[rows], ph.dahrs[rows])
+    out = physical_rows(ph, rows)
+    out.tL, out.tsigma, out.ttau = cols(ph.tL), cols(ph.tsigma), cols(ph.ttau)
+    return out
 
 
 def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False) -> tuple[list, float]:
@@ -325,6 +327,9 @@ def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
             rf.theta[-q:] = np.clip(rf.theta[-q:], lo, hi)
 
 
+_DIAG6 = np.arange(6)
+
+
 @dataclass
 class Arrow:
     """Normal equations of the joint problem by blocks, on unit-norm columns: per run, the pose blocks U
@@ -373,6 +378,13 @@ class Arrow:
             out.gt.append(gt / st)
         return out
 
+    @functools.cached_property
+    def _fixed(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per run, what every damping's step shares: the pose blocks' diagonals (floored), [W, gp] and V's
+        diagonal."""
+        return [(np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12), np.concatenate([W, gp[..., None]], axis=2),
+                 np.diag(V).copy()) for U, W, V, gp in zip(self.U, self.W, self.V, self.gp, strict=True)]
+
     def step(self, damping: float) -> tuple[np.ndarray, float]:
         """The step ds (scaled columns) solving (N + damping diag(N)) ds = -g by eliminating each run's pose
         blocks (a Schur complement on [shared, own_1, own_2, ...]), and the decrease -(2 g.ds + ds.N.ds) the
@@ -383,10 +395,11 @@ class Arrow:
         M, rhs = np.zeros((at[-1], at[-1])), np.zeros(at[-1])
         dg = np.zeros(at[-1])
         parts = []
-        for j, (U, W, V, gp, gt) in enumerate(zip(self.U, self.W, self.V, self.gp, self.gt, strict=True)):
+        for j, (U, W, V, gt, (dU, WG, dV)) in enumerate(zip(self.U, self.W, self.V, self.gt, self._fixed,
+                                                             strict=True)):
             Ud = U.copy()
-            Ud[:, range(6), range(6)] += damping * np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12)
-            sol = np.linalg.solve(Ud, np.concatenate([W, gp[..., None]], axis=2))
+            Ud[:, _DIAG6, _DIAG6] += damping * dU
+            sol = np.linalg.solve(Ud, WG)
             Y, y = sol[..., :-1], sol[..., -1]
             t = W.shape[2]
             Wf = W.reshape(-1, t)
@@ -398,8 +411,8 @@ class Arrow:
             M[:qq, :qq] += S[no:, no:]
             rhs[o] += rr[:no]
             rhs[:qq] += rr[no:]
-            dg[o] += np.diag(V)[:no]
-            dg[:qq] += np.diag(V)[no:]
+            dg[o] += dV[:no]
+            dg[:qq] += dV[no:]
             parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
         M[range(at[-1]), range(at[-1])] += damping * np.maximum(dg, 1e-12)
         x = -np.linalg.solve(M, rhs)
@@ -460,7 +473,7 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     As = A / scale
     N = As.T @ As
     ev = np.linalg.eigvalsh(N)
-    if ev[0] > FULL_RANK * ev[-1]:  # every singular value of As above 1e-7 of the largest: full rank
+    if ev[0] > FULL_RANK * ev[-1]:  # condition below 1e8: a solve is accurate, and the rank is full
         rank = N.shape[0]
         cov_s = np.linalg.solve(N, np.eye(N.shape[0])[:, :q])[:q] if q and not fixed_shared else None
     else:  # a direction the data barely see: the pseudo-inverse and rank of the SVD (cut at 1e-10)

@@ -78,6 +78,8 @@ class Robot:
         controlled: indices of the pose coordinates whose equilibrium equations define the tension
             model (eq. 11-12), n of them; 0..2 are x, y, z forces, 3..5 are moments about the
             roll, pitch and yaw axes of the Euler parameterisation.
+        axial_stiffness: (n,) each cable's axial stiffness EA, N (its datasheet figure; inf where none is
+            given: an inextensible cable), or None when no cable gives one.
     """
 
     name: str
@@ -101,6 +103,7 @@ class Robot:
     home_pose: np.ndarray | None = None
     description: str = ""
     source: str = ""
+    axial_stiffness: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -115,6 +118,13 @@ class Robot:
     @property
     def has_pulleys(self) -> bool:
         return bool(np.any(self.r > 0))
+
+    @property
+    def compliance(self) -> np.ndarray:
+        """(n,) 1/EA of each cable, 1/N (0: inextensible)."""
+        if self.axial_stiffness is None:
+            return np.zeros(self.n)
+        return 1.0 / np.asarray(self.axial_stiffness, float)
 
     @property
     def weight(self) -> float:
@@ -135,6 +145,8 @@ class Robot:
                 c["frame"] = {ax: _lst(self.frames[i, j]) for j, ax in enumerate(names)}
                 c["pulley_radius"] = float(self.r[i])
             c["platform_anchor"] = _lst(self.a_local[i])
+            if self.axial_stiffness is not None and math.isfinite(self.axial_stiffness[i]):
+                c["axial_stiffness"] = float(self.axial_stiffness[i])
             cables.append(c)
         inv = {v: k for k, v in AXES.items()}
         out: dict[str, Any] = {
@@ -239,8 +251,12 @@ def robot_from_dict(data: Any, origin: str = "<robot>") -> Robot:
     frames = np.zeros((n, 3, 3))
     r = np.zeros(n)
     a = np.zeros((n, 3))
+    ea = np.full(n, np.inf)
     for i, c in enumerate(cables):
         p = f"cables[{i}]"
+        ea_raw = rd.get(c, "axial_stiffness", f"{p}.axial_stiffness", None)
+        if ea_raw is not None:
+            ea[i] = rd.number(ea_raw, f"{p}.axial_stiffness", positive=True)
         d[i] = rd.vector(rd.get(c, "pulley_point", f"{p}.pulley_point"), f"{p}.pulley_point", 3)
         a[i] = rd.vector(rd.get(c, "platform_anchor", f"{p}.platform_anchor"), f"{p}.platform_anchor", 3)
         r[i] = rd.number(rd.get(c, "pulley_radius", f"{p}.pulley_radius", 0.0), f"{p}.pulley_radius", nonneg=True)
@@ -331,6 +347,7 @@ def robot_from_dict(data: Any, origin: str = "<robot>") -> Robot:
         home_pose=home_pose,
         description=str(data.get("description", "")),
         source=str(data.get("source", "")),
+        axial_stiffness=ea if np.any(np.isfinite(ea)) else None,
     )
     return _freeze(robot)
 

@@ -3,7 +3,8 @@
 The YAML file (every section optional; nothing is on by default)::
 
     effects:                                   # what the controller and the run log never see
-      cable_elasticity: {EA: 20000.0}          # N, axial stiffness of every cable (nominal: rigid-like 2e6 N)
+      cable_elasticity: {EA: 20000.0}          # N, axial stiffness of every cable (nominal: the robot
+                                               #   description's axial_stiffness, else 2e6 N)
       length_scale: {k: [0.01, 0, 0, -0.01]}   # per winch: reported length change = (1 + k) x true change
       tension_offset: {offset: [2, 0, -1, 0]}  # N, per load-cell channel
       tension_gain: {gain: [0.02, 0, 0, 0]}    # relative, per channel: reading = (1 + gain) tau + offset
@@ -126,6 +127,22 @@ class SensorNoise:
     ahrs_sigma: tuple[float, float, float] = (0.03, 0.03, 0.1)  # deg: roll, pitch, yaw
 
 
+
+
+def described_ea(robot: Robot) -> float | None:
+    """The one axial stiffness EA (N) the simulator gives every cable of ``robot``: its description's
+    ``cables[].axial_stiffness`` (the figure the measurement model uses too); None without one (the
+    simulator's nominal ``PhysicsParams.ea`` then, which the model does not know: an inextensible default
+    made a braked platform set at a given pose diverge, tests/test_sim_backend.py)."""
+    if robot.axial_stiffness is None:
+        return None
+    ea = np.asarray(robot.axial_stiffness, float)
+    if not np.all(ea == ea[0]) or not np.isfinite(ea[0]):
+        raise SimConfigError(f"robot '{robot.name}': cables[].axial_stiffness = {ea.tolist()}: the simulator "
+                             "takes one axial stiffness for every cable.")
+    return float(ea[0])
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """A validated simulation configuration."""
@@ -138,6 +155,7 @@ class SimConfig:
     sensors: SensorNoise = field(default_factory=SensorNoise)
     sway: Sway | None = None  # amplitude (m) and period (s); its seed is the backend's
     wobble: float | None = None  # s: e-folding time of the platform's swing (sets its damping), None: nominal
+    ea_given: bool = False  # physics.ea set in the file (else the robot description's axial stiffness, if any)
 
     def true_robot(self, robot: Robot) -> Robot:
         """The robot as the simulated prototype really is: geometry, mass and centre of mass with effects."""
@@ -166,11 +184,15 @@ class SimConfig:
 
     def physics_params(self, robot: Robot | None = None) -> PhysicsParams:
         """Physics parameters with the cable effects (EA, cable mass) applied, and with ``robot`` (the true
-        one) the wobble's damping (:func:`damping_for`)."""
+        one) the wobble's damping (:func:`damping_for`) and the cables' axial stiffness of its description
+        (:func:`described_ea`: what the model knows too) unless ``physics.ea`` or the hidden
+        ``cable_elasticity`` sets another."""
         p = self.physics
         if self.wobble is not None and robot is not None:
             lin, ang = damping_for(robot, self.wobble)
             p = dataclasses.replace(p, linear_damping=lin, angular_damping=ang)
+        if robot is not None and not self.ea_given and (ea := described_ea(robot)) is not None:
+            p = dataclasses.replace(p, ea=ea)
         if self.effects.cable_elasticity is not None:
             p = dataclasses.replace(p, ea=self.effects.cable_elasticity)
         if self.effects.cable_sag is not None:
@@ -396,7 +418,8 @@ def sim_config_from_dict(data: Any, n: int = 4, origin: str = "<sim config>") ->
     if m.get("wobble") is not None:
         wb = c.mapping(m["wobble"], "wobble", ("decay",))
         wobble = c.number(c.required(wb, "decay", "wobble"), "wobble.decay", 0.1, 60.0)
-    return SimConfig(effects, faults, physics, spread, origin, sensors, sway, wobble)
+    ea_given = isinstance(m.get("physics"), dict) and "ea" in m["physics"]
+    return SimConfig(effects, faults, physics, spread, origin, sensors, sway, wobble, ea_given)
 
 
 def _sensors(c: _Check, raw: Any) -> SensorNoise:

@@ -163,7 +163,7 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
     if config.sway is not None and config.sway.amplitude > 0:
         Z = Z + sway_displacement(truth, Z, tau, config.sway.amplitude, np.random.default_rng([seed, 517]))
     kin = inverse_kinematics(truth, Z)
-    ea = config.physics_params().ea
+    ea = config.physics_params(truth).ea
     path = kin.lengths + sag_length(truth, kin, tau, density)
     l0 = path / (1.0 + tau / ea)
     # the drives report (1 + k) times the true change (the simulator's and the effect's convention)

@@ -96,8 +96,9 @@ class WinchParams:
 class PhysicsParams:
     """Nominal physical parameters of the simulated prototype.
 
-    ea: cable axial stiffness EA, N. The nominal 2e6 N stretches a 2.3 m cable by 0.23 mm under 200 N,
-    so the static equilibria match the rigid-cable model to well below the sensors' resolution.
+    ea: cable axial stiffness EA, N. The default 2e6 N stretches a 2.3 m cable by 0.23 mm under 200 N; a
+    simulated startup takes instead the robot description's figure where it gives one, which the model
+    knows too (``SimConfig.physics_params``, ``described_ea``).
     cable_damping: stiffness-proportional cable damping, s (c = cable_damping * EA / l0).
     linear_damping N s/m and angular_damping N m s/rad on the platform (residual swing of a few seconds).
     cable_density: kg/m, 0 for massless cables (the ``cable_sag`` hidden effect sets it).

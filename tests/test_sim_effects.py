@@ -289,7 +289,7 @@ def test_cable_effects_in_the_rows_simulator_match_the_effects_model():
     d = simulated_rows(ROBOT, cfg, noise=zero, device_biases=False)
     m = EffectModel(ROBOT, make_effects(["cable_sag", "pulley_friction", "loadcell_hysteresis",
                                          "cable_elasticity"]))
-    ea = cfg.physics_params().ea  # the simulator's nominal 2e6 N stretches the cables by ~0.1 mm
+    ea = cfg.physics_params(ROBOT).ea  # the simulator's nominal 2e6 N (irma4u's description gives no EA)
     theta = m.initial_params(d.zeta0, [0.06, 0.03, 1.5, 0.2, 1.0 / ea])
     appr = np.stack([d.meas.approach, d.meas.load_approach], axis=-1)
     p = m.predict(d.poses, theta, ("tension", "length"), None, appr)

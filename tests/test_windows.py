@@ -1,5 +1,5 @@
 """Equilibrium windows against the run's own noise and the plan (calib.selfcal.windows), and the online
-detector that shares their noise estimate; synthetic signals, no simulator (fast)."""
+detector that shares their noise estimate; synthetic signals, no simulator (fast), and the real sc_8_final."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import pytest
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from calib.robot import load_robot
 from calib.selfcal import Stillness, WindowOptions, search_windows
+from calib.selfcal.windows import quiet_noise
 
 DT = 0.1
 
@@ -256,3 +257,34 @@ def test_the_detector_waits_for_the_ends_test_the_search_applies(robot):
     bare.start(0.0)
     early = [bare.push(t[i], tau[i], dl[i], dsig[i], roll[i], pitch[i]).settled for i in range(t.size)]
     assert sum(early) > sum(settled)
+
+
+def test_on_the_real_sc_8_final_the_ends_test_cuts_only_motion_and_keeps_the_paper_pose(irma_data, tmp_path):
+    """Issue 29 point 1 judged on the real robot (parsed sc_8_final): every end the test cuts off a still
+    stretch is a motion, not noise (a cable length there stands more than 10 times the run's own per-sample
+    length noise, ~0.01 mm, from the kept window's mean), the 8 setpoints keep a window each and the
+    paper-weights solve moves by under 0.2 mm (0.13 mm measured)."""
+    from acquisition.importers import import_irma
+    from calib.selfcal import solve_run
+
+    run = import_irma(irma_data / "sc_8_final_parsed.mat", tmp_path / "r",
+                      targets=irma_data / "sc_control_target_8_final.mat")
+    args = (run.robot, run.t, run.tau, run.dl, run.dsigma, run.roll, run.pitch, run.tau_ref, run.setpoints)
+    off = search_windows(*args, options=WindowOptions(ends_p=0.0))
+    on = search_windows(*args, options=WindowOptions(ends_p=1e-3))
+    assert sorted(w.setpoint for w in on.used) == list(range(8)) == sorted(w.setpoint for w in off.used)
+    noise = quiet_noise(run.dl)
+    assert np.all(noise < 0.02e-3)
+    cut = 0
+    for w0 in off.found:
+        w1 = next((w for w in on.found if w0.first <= w.first and w.last <= w0.last), None)
+        if w1 is None or (w1.first == w0.first and w1.last == w0.last):
+            continue
+        kept = run.dl[w1.slice].mean(axis=0)
+        for end in [i for i, moved in ((w0.first, w1.first > w0.first), (w0.last, w1.last < w0.last)) if moved]:
+            cut += 1
+            assert np.max(np.abs(run.dl[end] - kept) / noise) > 10.0, (w0, w1, end)
+    assert cut >= 8
+    pose = [solve_run(run.robot, run, noise="paper", window_options=o).initial_pose[:3]
+            for o in (WindowOptions(ends_p=0.0), WindowOptions(ends_p=1e-3))]
+    assert np.linalg.norm(pose[1] - pose[0]) < 0.2e-3

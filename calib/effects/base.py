@@ -31,7 +31,7 @@ import numpy as np
 
 from calib.kinematics import convert_euler, inverse_kinematics, kinematic_jacobians
 from calib.robot import Robot
-from calib.selfcal.model import CHANNELS, ChannelPrediction, orientation_prediction
+from calib.selfcal.model import CHANNELS, ChannelPrediction, encoder_lengths, orientation_prediction
 from calib.statics import tension_model
 
 
@@ -73,8 +73,9 @@ class Implausible:
 
 @dataclass
 class Physical:
-    """Absolute physical quantities at k poses with the current robot: cable lengths L (k, n) m, swivel
-    angles (k, n) rad, modelled tensions tau (k, n) N; their pose derivatives (k, n, 6) and theta
+    """Absolute physical quantities at k poses with the current robot: cable lengths L (k, n) m as the
+    encoders count them (unstretched by the robot's axial stiffness: calib.selfcal.model.encoder_lengths),
+    swivel angles (k, n) rad, modelled tensions tau (k, n) N; their pose derivatives (k, n, 6) and theta
     derivatives (k, n, p) (robot-effect columns; zeta_0 columns are zero here)."""
 
     L: np.ndarray
@@ -88,6 +89,7 @@ class Physical:
     ttau: np.ndarray
     ahrs: np.ndarray | None = None  # (k, 3) the orientations in the AHRS's convention, rad
     dahrs: np.ndarray | None = None  # (k, 3, 3) their derivatives with respect to the poses' angles
+    terms: dict | None = None  # effect name -> its per-pose terms (``Effect.pose_terms``), all rows at once
 
 
 @dataclass
@@ -158,6 +160,12 @@ class Effect:
         """Reading stage: change ``preds`` in place (values, d_pose, d_theta; fill d_theta[..., ctx.cols])."""
         raise NotImplementedError
 
+    def pose_terms(self, robot: Robot, poses: np.ndarray):
+        """Reading stage: what ``transform`` needs that depends on the robot and the poses (k, 6) only, as a
+        dataclass of arrays with k leading rows (``Context.at.terms[name]``): computed with the physical
+        quantities, for every row at once (several runs' rows in one call); None: nothing."""
+        return None
+
     def absolute_length(self, ref: Physical, values: np.ndarray, lengths: np.ndarray) -> np.ndarray:
         """Reading stage: the absolute length (n,) the encoders count at zeta_0, given the geometric (or
         previously transformed) one; default unchanged."""
@@ -197,19 +205,29 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> P
     kin = inverse_kinematics(robot, poses)
     jac = kinematic_jacobians(robot, kin)
     k, n = kin.lengths.shape
-    if tension:
+    if tension or np.any(robot.compliance):  # an elastic cable's encoder length needs its tension
         tm = tension_model(robot, kin=kin, jac=jac)
         tau, dtau = tm.tau, tm.jacobian
     else:
         tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
     z = np.zeros((k, n, p))
     ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention)
-    return Physical(kin.lengths, kin.swivel, tau, jac.lengths, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
+    L, dL = encoder_lengths(robot, kin.lengths, tau, jac.lengths, dtau)
+    return Physical(L, kin.swivel, tau, dL, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
 
 
-def _rows(ph: Physical, rows: slice) -> Physical:
-    """The physical quantities of some of the poses (views)."""
-    return Physical(*(getattr(ph, f.name)[rows] for f in dataclasses.fields(Physical)))
+def _dataclass_rows(d, rows: slice):
+    """A dataclass of arrays with the poses first, at some of the poses (views; None stays None)."""
+    return type(d)(*(None if (v := getattr(d, f.name)) is None else v[rows] for f in dataclasses.fields(d)))
+
+
+def physical_rows(ph: Physical, rows: slice) -> Physical:
+    """The physical quantities of some of the poses (views), the effects' pose terms included."""
+    a, t = ph.ahrs is not None, ph.terms
+    return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
+                    ph.tL[rows], ph.tsigma[rows], ph.ttau[rows], ph.ahrs[rows] if a else None,
+                    ph.dahrs[rows] if a else None,
+                    None if t is None else {n: _dataclass_rows(v, rows) for n, v in t.items()})
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -291,6 +309,8 @@ class EffectModel:
         p = theta.shape[0]
         robot = self.true_robot(theta)
         ph = physical(robot, poses, p, tension)
+        ph.terms = {e.name: t for e in self.effects if e.stage == "reading"
+                    and (t := e.pose_terms(robot, poses)) is not None}
         for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
             if e.stage != "robot":
                 continue
@@ -304,7 +324,7 @@ class EffectModel:
                         r = e2.modify(r, np.asarray(th[sl2]))
                 kin = inverse_kinematics(r, poses)
                 tm = tension_model(r, kin=kin, derivatives=False)
-                return kin.lengths, kin.swivel, tm.tau
+                return encoder_lengths(r, kin.lengths, tm.tau)[0], kin.swivel, tm.tau
 
             recompute.base = (ph.L, ph.sigma, ph.tau)  # at theta itself: computed above, the same way
             dL, ds, dt = e.physical_columns(robot, np.asarray(theta[sl]), poses, recompute)
@@ -332,7 +352,7 @@ class EffectModel:
         if physical is None:
             physical = self._physical(theta, np.vstack([z, theta[None, :6]]), self.needs_tension(channels))
         robot, both = physical
-        at, ref = _rows(both, slice(0, k)), _rows(both, slice(k, k + 1))
+        at, ref = physical_rows(both, slice(0, k)), physical_rows(both, slice(k, k + 1))
         for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta
             getattr(ref, "t" + name)[..., :6] += getattr(ref, "d" + name)
         out: dict[str, ChannelPrediction] = {}
@@ -423,6 +443,9 @@ class Projected(Effect):
 
         cols = self.inner.physical_columns(robot, full, poses, recompute_full)
         return tuple(c @ self.basis for c in cols)
+
+    def pose_terms(self, robot: Robot, poses: np.ndarray):
+        return self.inner.pose_terms(robot, poses)
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         q = self.basis.shape[0]

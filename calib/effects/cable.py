@@ -21,11 +21,11 @@ rows without them (0) see neither direction-dependent effect.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
-from calib.effects.base import Context, Effect, ParamSpec
+from calib.effects.base import Context, Effect, ParamSpec, _dataclass_rows
 from calib.kinematics import (
     KinematicJacobians,
     Kinematics,
@@ -150,10 +150,6 @@ def sag_terms(robot: Robot, poses: np.ndarray) -> SagTerms:
     return SagTerms(tw, dtw, cell, dcell, lc * h2, dlc * h2[..., None] + lc[..., None] * dh2)
 
 
-def _terms_rows(t: SagTerms, rows: slice) -> SagTerms:
-    return SagTerms(*(getattr(t, f.name)[rows] for f in fields(SagTerms)))
-
-
 class CableSag(Effect):
     """Cable mass: linear density rho (kg/m), parabolic sag (see the module doc). Tensions: the cells read
     the chord tension (with half the cables' weight on the platform) plus rho g dz / 2; lengths: the
@@ -174,15 +170,20 @@ class CableSag(Effect):
         # rope 0.016 kg/m. A heavier fit is no cable of this robot.
         return [ParamSpec("density", "kg/m", 0.0, -2.0, 2.0, 0.01, plausible=(0.0, 0.07))]
 
+    def pose_terms(self, robot: Robot, poses: np.ndarray) -> SagTerms:
+        return sag_terms(robot, poses)
+
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         if "tension" not in preds and "length" not in preds:
             return
         rho = float(values[0])
         c = ctx.cols.start
         k = ctx.poses.shape[0]
-        if "length" in preds:  # the rows and zeta_0 in one evaluation
+        if ctx.at.terms is not None and self.name in ctx.at.terms:  # computed with the physical quantities
+            at, ref = ctx.at.terms[self.name], ctx.ref.terms[self.name]
+        elif "length" in preds:  # the rows and zeta_0 in one evaluation
             both = sag_terms(ctx.robot, np.vstack([ctx.poses, ctx.theta[None, :6]]))
-            at, ref = _terms_rows(both, slice(0, k)), _terms_rows(both, slice(k, k + 1))
+            at, ref = _dataclass_rows(both, slice(0, k)), _dataclass_rows(both, slice(k, k + 1))
         else:
             at = sag_terms(ctx.robot, ctx.poses)
         if "tension" in preds:

@@ -21,6 +21,20 @@ from calib.statics import tension_model
 CHANNELS = ("tension", "length", "swivel", "orientation")
 
 
+def encoder_lengths(robot: Robot, L: np.ndarray, tau: np.ndarray, dL: np.ndarray | None = None,
+                    dtau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The cable lengths (k, n) m the winch encoders count: the unstretched length L / (1 + tau / EA) of a
+    cable of the robot's axial stiffness EA (``robot.axial_stiffness``, N; none: inextensible, L itself)
+    under the modelled tension tau (k, n) N; with dL, dtau (k, n, q) also its derivative (k, n, q)."""
+    c = robot.compliance
+    if not np.any(c):
+        return L, dL
+    den = 1.0 + c * tau
+    if dL is None or dtau is None:
+        return L / den, None
+    return L / den, dL / den[..., None] - (L * c / den**2)[..., None] * dtau
+
+
 def channel_width(name: str, n: int) -> int:
     """Number of scalar readings of a channel for n cables."""
     if name not in CHANNELS:
@@ -108,15 +122,20 @@ class MeasurementModel:
         if "length" in channels or "swivel" in channels:
             kin0 = inverse_kinematics(robot, theta[None, :6])
             jac0 = kinematic_jacobians(robot, kin0)
+        elastic = "length" in channels and bool(np.any(robot.compliance))
+        tm = tension_model(robot, kin=kin, jac=jac) if "tension" in channels or elastic else None
         for name in channels:
             if name == "tension":
-                tm = tension_model(robot, kin=kin, jac=jac)
                 out[name] = ChannelPrediction(tm.tau, tm.jacobian, np.zeros((k, n, p)))
             elif name in ("length", "swivel"):
                 cur = kin.lengths if name == "length" else kin.swivel
                 ref = kin0.lengths if name == "length" else kin0.swivel
                 dcur = jac.lengths if name == "length" else jac.swivel
                 dref = jac0.lengths if name == "length" else jac0.swivel
+                if name == "length" and elastic:  # the encoders count the unstretched lengths
+                    tm0 = tension_model(robot, kin=kin0, jac=jac0)
+                    cur, dcur = encoder_lengths(robot, cur, tm.tau, dcur, tm.jacobian)
+                    ref, dref = encoder_lengths(robot, ref, tm0.tau, dref, tm0.jacobian)
                 val = cur - ref
                 if name == "swivel":
                     val = np.angle(np.exp(1j * val))
@@ -133,4 +152,8 @@ class MeasurementModel:
         """Absolute values of the relative sensors at the reference pose: lengths (n,), swivels (n,), yaw."""
         kin0 = inverse_kinematics(self.robot, theta[None, :6])
         yaw0 = convert_euler(theta[None, 3:6], self.robot.orientation, self.robot.ahrs_convention)[0][0, 2]
-        return {"length": kin0.lengths[0], "swivel": kin0.swivel[0], "yaw": float(yaw0)}
+        lengths = kin0.lengths
+        if np.any(self.robot.compliance):
+            tau0 = tension_model(self.robot, kin=kin0, derivatives=False).tau
+            lengths = encoder_lengths(self.robot, lengths, tau0)[0]
+        return {"length": lengths[0], "swivel": kin0.swivel[0], "yaw": float(yaw0)}

@@ -90,12 +90,13 @@ class Evaluation:
 
 @dataclass
 class Observed:
-    """The observed entries of a problem's residuals in a fixed order: per group, per channel (row positions
-    in the group (e,), columns (e,), weights (e,)); then the reference row's observed entries (``ref``,
+    """The observed entries of a problem's residuals in a fixed order: per group, by channel and component,
+    their flat positions in the group's (rows, readings) array (e,) and weights (e,); then the reference
+    row's observed entries (``ref``,
     indices into r0's first ``n_ref``) and the priors; their labels per entry: channel, component, row
     (-1: the reference row, -2: a prior)."""
 
-    groups: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
+    groups: list[tuple[np.ndarray, np.ndarray]]
     ref: np.ndarray
     n_ref: int
     channel: np.ndarray
@@ -180,15 +181,16 @@ class Problem:
         """Where the observed entries are (fixed by the weights): their order and labels (:class:`Observed`)."""
         per_group, ch, ix, rw = [], [], [], []
         for g in self.groups:
-            entries = []
+            flat, ws = [], []
             for c in g.channels:
                 sl = g.slices[c]
                 a, i = np.nonzero(g.weight[:, sl].T > 0)  # component-major: component a, its observed rows
-                entries.append((i, sl.start + a, g.weight[i, sl.start + a]))
+                flat.append(i * g.weight.shape[1] + sl.start + a)
+                ws.append(g.weight[i, sl.start + a])
                 ch.append(np.full(a.size, c))
                 ix.append(a)
                 rw.append(g.idx[i])
-            per_group.append(entries)
+            per_group.append((np.concatenate(flat), np.concatenate(ws)))
         n = self.model.robot.n
         widths = [channel_width(c, n) for c in self.ref_channels]
         ref_ch = np.repeat(np.array(self.ref_channels), widths) if widths else np.zeros(0, str)

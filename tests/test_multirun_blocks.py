@@ -1,0 +1,108 @@
+"""The joint fit's speed parts (issue 28, done-when 6) compute what the plain computation does: the block
+(Schur) LM step against the dense normal equations, one model call for several problems' rows against each
+problem's own, the point-load tensions against one tension model per point mass."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calib.effects import EffectModel, make_effects
+from calib.effects.base import physical_rows
+from calib.fitting import residuals
+from calib.multirun import RIDGE, Arrow, RunFit, stack
+from calib.planning import plan_poses
+from calib.robot import load_robot
+from calib.selfcal.model import CHANNELS, MeasurementModel
+from calib.selfcal.problem import Measurements, Problem
+from calib.statics import point_load_tensions, tension_model
+
+ROBOT = load_robot("irma4u")
+POSES = plan_poses(ROBOT, 2).poses[:5]
+SIGMA = {"tension": np.full(4, 0.5), "length": np.full(4, 1e-4), "swivel": np.full(4, 1e-3),
+         "orientation": np.full(3, 2e-3)}
+
+
+def _problem(zeta0: np.ndarray, poses: np.ndarray, effects: list[str], rng) -> Problem:
+    """Readings of the rigid model at the poses, with noise of SIGMA, for a model with these effects."""
+    pred = MeasurementModel(ROBOT).predict(poses, zeta0, CHANNELS)
+    ref = MeasurementModel(ROBOT).predict(zeta0[None], zeta0, ("tension", "orientation"))
+    noisy = {c: pred[c].value + SIGMA[c] * rng.standard_normal(pred[c].value.shape) for c in CHANNELS}
+    meas = Measurements(noisy["tension"], noisy["length"], noisy["swivel"], noisy["orientation"],
+                        ref["tension"].value[0], ref["orientation"].value[0, :2])
+    return Problem(EffectModel(ROBOT, make_effects(effects)), meas, SIGMA)
+
+
+def _runs(rng) -> tuple[list[RunFit], int]:
+    """Two runs sharing cable_sag (last in their models), one with a tension offset of its own."""
+    out = []
+    for j, own in enumerate((["tension_offset"], [])):
+        zeta0 = np.r_[POSES[j, :3], 0.01, -0.02, 0.03]
+        poses = POSES[j + 1:] + 0.002 * rng.standard_normal((POSES.shape[0] - j - 1, 6))
+        prob = _problem(zeta0, poses, [*own, "cable_sag"], rng)
+        theta = prob.model.initial_params(zeta0 + 1e-3)
+        theta[-1] = 0.03
+        out.append(RunFit(f"r{j}", None, prob, theta, poses.copy(), SIGMA))
+    return out, 1
+
+
+def test_the_block_step_is_the_dense_damped_gauss_newton_step():
+    """Arrow.step eliminates each run's 6 x 6 pose blocks; its step and predicted decrease equal the dense
+    solve of (N + damping diag N) ds = -g on unit-norm columns, shared columns free or fixed."""
+    runs, q = _runs(np.random.default_rng(3))
+    blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
+    for fixed in (False, True):
+        r, A, _ = stack(runs, q, fixed, blocks=blocks)
+        scale = np.linalg.norm(A, axis=0)
+        As = A / scale
+        N, g = As.T @ As, As.T @ r
+        arrow = Arrow.of(runs, blocks, q, fixed)
+        np.testing.assert_allclose(arrow.scale, scale, rtol=1e-12)
+        for lam in (1e-5, 1e-1):
+            ds = -np.linalg.solve(N + (lam + RIDGE) * np.diag(np.diag(N)), g)
+            step, gain = arrow.step(lam + RIDGE)
+            np.testing.assert_allclose(step, ds, rtol=1e-8, atol=1e-10 * np.abs(ds).max())
+            assert gain > 0
+            np.testing.assert_allclose(gain, -(2.0 * g @ ds + ds @ N @ ds), rtol=1e-9)
+
+
+def test_one_model_call_for_two_problems_rows_gives_each_problems_own_residuals():
+    """The physical quantities of both runs' rows and zeta_0s from one EffectModel.physical call, laid out
+    per run, give Problem.evaluate the residuals and Jacobians of each run's own call, to rounding."""
+    runs, _ = _runs(np.random.default_rng(4))
+    rows = [np.vstack([rf.theta[None, :6], rf.poses[rf.problem.groups[0].idx], rf.theta[None, :6]]) for rf in runs]
+    robot, ph = runs[0].problem.model.physical(runs[0].theta, np.vstack(rows))
+    assert set(ph.terms) == {"cable_sag"}  # the sag's per-pose terms come with the physical quantities
+    start = 0
+    for rf, z in zip(runs, rows, strict=True):
+        part = physical_rows(ph, slice(start, start + z.shape[0]))
+        start += z.shape[0]
+        p, p0 = rf.theta.shape[0], runs[0].theta.shape[0]
+        for name in ("tL", "tsigma", "ttau"):  # the shared (last) columns at this run's place
+            t = np.zeros(getattr(part, name).shape[:2] + (p,))
+            t[..., -1] = getattr(part, name)[..., p0 - 1]
+            setattr(part, name, t)
+        a = residuals(rf.problem, rf.theta, rf.poses)
+        b = residuals(rf.problem, rf.theta, rf.poses, physical=(robot, part))
+        np.testing.assert_allclose(b.r, a.r, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(b.A, a.A, rtol=1e-12, atol=1e-9)
+        assert a.r.shape[0] == rf.problem.n_residuals
+
+
+def test_point_load_tensions_are_the_sum_of_one_tension_model_per_point_mass():
+    """Tensions holding masses at the four anchors: one statics evaluation, value and pose Jacobian equal to
+    the sum over the anchors of the tension model of a robot whose whole mass sits there."""
+    from calib.kinematics import inverse_kinematics, kinematic_jacobians
+
+    kin = inverse_kinematics(ROBOT, POSES)
+    jac = kinematic_jacobians(ROBOT, kin)
+    masses = np.random.default_rng(5).uniform(0.05, 0.3, (POSES.shape[0], ROBOT.n))
+    each, tau, dtau = point_load_tensions(ROBOT, kin, jac, ROBOT.a_local, masses)
+    ref_tau, ref_dtau = np.zeros_like(tau), np.zeros_like(dtau)
+    for i in range(ROBOT.n):
+        tm = tension_model(ROBOT.replace(mass=1.0, com=ROBOT.a_local[i].copy()), kin=kin, jac=jac)
+        np.testing.assert_allclose(each[..., i], tm.tau, rtol=1e-10)
+        ref_tau += masses[:, i, None] * tm.tau
+        ref_dtau += masses[:, i, None, None] * tm.jacobian
+    np.testing.assert_allclose(tau, ref_tau, rtol=1e-10)
+    np.testing.assert_allclose(dtau, ref_dtau, rtol=1e-9, atol=1e-9 * np.abs(ref_dtau).max())
+    assert np.abs(tau).max() > 1.0  # newtons: the loads are felt (0.05-0.3 kg per anchor)
