@@ -1,9 +1,11 @@
-"""The run's own solve of a sequential startup (:func:`calib.sequential.run_estimate`), computed beside the
-control loop: in a worker process on a real clock, in line in lockstep."""
+"""Work beside the control loop: the run's own solve of a sequential startup (:func:`calib.sequential.run_estimate`,
+in a worker process on a real clock, in line in lockstep) and the run log's slow file system calls
+(:class:`LogWorker`, on a thread)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from calib.sequential import run_estimate
 
@@ -60,3 +62,37 @@ class EstimateWorker:
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
+
+
+class LogWorker:
+    """The run log's slow calls off the control loop's thread: creating the run folder and run.yaml, the fsync
+    at each window, run.yaml's rewrites (a sequential plan's setpoints, an event) and the final close, each a
+    yaml dump and an fsync (10-15 ms of interpreter time on the lab PC, more on a slow disk). One thread
+    does them in the order they are asked for; the loop's own samples.csv lines (written and flushed, not
+    fsynced, by the loop) are untouched. A failure is raised by the next :meth:`submit` or by :meth:`close`."""
+
+    def __init__(self) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cdpr-runlog")
+        self._pending: list = []
+
+    def submit(self, fn: Callable[..., Any], *args: Any):
+        """Run ``fn(*args)`` after what was submitted before; its Future."""
+        self._check()
+        future = self._pool.submit(fn, *args)
+        self._pending.append(future)
+        return future
+
+    def _check(self) -> None:
+        done = [f for f in self._pending if f.done()]
+        self._pending = [f for f in self._pending if not f.done()]
+        for f in done:
+            f.result()  # raises what the call raised
+
+    def close(self) -> None:
+        """Wait for every call submitted; raise the first failure."""
+        self._pool.shutdown(wait=True)
+        pending, self._pending = self._pending, []
+        for f in pending:
+            f.result()

@@ -11,9 +11,9 @@ The control loop never waits for it: :class:`LiveTap` runs in the loop's thread 
 bounded queue, dropping it when the queue is full; :class:`LivePublisher`, a thread of its own, takes them
 out, estimates the platform's pose (:class:`acquisition.scene.PoseTracker`), encodes and logs the messages.
 The server's own threads send them; a client that is slow, connects or vanishes only changes what it
-receives. While the publisher runs, the interpreter's thread switch interval is lowered to
-:data:`SWITCH_INTERVAL` so that the loop's thread, waking from its sleep, waits for the publisher's
-thread at most that long.
+receives. The loop's thread, waking from its sleep, waits for the publisher's thread at most the switch
+interval the routine runs at (:func:`acquisition.clock.loop_runtime`, with or without the view); a replay's
+publisher sets the same :data:`SWITCH_INTERVAL`.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from acquisition.clock import LOOP_SWITCH_INTERVAL
 from acquisition.scene import (
     ESTIMATE_SCHEMA,
     EVENT_SCHEMA,
@@ -46,7 +47,7 @@ from calib.robot import Robot
 
 SCENE_RATE = 20.0  # Hz, scene updates during a startup
 QUEUE_SIZE = 256  # snapshots waiting for the publisher; more are dropped
-SWITCH_INTERVAL = 0.0005  # s, sys.setswitchinterval while a publisher runs (CPython's default is 0.005)
+SWITCH_INTERVAL = LOOP_SWITCH_INTERVAL  # s, sys.setswitchinterval while a publisher runs (also the loop's)
 
 
 @dataclass(frozen=True)

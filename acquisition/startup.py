@@ -20,15 +20,16 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from acquisition.clock import Clock
+from acquisition.clock import Clock, loop_runtime
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
-from acquisition.estimates import EstimateWorker
+from acquisition.estimates import EstimateWorker, LogWorker
 from acquisition.plans import Pause, Plan
 from acquisition.progress import ProgressBar
 from acquisition.runwriter import RunWriter
@@ -145,6 +146,8 @@ class StartupRoutine:
         self._sequential: dict[str, Any] | None = None
         self._rehold = 0  # extra holds at poses whose window was only quasi (sequential plans)
         self._estimates = EstimateWorker(clock.lockstep)  # the run's own solve after each hold (sequential)
+        self._io = LogWorker()  # the run log's file system calls, off the loop's thread
+        self._writer_ready = None  # the Future of the RunWriter, asked for as soon as the power-on readings are in
         self._history: list = []  # sequential plan: (candidate, calib.sequential.OnlineEstimate) after each window
 
     # ---- the loop -------------------------------------------------------------------------------------
@@ -265,7 +268,7 @@ class StartupRoutine:
             if 1 <= k < len(self._means):
                 self._means[k] = WindowMean(*m, self._means[k].noise, self._means[k].estimate)
         last = self.writer.count - 1
-        self.writer.sync()
+        self._io.submit(self.writer.sync)
         return first, last
 
     def _pause(self, at: np.ndarray, pause: Pause) -> np.ndarray:
@@ -318,8 +321,11 @@ class StartupRoutine:
         self.rig.command(self.controller.torque_for(self._tau_init))
         for d in self.rig.drives:
             d.enable()
+        self._prepare_log()  # on the log worker while the pretension begins (not in the drives' enabling tick)
 
-    def start_log(self) -> None:
+    def _prepare_log(self) -> None:
+        """Create the run folder, run.yaml and samples.csv's header on the log worker (the RunWriter of
+        :meth:`start_log`): all it needs is known once the power-on readings are in."""
         plan = self.plan
         meta = {
             "zeroing": {"dl": self._zero["dl"].tolist(), "dsigma": self._zero["dsigma"].tolist(),
@@ -332,20 +338,38 @@ class StartupRoutine:
                if plan.pauses else {}),
             **self.meta,
         }
-        self.writer = RunWriter(self.out, self.robot.name, self.cfg.method, self.cfg.log_period, self.source,
-                                setpoints=plan.setpoints if len(plan.setpoints) else None,
-                                ideal_poses=plan.ideal_poses if len(plan.ideal_poses) else None,
-                                extra_columns=("tick",), meta_extra=meta, overwrite=True)
+        self._writer_ready = self._io.submit(partial(
+            RunWriter, self.out, self.robot.name, self.cfg.method, self.cfg.log_period, self.source,
+            setpoints=plan.setpoints if len(plan.setpoints) else None,
+            ideal_poses=plan.ideal_poses if len(plan.ideal_poses) else None,
+            extra_columns=("tick",), meta_extra=meta, overwrite=True))
+
+    def start_log(self) -> None:
+        """The run log starts now (its time zero): the RunWriter :meth:`_prepare_log` asked for."""
+        if self._writer_ready is None:
+            self._prepare_log()
+        self.writer = self._writer_ready.result()
         self._t_run0 = self.clock.now()
         self._log_open = True
 
     def _close_log(self) -> None:
         if self._log_open:
-            self.writer.close()
+            self._io.submit(self.writer.close)
             self._log_open = False
 
     def run(self) -> StartupResult:
-        """The whole procedure; raises :class:`StartupStopped` after a safe stop."""
+        """The whole procedure; raises :class:`StartupStopped` after a safe stop. The interpreter is set up for
+        the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap)."""
+        with loop_runtime():
+            try:
+                result = self._procedure()
+            except BaseException:
+                self._io.close()  # the run log's pending writes are on disk before the stop is reported
+                raise
+            self._io.close()
+            return result
+
+    def _procedure(self) -> StartupResult:
         wall0 = time.perf_counter()
         self._total_estimate = self._estimate_total()
         if self.progress is not None:
@@ -374,7 +398,7 @@ class StartupRoutine:
                     for pause in (p for p in self.plan.pauses if p.after == j):
                         prev = self._pause(prev, pause)
                 self._move_to(prev, tau0, self.cfg.max_tension_rate, "return", -1)
-            self.writer.sync()
+            self._io.submit(self.writer.sync)
         except SafeStop as stop:
             self._safe_stop(stop)
             raise StartupStopped(stop.kind, stop.message, self.out if self.writer else None) from None
@@ -414,7 +438,7 @@ class StartupRoutine:
         while c is not None:
             self.plan.setpoints = np.vstack([self.plan.setpoints, cands.setpoints[c]])
             self.plan.ideal_poses = np.vstack([self.plan.ideal_poses, cands.poses[c]])
-            self.writer.update_procedure(self.plan.setpoints, self.plan.ideal_poses)
+            self._io.submit(self.writer.update_procedure, self.plan.setpoints, self.plan.ideal_poses)
             yield len(history), cands.setpoints[c]
             online.refresh(self._means[1:-1])  # the earlier poses' windows, as found so far
             try:
@@ -430,7 +454,7 @@ class StartupRoutine:
             {"pose": i, "position_sigma_m": e.position_sigma if math.isfinite(e.position_sigma) else None,
              "initial_pose": e.theta[:6].tolist(),
              "iterations": e.iterations} for i, (_, e) in enumerate(history)]}
-        self.writer.update_meta(sequential=self._sequential)
+        self._io.submit(partial(self.writer.update_meta, sequential=self._sequential))
 
     def _kinematic(self) -> None:
         """Follow the path's tensions linearly in time (quintic blends in and out), logging throughout."""
@@ -465,7 +489,7 @@ class StartupRoutine:
             for row in self._prerun:
                 self._write(row)
         if log and self._log_open:
-            self.writer.add_event(t_now - (self._t_run0 or 0.0), stop.kind, stop.message)
+            self._io.submit(self.writer.add_event, t_now - (self._t_run0 or 0.0), stop.kind, stop.message)
         self._mark_dead(stop)
         if stop.channels:
             self.controller.open_loop(np.array(stop.channels))
@@ -489,7 +513,6 @@ class StartupRoutine:
                 continue
         self._disable()
         if logging:
-            self.writer.sync()
             self._close_log()
 
     def _mark_dead(self, stop: SafeStop) -> None:

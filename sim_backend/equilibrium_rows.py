@@ -150,7 +150,10 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
     Z = guess
     # the direction each cable moves into each equilibrium: from the plan's sequence of poses (at home: 0)
     approach = np.zeros((Z.shape[0], n))
-    approach[1:] = np.sign(np.diff(inverse_kinematics(truth, guess).lengths, axis=0))
+    kin_plan = inverse_kinematics(truth, guess)
+    approach[1:] = np.sign(np.diff(kin_plan.lengths, axis=0))
+    turn = np.zeros((Z.shape[0], n))  # the way each swivel turns into each equilibrium (no swivel friction here)
+    turn[1:] = np.sign(np.angle(np.exp(1j * np.diff(kin_plan.swivel, axis=0))))
     tau = (tau_cell + approach * fr) / (1.0 - approach * mu)  # platform side of the pulleys
     chord = tau
     for _ in range(5 if density else 1):  # the cables' weights depend on the poses: a fixed point
@@ -193,5 +196,7 @@ def simulated_rows(robot: Robot, config, seed: int = 0, grid: int = 2, noise: di
         load_approach=load_dir[1:].copy(),
         ref_approach=approach[0].copy(),
         ref_load_approach=load_dir[0].copy(),
+        swivel_approach=turn[1:].copy(),
+        ref_swivel_approach=turn[0].copy(),
     )
     return SimulatedRows(meas, sig, Z[0].copy(), Z[1:].copy(), plan.home_pose.copy(), plan.poses.copy())

@@ -72,18 +72,19 @@ def test_all_effects_composed_jacobian_matches_finite_differences():
     rng = np.random.default_rng(11)
     model = EffectModel(ROBOT, make_effects(list(BUILTIN)))
     # pulley_position: 12 - 4 gauge modes; then pulley_friction (2), loadcell_hysteresis, cable_sag; then
-    # swivel_tilt (2 per pulley), swivel_entry (2 per pulley), swivel_gain
-    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 1 + 3 + 1 + 8 + 2 + 1 + 1 + 8 + 8 + 4
+    # swivel_tilt (2 per pulley), swivel_entry (2 per pulley), swivel_gain, swivel_friction
+    assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 1 + 3 + 1 + 8 + 2 + 1 + 1 + 8 + 8 + 4 + 1
     vals = _values(model, rng)
     # cable_sag's columns leave out rho times the change of the cable weights' tensions with the pulley
-    # geometry, swivel_entry's the change of its corrections with the robot effects' geometry (second order,
-    # documented): both are 0 here, their own columns are checked alone
+    # geometry, swivel_entry's the change of its corrections with the robot effects' geometry, swivel_friction's
+    # the change of the cable's lever with it (second order, documented): all 0 here, their own columns are
+    # checked alone
     names = model.param_names[6:]
     for j, name in enumerate(names):
-        if name.startswith(("cable_sag.", "swivel_entry.")):
+        if name.startswith(("cable_sag.", "swivel_entry.", "swivel_friction.")):
             vals[j] = 0.0
     theta = model.initial_params(POSES[1] + 0.01 * rng.standard_normal(6), vals)
-    _check_fd(model, theta, POSES[:3], rng.choice([-1.0, 0.0, 1.0], size=(3, ROBOT.n, 2)))
+    _check_fd(model, theta, POSES[:3], rng.choice([-1.0, 0.0, 1.0], size=(3, ROBOT.n, 4)))
 
 
 def test_projected_effect_jacobian_matches_finite_differences():
@@ -263,17 +264,19 @@ def test_yaw_drift_column_is_the_row_time_and_needs_times():
     assert model.report(theta)["ahrs_yaw_drift"]["deg_per_hour"] == pytest.approx(np.degrees(2e-4) * 3600)
 
 
-@pytest.mark.parametrize("name", ["pulley_friction", "loadcell_hysteresis", "cable_sag"])
+@pytest.mark.parametrize("name", ["pulley_friction", "loadcell_hysteresis", "cable_sag", "swivel_friction"])
 def test_cable_effects_jacobian_matches_finite_differences_with_directions(name):
-    """The issue-17 effects alone and behind robot and reading effects, the rows' directions given."""
+    """The issue-17 effects and the swivel friction alone and behind robot and reading effects, the rows'
+    directions given (cable motion, load change, swivel turn, the reference's swivel turn)."""
     rng = np.random.default_rng(5)
-    approach = rng.choice([-1.0, 1.0], size=(POSES.shape[0], ROBOT.n, 2))
+    approach = rng.choice([-1.0, 1.0], size=(POSES.shape[0], ROBOT.n, 4))
+    approach[..., 3] = approach[0, :, 3]  # the reference's direction: one per cable
     for names in ([name], ["mass_scale", "com_offset", name, "cable_elasticity", "tension_gain"]):
         model = EffectModel(ROBOT, make_effects(names))
         vals = _values(model, rng)
         sl = model.slices[names.index(name)]
         vals[sl.start - 6 : sl.stop - 6] = {"pulley_friction": [0.03, 2.0], "loadcell_hysteresis": [0.2],
-                                            "cable_sag": [0.05]}[name]
+                                            "cable_sag": [0.05], "swivel_friction": [0.01]}[name]
         theta = model.initial_params(POSES[0] + 0.01 * rng.standard_normal(6), vals)
         _check_fd(model, theta, POSES, approach)
 
@@ -418,3 +421,42 @@ def test_swivel_geometry_changes_readings_as_its_physics_says():
     gain = EffectModel(ROBOT, make_effects(["swivel_gain"]))
     got = gain.predict(POSES, gain.initial_params(zeta0, [0.01, 0, 0, -0.02]), ("swivel",))["swivel"].value
     np.testing.assert_allclose(got, rigid["swivel"].value * [1.01, 1, 1, 0.98], atol=1e-15)
+
+
+def test_swivel_friction_lags_the_pulley_by_the_torque_over_the_cables_moment():
+    """swivel_friction: a pulley held delta short of the cable's plane feels the cable's moment about its axis,
+    computed here from the points of the geometry (the exit point B on the pulley turned by -delta, the
+    anchor A); the torque M balances it at delta = M / (tau lever). The reading lags against the way the
+    swivel last turned, the reference's lag enters every relative reading, and without directions (rows of
+    older code) nothing changes."""
+    from calib.effects.swivel import _lever
+    from calib.kinematics import inverse_kinematics
+    from calib.statics import tension_model
+
+    zeta0 = POSES[0]
+    kin = inverse_kinematics(ROBOT, POSES)
+    lev, _ = _lever(ROBOT, POSES)
+    delta = 1e-6
+    for i in range(ROBOT.n):
+        fi, fj, fk = ROBOT.frames[i]
+        sig = kin.swivel[:, i] - delta
+        u = np.cos(sig)[:, None] * fi + np.sin(sig)[:, None] * fj
+        nv = np.cos(kin.psi[:, i])[:, None] * u + np.sin(kin.psi[:, i])[:, None] * fk
+        b = ROBOT.d[i] + ROBOT.r[i] * (u + nv)
+        a = ROBOT.d[i] + kin.q[:, i]
+        t = (a - b) / np.linalg.norm(a - b, axis=1)[:, None]
+        moment = np.cross(b - ROBOT.d[i], t) @ fk  # per newton of tension, about k_i through D_i
+        np.testing.assert_allclose(np.abs(moment) / delta, lev[:, i], rtol=1e-4)
+        assert np.all(moment > 0)  # it turns the pulley back towards the cable: a restoring moment
+    tau = tension_model(ROBOT, POSES).tau
+    tau0, lev0 = tension_model(ROBOT, zeta0[None]).tau[0], _lever(ROBOT, zeta0[None])[0][0]
+    s = np.tile([1.0, -1.0, 1.0, 0.0], (POSES.shape[0], 1))
+    s0 = np.array([-1.0, -1.0, 1.0, 1.0])
+    approach = np.stack([np.zeros_like(s), np.zeros_like(s), s, np.broadcast_to(s0, s.shape)], axis=-1)
+    m = EffectModel(ROBOT, make_effects(["swivel_friction"]))
+    theta = m.initial_params(zeta0, [0.02])
+    rigid = MeasurementModel(ROBOT).predict(POSES, zeta0, ("swivel",))["swivel"].value
+    got = m.predict(POSES, theta, ("swivel",), None, approach)["swivel"].value
+    np.testing.assert_allclose(got, rigid - 0.02 * (s / (tau * lev) - s0 / (tau0 * lev0)), atol=1e-12)
+    assert 0.05 < np.degrees(np.abs(0.02 / (tau * lev))).min()  # 0.02 N m: a visible lag at these tensions
+    np.testing.assert_allclose(m.predict(POSES, theta, ("swivel",))["swivel"].value, rigid, atol=1e-15)

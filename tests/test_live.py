@@ -234,3 +234,70 @@ def test_the_shipped_layout_shows_only_channels_and_fields_the_view_publishes():
         return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
 
     assert sorted(leaves(layout["layout"])) == sorted(panels)  # every panel placed, none twice
+
+
+def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_thread(tmp_path):
+    """Issue 32, the loop's bounded ticks: while the routine runs, the heap that existed before it is frozen
+    (no collection walks it inside a tick) and the switch interval is 0.5 ms; the run log is created, fsynced
+    and closed by the log worker's thread, all of it on disk when run() returns; the interpreter is restored."""
+    import gc
+    import math
+    import threading
+
+    from acquisition.clock import LOOP_SWITCH_INTERVAL, SimClock
+    from acquisition.connect import ahrs_rate_for, connect
+    from acquisition.plans import Plan
+    from acquisition.runlog import RunWriter
+    from acquisition.startup import StartupConfig, StartupRoutine
+    from sim_backend.backend import SimBackend
+
+    robot = load_robot("irma4u")
+    grid = Plan.for_robot(robot, 2, "equilibrium")
+    plan = Plan(grid.setpoints[:1], grid.ideal_poses[:1], grid.tau0)  # one pose: a few seconds
+    cfg = StartupConfig(hold_time=0.5)
+    seen: list[tuple[int, float]] = []
+    writers: list[str] = []
+    loop = threading.current_thread().name
+
+    class Recorded(RunWriter):  # the real writer, noting the thread each file system call runs in
+        def __init__(self, *a, **k):
+            writers.append(threading.current_thread().name)
+            super().__init__(*a, **k)
+
+        def sync(self):
+            writers.append(threading.current_thread().name)
+            super().sync()
+
+    gc.collect()
+    switch, alive = sys.getswitchinterval(), len(gc.get_objects())
+    clock = SimClock(1.0 / cfg.rate)
+    with SimBackend(robot, None, 3, clock.period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
+        rig = connect(sim.devices, robot, clock, lockstep=True, period=clock.period)
+        try:
+            import acquisition.startup as startup
+
+            original, startup.RunWriter = startup.RunWriter, Recorded
+            try:
+                routine = StartupRoutine(robot, rig, clock, plan, tmp_path / "run", cfg, on_tick=lambda s: seen.append(
+                    (gc.get_freeze_count() if s.tick % 200 == 0 else math.inf, sys.getswitchinterval())))
+                routine.run()
+            finally:
+                startup.RunWriter = original
+        finally:
+            rig.close()
+    assert len(seen) > 1000 and min(f for f, _ in seen) >= 0.9 * alive  # what lived before the run stays frozen
+    assert {s for _, s in seen} == {LOOP_SWITCH_INTERVAL}
+    assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == switch
+    assert len(writers) >= 3 and loop not in writers  # created, synced at each window and at the end
+    run = read_run(tmp_path / "run")
+    assert len(run.t) == routine.writer.count > 0
+    assert list(run.phase).count("hold") == 5  # the pose's 0.5 s window at 10 Hz
+
+
+def test_a_run_log_write_that_fails_on_the_log_worker_is_raised(tmp_path):
+    from acquisition.estimates import LogWorker
+
+    worker = LogWorker()
+    worker.submit(open, tmp_path / "no such folder" / "run.yaml", "w")
+    with pytest.raises(FileNotFoundError):
+        worker.close()

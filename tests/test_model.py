@@ -61,6 +61,20 @@ def test_builtin_irma4u_matches_table_1(robot):
     assert robot.sensors.load_cell_uncertainty == pytest.approx(0.1962)
 
 
+def test_irma4u_pulley_conventions_reproduce_the_authors_homing_readings(robot):
+    """Table I's pulley frames, radius and swivel sign, checked against the lab's own numbers: the homing
+    cable lengths and swivel angles of the data README are the authors' rigid inverse kinematics of the
+    design homing pose [0, 0, -0.119, 0, 0, 0]; the description reproduces them to the last digit, so every
+    swivel angle has the authors' sign and zero (pulleys 1 and 3 positive, 2 and 4 negative)."""
+    from acquisition.importers import IRMA_HOMING_LENGTHS, IRMA_HOMING_SWIVELS
+
+    kin = inverse_kinematics(robot, np.array([[0.0, 0.0, -0.119, 0.0, 0.0, 0.0]]))
+    np.testing.assert_allclose(kin.lengths[0], IRMA_HOMING_LENGTHS, atol=1e-12)
+    np.testing.assert_allclose(kin.swivel[0], IRMA_HOMING_SWIVELS, atol=1e-12)
+    r2 = robot.replace(r=robot.r * 2)  # eq. 2: the swivel angle does not depend on the pulley radius
+    np.testing.assert_allclose(inverse_kinematics(r2, kin.poses).swivel, kin.swivel, atol=1e-15)
+
+
 def test_reelax8_has_eight_straight_cables():
     r8 = load_robot("reelax8")
     assert r8.n == 8 and not r8.has_pulleys

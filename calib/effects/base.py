@@ -98,8 +98,10 @@ class Context:
     columns of theta that are its own (``cols``), the physical quantities at the poses (``at``) and at
     zeta_0 (``ref``, whose theta derivatives include the zeta_0 columns), and the times of the rows (k,),
     s after the reference sample (None where the readings carry no times), and the directions of the rows
-    (k, n, 2): [..., 0] the way each cable last moved before the row (+1 paid out, -1 reeled in), [..., 1]
-    the way its tension last changed (+1 rising, -1 falling); 0 or None: unknown."""
+    (k, n, 4): [..., 0] the way each cable last moved before the row (+1 paid out, -1 reeled in), [..., 1]
+    the way its tension last changed (+1 rising, -1 falling), [..., 2] the way its swivel last turned (+1 up),
+    [..., 3] the way it last turned before the reference sample; 0 or None: unknown (older callers pass the
+    first two only)."""
 
     robot: Robot
     poses: np.ndarray
@@ -342,8 +344,9 @@ class EffectModel:
         approach: np.ndarray | None = None, physical: tuple[Robot, Physical] | None = None,
     ) -> dict[str, ChannelPrediction]:
         """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included; ``times`` (k,)
-        s after the reference sample, for the effects that depend on time; ``approach`` (k, n, 2) the
-        directions of cable motion and load change before each row, for the effects that depend on them;
+        s after the reference sample, for the effects that depend on time; ``approach`` (k, n, 4) the
+        directions of cable motion, load change and swivel turn before each row and the reference's swivel
+        turn (:class:`Context`), for the effects that depend on them;
         ``physical``: ``self.physical(theta, [poses; zeta_0])`` if already computed."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)

@@ -15,6 +15,12 @@ are modelled (issue 28): three ways the pulleys can differ from that, each with 
   (the direction turns by about f / |rho| < 1e-2 rad, changing a tension by far less than a load cell's
   noise): documented, and the columns say so (none on tensions).
 * ``swivel_gain`` (reading): swivel reading = (1 + g_i) * true change of the swivel angle.
+* ``swivel_friction`` (reading): the swivel bearing's friction torque M holds the pulley plane short of the
+  cable's plane (Zoffoli, footnote 1: the pulley constraints hold "when ... tension forces are sufficient to
+  overcome pulley friction"). The cable, out of the pulley plane by delta, turns the pulley with the moment
+  tau * lever * delta about its axis, lever = r (1 + cos psi) rho_u / |rho| (the moment of the cable force
+  about k_i through D_i, to first order in delta), so the pulley stops delta = M / (tau lever) behind the
+  way it last turned: reading = sigma - s M / (tau lever), s = +1 when the swivel last turned up.
 """
 
 from __future__ import annotations
@@ -170,4 +176,78 @@ class SwivelGain(ChannelGain):
     bound = 0.002
 
 
-SWIVEL: dict[str, type[Effect]] = {cls.name: cls for cls in (SwivelTilt, SwivelEntry, SwivelGain)}
+def _lever_in_plane(rho_u: np.ndarray, rho_k: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """r (1 + cos psi) rho_u / |rho| (m) from the anchor's in-plane coordinates (eq. 4-5)."""
+    ratio = rho_k / rho_u
+    half = ratio + np.sqrt(ratio * ratio + 1.0 - 2.0 * r / rho_u)
+    h2 = half * half
+    cp, sp = (1.0 - h2) / (1.0 + h2), 2.0 * half / (1.0 + h2)
+    return r * (1.0 + cp) * rho_u / np.hypot(rho_u - r * (1.0 + cp), rho_k - r * sp)
+
+
+def _lever(robot: Robot, poses: np.ndarray, step: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+    """The cable's lever about each swivel axis per radian of the pulley plane's lag, r (1 + cos psi) rho_u /
+    |rho| (m), at poses (k, 6): (k, n), and its pose derivatives (k, n, 6): the in-plane coordinates' exact
+    pose gradients (d rho_u = u.dq, d rho_k = k.dq) times the lever's derivatives in them (central
+    differences of a closed form, relative step ``step``: no further inverse kinematics)."""
+    kin = inverse_kinematics(robot, np.asarray(poses, float).reshape(-1, 6))
+    r = robot.r[None, :]
+    lev = _lever_in_plane(kin.rho_u, kin.rho_k, r)
+    hu, hk = step * kin.rho_u, step * np.maximum(np.abs(kin.rho_k), kin.rho_u)
+    du = (_lever_in_plane(kin.rho_u + hu, kin.rho_k, r) - _lever_in_plane(kin.rho_u - hu, kin.rho_k, r)) / (2 * hu)
+    dk = (_lever_in_plane(kin.rho_u, kin.rho_k + hk, r) - _lever_in_plane(kin.rho_u, kin.rho_k - hk, r)) / (2 * hk)
+    fk = np.broadcast_to(robot.frames[None, :, 2], kin.u.shape)
+    g = pose_gradients(kin, np.stack([kin.u, fk], axis=2))  # (k, n, 2, 6)
+    return lev, du[..., None] * g[:, :, 0] + dk[..., None] * g[:, :, 1]
+
+
+class SwivelFriction(Effect):
+    """Friction torque M (N m) of the swivel bearings, common to the pulleys: the pulley plane lags the
+    cable's by M / (tau lever) against the way the swivel last turned (``Context.approach[..., 2]`` for the
+    rows, ``[..., 3]`` for the reference, whose lag every relative reading carries too)."""
+
+    name = "swivel_friction"
+    order = 6  # on the physical swivel angle, before the encoder's gain (21)
+    description = "friction torque of the swivel bearings: the pulley lags the cable's plane, N m"
+
+    def params(self, robot: Robot) -> list[ParamSpec]:
+        # plausible: 0 <= M <= 0.05 N m (friction opposes the motion: never negative). The swivel turns on a
+        # pair of small sealed ball bearings and drives its encoder's shaft: 0.02-0.05 N m of breakaway
+        # torque for the bearings and seals (as for pulley_friction in calib/effects/cable.py), an encoder's
+        # shaft seal a few mN m. More holds the pulley degrees off the cable: a seized bearing, not friction.
+        return [ParamSpec("M", "N m", 0.0, -1.0, 1.0, 0.005, plausible=(0.0, 0.05))]
+
+    @staticmethod
+    def _lag(ph, robot: Robot, poses: np.ndarray, s: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """s / (tau lever) (k, n) per unit torque; its pose derivatives through the tension (k, n, 6) and
+        through the lever (k, n, 6), and its theta derivatives (k, n, p) through the tension."""
+        lev, dlev = _lever(robot, poses)
+        tau = np.maximum(ph.tau, 1.0)  # a slack cable's pulley: the lag of 1 N, not a division by zero
+        g = s / (tau * lev)
+        dg = np.where((ph.tau > 1.0)[..., None], -g[..., None] / tau[..., None], 0.0)
+        return g, dg * ph.dtau, -(g / lev)[..., None] * dlev, dg * ph.ttau
+
+    def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+        if "swivel" not in preds:
+            return
+        pr = preds["swivel"]
+        a = ctx.approach
+        if a is None or np.shape(a)[-1] < 4:
+            s = s0 = np.zeros(pr.value.shape)
+        else:
+            s = np.broadcast_to(np.asarray(a, float)[..., 2], pr.value.shape)
+            s0 = np.broadcast_to(np.asarray(a, float)[..., 3], pr.value.shape)
+        M = float(values[0])
+        g, gp, gl, gt = self._lag(ctx.at, ctx.robot, ctx.poses, s)
+        g0, _, gl0, gt0 = self._lag(ctx.ref, ctx.robot, ctx.theta[None, :6], np.ones((1, ctx.robot.n)))
+        gt0 = gt0.copy()
+        gt0[..., :6] += gl0  # zeta_0 is the reference pose (ref.ttau holds its tension's pose derivatives)
+        gp = gp + gl
+        pr.value = pr.value - M * (g - s0 * g0)
+        pr.d_pose = pr.d_pose - M * gp
+        pr.d_theta = pr.d_theta - M * (gt - s0[..., None] * gt0)
+        pr.d_theta[..., ctx.cols.start] = -(g - s0 * g0)
+
+
+SWIVEL: dict[str, type[Effect]] = {cls.name: cls for cls in (SwivelTilt, SwivelEntry, SwivelGain, SwivelFriction)}

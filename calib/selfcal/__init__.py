@@ -50,6 +50,7 @@ from calib.selfcal.result import (
 )
 from calib.selfcal.rows import (
     APPROACH_LENGTH,
+    APPROACH_SWIVEL,
     APPROACH_TENSION,
     approach_directions,
     measurement_rows,
@@ -103,6 +104,7 @@ __all__ = [
     "compare_pose",
     "noise_levels",
     "APPROACH_LENGTH",
+    "APPROACH_SWIVEL",
     "APPROACH_TENSION",
     "approach_directions",
     "measurement_rows",

@@ -31,8 +31,10 @@ class Measurements:
     approach (k, n): per row and cable, the direction the cable last moved before the row's window, +1 paid
     out (length grew), -1 reeled in, 0 unknown; load_approach (k, n): the same for the tension the load
     cell last saw change (+1 rising, -1 falling); ref_approach and ref_load_approach (n,) the same at the
-    reference sample. None (the default, e.g. rows of old callers) means unknown everywhere: the
-    direction-dependent effects (pulley friction, load-cell hysteresis) then see no direction.
+    reference sample. swivel_approach (k, n) and ref_swivel_approach (n,): the way each swivel angle last
+    turned (+1 its reading grew, -1 fell). None (the default, e.g. rows of old callers) means unknown
+    everywhere: the direction-dependent effects (pulley friction, load-cell hysteresis, swivel friction) then
+    see no direction.
     """
 
     tau: np.ndarray
@@ -48,6 +50,8 @@ class Measurements:
     load_approach: np.ndarray | None = None
     ref_approach: np.ndarray | None = None
     ref_load_approach: np.ndarray | None = None
+    swivel_approach: np.ndarray | None = None
+    ref_swivel_approach: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -161,20 +165,24 @@ class Problem:
         return None if t is None else np.asarray(t, float)[rows]
 
     def _approach(self, rows: np.ndarray | None) -> dict[str, np.ndarray]:
-        """``{"approach": (m, n, 2)}`` for the rows (None: the reference row), the cable-motion and load
-        directions stacked; empty when the readings carry no directions (older models need no keyword)."""
+        """``{"approach": (m, n, 4)}`` for the rows (None: the reference row): the cable-motion, load and
+        swivel directions of each row, then the reference's swivel direction (a relative swivel reading
+        carries the reference's state too); empty when the readings carry no directions (older models need
+        no keyword)."""
         m = self.meas
+        ref_s = m.ref_swivel_approach
         if rows is None:
-            a, b = m.ref_approach, m.ref_load_approach
+            parts = [m.ref_approach, m.ref_load_approach, ref_s]
         else:
-            a = None if m.approach is None else np.asarray(m.approach, float)[rows]
-            b = None if m.load_approach is None else np.asarray(m.load_approach, float)[rows]
-        if a is None and b is None:
+            parts = [None if a is None else np.asarray(a, float)[rows]
+                     for a in (m.approach, m.load_approach, m.swivel_approach)]
+        if all(a is None for a in parts):
             return {}
-        shape = np.shape(b if a is None else a)
-        a = np.zeros(shape) if a is None else np.asarray(a, float)
-        b = np.zeros(shape) if b is None else np.asarray(b, float)
-        return {"approach": np.stack([np.atleast_2d(a), np.atleast_2d(b)], axis=-1)}
+        shape = np.shape(np.atleast_2d(next(a for a in parts if a is not None)))
+        parts.append(ref_s)
+        out = [np.zeros(shape) if a is None else np.broadcast_to(np.atleast_2d(np.asarray(a, float)), shape)
+               for a in parts]
+        return {"approach": np.stack(out, axis=-1)}
 
     @functools.cached_property
     def observed(self) -> Observed:
@@ -282,8 +290,8 @@ class Problem:
         if not ref and not rows:
             return {}
         n = self.model.robot.n
-        a = ref.get("approach", np.zeros((1, n, 2))).reshape(1, n, 2)
-        b = rows.get("approach", np.zeros((m, n, 2))).reshape(m, n, 2)
+        a = ref.get("approach", np.zeros((1, n, 4))).reshape(1, n, 4)
+        b = rows.get("approach", np.zeros((m, n, 4))).reshape(m, n, 4)
         return {"approach": np.concatenate([a, b], axis=0)}
 
     def pose_normal_equations(

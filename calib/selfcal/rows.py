@@ -23,6 +23,7 @@ SIGNALS = ("t", "tau", "dl", "dsigma", "roll", "pitch", "dyaw")
 # ~0.25 mm); a load cell's hysteresis loop is set by a load excursion well above the noise (0.1-0.5 N)
 APPROACH_LENGTH = 5e-4  # m
 APPROACH_TENSION = 2.0  # N
+APPROACH_SWIVEL = 1e-3  # rad (0.06 deg, twice the swivel encoders' accuracy)
 
 
 def approach_directions(x: np.ndarray, at: np.ndarray, threshold: float) -> np.ndarray:
@@ -168,6 +169,7 @@ def measurement_rows(
     at = np.r_[starts, ref_win.first if ref_win is not None else int(ref_sample)]  # the rows', then the reference's
     length_dir = approach_directions(sig["dl"], at, APPROACH_LENGTH)
     load_dir = approach_directions(sig["tau"], at, APPROACH_TENSION)
+    swivel_dir = approach_directions(sig["dsigma"], at, APPROACH_SWIVEL)
     meas = Measurements(
         tau=np.array(rows_tau),
         dl=np.array(rows_dl) - ref["dl"],
@@ -182,6 +184,8 @@ def measurement_rows(
         load_approach=load_dir[:-1],
         ref_approach=length_dir[-1],
         ref_load_approach=load_dir[-1],
+        swivel_approach=swivel_dir[:-1],
+        ref_swivel_approach=swivel_dir[-1],
     )
     return meas, int(ref_sample), ref_win, ref, win_of
 
