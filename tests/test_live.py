@@ -247,7 +247,7 @@ def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_threa
     from acquisition.clock import LOOP_SWITCH_INTERVAL, SimClock
     from acquisition.connect import ahrs_rate_for, connect
     from acquisition.plans import Plan
-    from acquisition.runlog import RunWriter
+    from acquisition.runwriter import RunWriter
     from acquisition.startup import StartupConfig, StartupRoutine
     from sim_backend.backend import SimBackend
 
