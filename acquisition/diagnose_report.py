@@ -19,7 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from calib.diagnose import Candidate, Diagnosis, misfit_location, residuals
+from calib.diagnose import Diagnosis
+from calib.diagnose_words import misfit_location
+from calib.evidence import Candidate
+from calib.fitting import residuals
 from calib.kinematics import inverse_kinematics
 from calib.robot import Robot
 from calib.selfcal import CHANNELS, Measurements
@@ -278,7 +281,7 @@ def device_errors_line(robot, dev: dict[str, float]) -> str:
     """The devices' fitted constant errors against their datasheet bounds (load cells N, AHRS tilt deg, AHRS
     yaw drift deg/h); an error outside its bound is named with how many times the bound it is: the base
     model does not hold there."""
-    from calib.effects.builtin import YAW_RATE_BOUND
+    from calib.effects.priors import YAW_RATE_BOUND
 
     sn = robot.sensors
     parts, outside = [], []

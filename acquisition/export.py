@@ -24,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.runlog import Run, csv_text, read_solution, to_plain
+from acquisition.runlog import Run, read_solution
+from acquisition.runwriter import csv_text, to_plain
 from calib.errors import CdprError
 
 FORMATS = ("mat", "npz", "csv", "mcap")

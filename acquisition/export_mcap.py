@@ -37,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.runlog import Run, to_plain
+from acquisition.runlog import Run
+from acquisition.runwriter import to_plain
 from acquisition.scene import json_schema, number
 
 PROFILE = ""  # no ROS profile: plain JSON channels

@@ -43,7 +43,8 @@ from acquisition.busrecord import (
     read_serial_record,
 )
 from acquisition.clock import SimClock
-from acquisition.runlog import RunWriter, read_run
+from acquisition.runlog import read_run
+from acquisition.runwriter import RunWriter
 from drivers.can_bus import SYNC_COB_ID
 
 _STANDARD_META = ("format", "robot", "procedure", "events", "created", "source")
@@ -187,7 +188,7 @@ class ReplayResult:
 def replay_run(run: str | Path, out: str | Path, overwrite: bool = False, timeout: float = 0.2) -> ReplayResult:
     """Replay ``run``'s record through the drivers into a new run folder ``out`` (see the module docstring).
     ``timeout``: wall seconds a tick waits for a device's reading before it counts as missing."""
-    from acquisition.startup import connect
+    from acquisition.connect import connect
     from drivers.config import AhrsConfig, CanConfig, DeviceConfig, NodeConfig, SerialConfig
     from sim_backend.pty import open_pty_pair
 

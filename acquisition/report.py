@@ -17,63 +17,17 @@ import os
 import pickle
 import select
 import signal
-import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 import yaml
 
 CHANNELS = ("tension", "length", "swivel", "orientation")
 UNITS = {"tension": "N", "length": "m", "swivel": "rad", "orientation": "rad"}
-
-
-class ProgressBar:
-    """One self-rewriting line on a terminal: phase, setpoint, elapsed robot time and the time left.
-
-    Silent when the stream is not a TTY (logs and pipes get the final summary only).
-    """
-
-    def __init__(self, total: float, stream: TextIO | None = None, width: int = 28, min_interval: float = 0.1,
-                 enabled: bool | None = None):
-        self.stream = stream if stream is not None else sys.stderr
-        self.total = max(float(total), 1e-9)
-        self.width = width
-        self.min_interval = min_interval
-        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)()) if enabled is None else enabled
-        self._last_draw = -math.inf
-        self._drawn = False
-        self.note = ""  # appended to the line (a sequential startup's current estimate and 1-sigma)
-
-    def line(self, elapsed: float, phase: str, setpoint: int, count: int) -> str:
-        """The text of the bar at robot time ``elapsed`` (s) of ``total``."""
-        frac = min(max(elapsed / self.total, 0.0), 1.0)
-        full = int(round(frac * self.width))
-        left = max(self.total - elapsed, 0.0)
-        sp = f"setpoint {setpoint + 1}/{count}" if setpoint >= 0 else f"{count} setpoints"
-        note = f"  {self.note}" if self.note else ""
-        return (f"[{'#' * full}{'.' * (self.width - full)}] {frac * 100:5.1f}%  {phase:<10} {sp}  ~{left:5.0f} s left"
-                f"{note}")
-
-    def update(self, elapsed: float, phase: str, setpoint: int, count: int, force: bool = False) -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if not force and now - self._last_draw < self.min_interval:
-            return
-        self._last_draw = now
-        self.stream.write("\r" + self.line(elapsed, phase, setpoint, count) + "\x1b[K")
-        self.stream.flush()
-        self._drawn = True
-
-    def close(self) -> None:
-        if self.enabled and self._drawn:
-            self.stream.write("\n")
-            self.stream.flush()
-            self._drawn = False
 
 
 @dataclass
@@ -104,6 +58,26 @@ class StartupSummary:
             "files": self.files,
             "solution": self.solution,
         }
+
+
+def sequential_outcome(seq: dict | None, final_sigma: float | None = None) -> str:
+    """One sentence on why a sequential startup stopped ('' for a fixed plan). ``final_sigma`` (m): the
+    position 1-sigma of the run's final solve, the one the summary prints; said in place of the stop rule's
+    own (the same solve on the samples up to the last window), and said apart when the two disagree on the
+    tolerance."""
+    if not seq:
+        return ""
+    w, tol = seq["windows"], 1000 * seq["tolerance_m"]
+    sigma = 1000 * w[-1]["position_sigma_m"] if w and w[-1]["position_sigma_m"] is not None else float("inf")
+    if seq["stop"] == "tolerance" and final_sigma is not None and 1000 * final_sigma >= tol:
+        return (f"sequential: stopped after {len(w)} poses at a 1-sigma of the initial position of {sigma:.2f} mm "
+                f"< tolerance {tol:g} mm, but the whole run's solve gives {1000 * final_sigma:.2f} mm.")
+    sigma = sigma if final_sigma is None else 1000 * final_sigma
+    if seq["stop"] == "tolerance":
+        return (f"sequential: 1-sigma of the initial position {sigma:.2f} mm < tolerance {tol:g} mm after "
+                f"{len(w)} poses.")
+    return (f"sequential: the plan is exhausted after {len(w)} poses with a 1-sigma of the initial position of "
+            f"{sigma:.2f} mm, above the tolerance {tol:g} mm.")
 
 
 def _fmt_vec(v: Sequence[float], digits: int = 4) -> str:

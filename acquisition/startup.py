@@ -29,30 +29,18 @@ import numpy as np
 from acquisition.clock import Clock, loop_runtime
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
-from acquisition.report import ProgressBar
-from acquisition.runlog import RunWriter
+from acquisition.estimates import EstimateWorker, LogWorker
+from acquisition.plans import Pause, Plan
+from acquisition.progress import ProgressBar
+from acquisition.runwriter import RunWriter
 from acquisition.safety import SafeStop, SafetyLimits, SafetySupervisor
 from acquisition.trajectory import PEAK_RATE, TensionTrajectory
 from calib.constants import CONTROL_RATE, EXPECTED_SETTLE, HOLD_TIME, MAX_TENSION_RATE, MIN_TRANSITION
-from calib.design import (
-    LOOP_POSE_NOISE,
-    OnlineEstimate,
-    OnlineSolve,
-    PoseNoise,
-    SequentialDesign,
-    TimeModel,
-    WindowMean,
-    candidates,
-    loop_noise,
-    optimal_plan,
-    select_a_optimal,
-    sequential_acquisition,
-)
 from calib.errors import CdprError
 from calib.robot import Robot
+from calib.sequential import OnlineSolve, WindowMean, detected_windows, sequential_acquisition
 
 METHODS = ("equilibrium", "kinematic")
-PLANS = ("grid", "optimal", "sequential")
 
 
 class StartupStopped(CdprError, RuntimeError):
@@ -97,86 +85,6 @@ class StartupConfig:
                              f"(1/{self.rate:g} s).")
 
 
-@dataclass(frozen=True)
-class Pause:
-    """A pause of the sequence after setpoint ``after``'s window: ``seconds`` at rest, at that setpoint or
-    (``home``) back under tau0; logged as phase ``pause`` with setpoint -1 (not a planned equilibrium)."""
-
-    after: int
-    seconds: float
-    home: bool = False
-
-
-@dataclass
-class Sequential:
-    """Sequential acquisition (issue 19): the next pose is the candidate of ``design`` with the most expected
-    information per second from where the platform is; after each window the solve is updated and the
-    routine returns as soon as the position 1-sigma (sqrt trace, m) is below ``tolerance``, or after
-    ``max_poses`` poses (the plan is exhausted). ``noise``: sigma of a window mean per channel."""
-
-    design: SequentialDesign
-    tolerance: float
-    noise: dict[str, np.ndarray]
-    max_poses: int = 27
-
-
-@dataclass
-class Plan:
-    """What the routine will visit: setpoints (k, n) N (tau0 first), ideal poses (k, 6), kinematic path,
-    pauses; a sequential plan starts empty and its setpoints are appended as they are chosen."""
-
-    setpoints: np.ndarray
-    ideal_poses: np.ndarray
-    tau0: np.ndarray
-    path_tensions: np.ndarray | None = None  # (m, n) N, kinematic method
-    path_times: np.ndarray | None = None  # (m,) s
-    pauses: tuple[Pause, ...] = ()
-    sequential: Sequential | None = None
-
-    @classmethod
-    def for_robot(cls, robot: Robot, grid: int, method: str, speed: float = 0.05, spacing: float = 0.05,
-                  plan: str = "grid", poses: int = 8, tolerance: float | None = None,
-                  noise: dict[str, np.ndarray] | PoseNoise | None = None, step: float = 0.1,
-                  time_model: TimeModel | None = None) -> Plan:
-        """The grid plan, the A-optimal plan of ``poses`` poses (``plan='optimal'``) or a sequential plan
-        that stops at ``tolerance`` m (``plan='sequential'``, at most ``poses`` poses); candidates every
-        ``step`` m of the static workspace, ``noise`` the window-mean sigma, per channel or per pose (default
-        the loop's per pose, :data:`calib.design.LOOP_POSE_NOISE`), ``time_model`` the robot time the
-        sequential choice weighs
-        (default :class:`calib.design.TimeModel`). Raises ``calib.planning.PlanningError``."""
-        from calib.planning import PlanningError, kinematic_path, plan_poses
-
-        if plan not in PLANS:
-            raise PlanningError(f"plan must be one of {', '.join(PLANS)}, got {plan!r}.")
-        if method == "kinematic":
-            if plan != "grid":
-                raise PlanningError(f"plan '{plan}' applies to the equilibrium method only.")
-            path = kinematic_path(robot, grid, speed=speed, spacing=spacing)
-            return cls(np.empty((0, robot.n)), np.empty((0, 6)), plan_poses(robot, grid).tau0, path.tensions,
-                       path.times)
-        if plan == "grid":
-            g = plan_poses(robot, grid)
-            return cls(g.setpoints, g.poses, g.tau0)
-        noise = noise or LOOP_POSE_NOISE
-        cands = candidates(robot, noise, step)
-        if plan == "optimal":
-            o = optimal_plan(robot, poses, noise, cands=cands)
-            return cls(o.setpoints, o.poses, o.tau0)
-        if tolerance is None or not tolerance > 0:
-            raise PlanningError(f"a sequential plan needs a positive tolerance, got {tolerance!r} m.")
-        k = min(poses, cands.size)
-        reach = select_a_optimal(cands, k, max_rounds=0)[1]  # greedy: what the sequential choice can attain
-        if reach > tolerance:
-            raise PlanningError(f"the tolerance {1000 * tolerance:g} mm cannot be reached: {k} poses of the static "
-                                f"workspace predict at best a 1-sigma of the initial position of "
-                                f"{1000 * reach:.3f} mm.")
-        pose_noise = noise if isinstance(noise, PoseNoise) else None
-        flat = loop_noise(robot) if pose_noise is not None else noise  # the online solve weighs its rows per channel
-        seq = Sequential(SequentialDesign(cands, time_model or TimeModel(), pose_noise=pose_noise), float(tolerance),
-                         flat, poses)
-        return cls(np.empty((0, robot.n)), np.empty((0, 6)), cands.tau0, sequential=seq)
-
-
 @dataclass
 class StartupResult:
     run: Path
@@ -190,148 +98,6 @@ class StartupResult:
     # sequential plan: per window the position 1-sigma (m) and estimate, and why it stopped ("tolerance" or
     # "exhausted"); None for a fixed plan
     sequential: dict[str, Any] | None = None
-
-
-MIN_RUN_SOLVE_ROWS = 2  # rows (poses after the reference) before the run's own solve gives the online estimate
-
-
-def _signals(rows: list[tuple]) -> dict[str, np.ndarray]:
-    """The run's arrays from the rows logged so far (each a :meth:`StartupRoutine._row` tuple)."""
-    names = ("t", "tau", "tau_ref", "dl", "dsigma", "roll", "pitch", "dyaw")
-    return {name: np.array([r[i] for r in rows]) for i, name in enumerate(names)}
-
-
-def run_estimate(robot: Robot, rows: list[tuple], setpoints: np.ndarray, ideal_poses: np.ndarray,
-                 min_rows: int = MIN_RUN_SOLVE_ROWS) -> tuple[OnlineEstimate, dict[str, np.ndarray]] | None:
-    """What ``cdpr solve --noise estimate`` gives on the rows logged so far (``setpoints`` (k, n) N and
-    ``ideal_poses`` (k, 6) the plan's so far, as run.yaml holds them): the online estimate of a sequential
-    startup with the noise, the reference's noise and the device priors the final solve will have, and the
-    noise its rows were weighed with. Its theta and covariance are those of the planning model's parameters
-    (:func:`calib.design.planning_model`: zeta_0 and the devices' constant errors; the reference window's
-    noise marginalised out). None while the run holds fewer than ``min_rows`` rows or the solve fails."""
-    from types import SimpleNamespace
-
-    from calib.design import planning_model
-    from calib.selfcal import SelfCalFailure, SelfCalInputError, solve
-
-    run = SimpleNamespace(**_signals(rows), setpoints=np.asarray(setpoints, float),
-                          ideal_poses=np.asarray(ideal_poses, float))
-    try:
-        sol = solve(robot, run, noise="estimate")
-    except (SelfCalFailure, SelfCalInputError, np.linalg.LinAlgError):
-        return None
-    if sol.poses.shape[0] < min_rows:
-        return None
-    p = planning_model(robot).n_params
-    est = OnlineEstimate.of(sol.theta[:p], sol.poses, sol.covariance[:p, :p], sol.iterations)
-    return est, {c: np.asarray(v, float) for c, v in sol.noise.items()}
-
-
-ESTIMATE_TIMEOUT = 30.0  # s the platform is held at most while the run's own solve computes on a real clock
-
-
-def _ignore_interrupts() -> None:
-    """In the estimate worker: SIGINT and SIGTERM are the routine's (its safe stop), not the worker's."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-
-
-class EstimateWorker:
-    """The run's own solve (:func:`run_estimate`) of a sequential startup. On a real clock it is computed in a
-    worker process while the control loop keeps ticking at the held tensions (the drives keep their SYNC, the
-    supervisor its readings; the solve of a long run takes a second or more); in lockstep (the simulated
-    prototype, which waits for every tick) in line, which keeps the run deterministic."""
-
-    def __init__(self, lockstep: bool):
-        self.lockstep = lockstep
-        self._pool = None
-
-    def compute(self, args: tuple, tick: Callable[[], object], now: Callable[[], float],
-                timeout: float = ESTIMATE_TIMEOUT):
-        """run_estimate(*args); on a real clock ``tick()`` is called until it is ready (None after ``timeout``
-        s of ``now()`` or if the worker died)."""
-        if self.lockstep:
-            return run_estimate(*args)
-        from concurrent.futures.process import BrokenProcessPool
-
-        if self._pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            # spawned, not forked: the process has the bus's threads running; Ctrl-C is the routine's to handle
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=_ignore_interrupts)
-        future = self._pool.submit(run_estimate, *args)
-        t0 = now()
-        while not future.done():
-            if now() - t0 > timeout:
-                future.cancel()
-                return None
-            tick()
-        try:
-            return future.result()
-        except BrokenProcessPool:
-            self._pool = None
-            return None
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = None
-
-
-class LogWorker:
-    """The run log's slow calls off the control loop's thread: creating the run folder and run.yaml, the fsync
-    at each window, run.yaml's rewrites (a sequential plan's setpoints, an event) and the final close, each a
-    yaml dump and an fsync (10-15 ms of interpreter time on the lab PC, more on a slow disk). One thread
-    does them in the order they are asked for; the loop's own samples.csv lines (written and flushed, not
-    fsynced, by the loop) are untouched. A failure is raised by the next :meth:`submit` or by :meth:`close`."""
-
-    def __init__(self) -> None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cdpr-runlog")
-        self._pending: list = []
-
-    def submit(self, fn: Callable[..., Any], *args: Any):
-        """Run ``fn(*args)`` after what was submitted before; its Future."""
-        self._check()
-        future = self._pool.submit(fn, *args)
-        self._pending.append(future)
-        return future
-
-    def _check(self) -> None:
-        done = [f for f in self._pending if f.done()]
-        self._pending = [f for f in self._pending if not f.done()]
-        for f in done:
-            f.result()  # raises what the call raised
-
-    def close(self) -> None:
-        """Wait for every call submitted; raise the first failure."""
-        self._pool.shutdown(wait=True)
-        pending, self._pending = self._pending, []
-        for f in pending:
-            f.result()
-
-
-def detected_windows(robot: Robot, rows: list[tuple], setpoints: np.ndarray
-                     ) -> tuple[dict[int, tuple], frozenset[int]]:
-    """The equilibrium windows the solve's window search finds in the rows logged so far (each a
-    :meth:`StartupRoutine._row` tuple; ``setpoints`` (k, n) N: tau0 and the setpoints visited), which
-    ``cdpr solve`` will use at the end: per setpoint index found, the window's mean readings (tau, dl, dsigma,
-    roll/pitch/yaw), and the setpoint indices whose window is only a quasi window (the stillest stretch: no
-    still run long enough)."""
-    from calib.selfcal import search_windows
-
-    sig = _signals(rows)
-    wins = search_windows(robot, sig["t"], sig["tau"], sig["dl"], sig["dsigma"], sig["roll"], sig["pitch"],
-                          sig["tau_ref"], setpoints).used
-    ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"]], 1)
-    means = {w.setpoint: (sig["tau"][w.slice].mean(0), sig["dl"][w.slice].mean(0), sig["dsigma"][w.slice].mean(0),
-                          ori[w.slice].mean(0)) for w in wins if w.setpoint >= 0}
-    return means, frozenset(w.setpoint for w in wins if w.quasi and w.setpoint >= 0)
 
 
 class StartupRoutine:
@@ -382,7 +148,7 @@ class StartupRoutine:
         self._estimates = EstimateWorker(clock.lockstep)  # the run's own solve after each hold (sequential)
         self._io = LogWorker()  # the run log's file system calls, off the loop's thread
         self._writer_ready = None  # the Future of the RunWriter, asked for as soon as the power-on readings are in
-        self._history: list = []  # sequential plan: (candidate, calib.design.OnlineEstimate) after each window
+        self._history: list = []  # sequential plan: (candidate, calib.sequential.OnlineEstimate) after each window
 
     # ---- the loop -------------------------------------------------------------------------------------
     def _tick(self, tau_ref: np.ndarray, log: bool = True, detector: EquilibriumDetector | None = None):
@@ -656,7 +422,7 @@ class StartupRoutine:
 
     def _setpoints(self):
         """(index, setpoint) to visit in order: the plan's, or for a sequential plan the next chosen after each
-        window (:func:`calib.design.sequential_acquisition`), until the solve's position 1-sigma is below the
+        window (:func:`calib.sequential.sequential_acquisition`), until the solve's position 1-sigma is below the
         tolerance or the plan is exhausted."""
         seq = self.plan.sequential
         if seq is None:
@@ -767,60 +533,3 @@ class StartupRoutine:
                 pass
 
 
-# ---- connecting the devices -----------------------------------------------------------------------------
-
-
-def feedback_every(rate: float, log_every: int, overflow: int = 240) -> tuple[int, int]:
-    """How often (in SYNCs) the winch drives and the swivel encoders send their readings: (drives, encoders).
-
-    The loop closes on the load cells at every tick; the drives' position, torque and statusword serve the
-    log, the equilibrium detector (at the log ticks) and the fault checks (EMCY comes at once anyway), the
-    swivel angles only the log. So the encoders send at every log tick and the drives as often as that
-    allows at 50 Hz or more; both periods divide the log period and the SYNC counter overflow, and the
-    first SYNC after connecting (counter 1) carries them all (the log ticks are those SYNCs too).
-    Halves the CAN frames per tick at 200 Hz (13.6 -> 6.8, heartbeats included).
-    """
-    base = math.gcd(int(log_every), int(overflow)) if overflow else 1
-    encoders = base
-    drives = max(d for d in range(1, base + 1) if base % d == 0 and rate / d >= 50.0)
-    return drives, encoders
-
-
-def ahrs_rate_for(log_period: float, base: int = 400) -> int:
-    """The AHRS output rate (Hz) the routine needs: the lowest rate the MTi offers (a divisor of its ``base``
-    rate) that puts a sample on every log tick, i.e. a whole number of samples per log period (s); the roll,
-    pitch and yaw serve only the log. 10 Hz for the paper's 100 ms; 100 Hz when no divisor fits."""
-    for rate in range(1, base + 1):
-        k = rate * log_period
-        if base % rate == 0 and k > 1.0 - 1e-9 and abs(k - round(k)) < 1e-9:
-            return rate
-    return 100
-
-
-def connect(devices, robot: Robot, clock: Clock, lockstep: bool, period: float, timeout: float = 0.5,
-            every: tuple[int, int] = (1, 1), recorder=None, bus=None) -> Rig:
-    """Open and check every device of a :class:`drivers.config.DeviceConfig`; a :class:`Rig` over them.
-    ``every``: the drives and the encoders send their readings every n-th SYNC (see :func:`feedback_every`).
-    ``recorder``: an ``acquisition.busrecord.BusRecorder`` that gets every CAN frame and serial byte from the
-    first on; ``bus``: a python-can bus to use instead of the one ``devices.can`` names (a replay's).
-
-    The CAN drivers take their time stamps (heartbeat supervision) from the loop's clock; in lockstep the
-    serial drivers' own wall-time staleness rule is switched off (the supervisor judges staleness on the
-    loop's clock) and they read their ports in the loop's thread when it waits for a reading (no reader
-    thread to wake at every tick). Raises ``drivers.interfaces.DeviceError`` (one sentence) when a device does
-    not answer.
-    """
-    from drivers.interfaces import DeviceError
-    from drivers.open import open_devices
-
-    devices.check_robot(robot.n)
-    if devices.loadcells is None or devices.ahrs is None:
-        raise DeviceError(f"{devices.source}: the device configuration needs 'loadcells' and 'ahrs'.")
-    opened = open_devices(devices, robot.sensors.length_per_motor_rev, robot.sensors.swivel_counts_per_rev,
-                          clock=clock.now, every=every, control_period=period, polled=lockstep,
-                          stale_periods=1e9 if lockstep else 3.0, bus=bus, listener=recorder,
-                          serial_tap=None if recorder is None else recorder.serial_tap)
-    rig = Rig(opened.drives, opened.encoders, opened.loadcells, opened.ahrs, opened.send_sync, period, lockstep,
-              ahrs_period=1.0 / float(devices.ahrs.rate), timeout=timeout)
-    rig.closer = opened.close
-    return rig

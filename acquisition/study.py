@@ -22,8 +22,6 @@ covers 68.3 % and 95.4 %), and the robot time of the startup (s).
 from __future__ import annotations
 
 import contextlib
-import html
-import io
 import json
 import math
 import os
@@ -41,10 +39,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-from acquisition.report import ProgressBar, _svg
+from acquisition.plans import STUDY_PLANS, PlanRequest, PlanRequestError, parse_length
+from acquisition.progress import ProgressBar
+from acquisition.session import StartupRequest
 from calib.errors import CdprError
 
-PLANS = ("grid2", "grid3", "optimal", "sequential")
+PLANS = STUDY_PLANS
 FORMAT = "cdpr-study/1"
 RUN_FORMAT = "cdpr-study-run/1"
 CONFIG_FILE = "config.json"
@@ -96,24 +96,30 @@ class RunTask:
 
 
 def plan_args(plan: str, tolerance: str | None = None) -> list[str]:
-    """The ``cdpr startup`` options that select ``plan``."""
-    if plan in ("grid2", "grid3"):
-        return ["--grid", plan[-1]]
-    if plan == "optimal":
+    """The ``cdpr startup`` options that select ``plan`` (a study's plan name, :data:`acquisition.plans.STUDY_PLANS`);
+    raises StudyError for a plan a study does not know."""
+    request = plan_request(plan, tolerance)
+    if request.kind == "grid":
+        return ["--grid", str(request.grid)]
+    if request.kind == "optimal":
         return ["--plan", "optimal"]
-    if plan == "sequential":
-        if tolerance is None:
-            raise StudyError("--plan sequential needs --tolerance (the 1-sigma to stop at, e.g. 3mm).")
-        return ["--tolerance", tolerance]
-    raise StudyError(f"--plan {plan!r} is not one of {', '.join(PLANS)}.")
+    return ["--tolerance", str(tolerance)]
 
 
-def startup_args(task: RunTask, out: str, truth: str, sim_config: str | None) -> list[str]:
-    """The ``cdpr startup`` command line of one run (``cdpr`` left out)."""
-    args = ["startup", "--backend", "sim", "--robot", task.config.robot, "--seed", str(task.seed), "--out", out,
-            "--truth", truth, "--json", "--no-html", "--sim-plant", "inline",
-            *plan_args(task.plan, task.config.tolerance)]
-    return args + (["--sim-config", sim_config] if sim_config else [])
+def plan_request(plan: str, tolerance: str | None = None) -> PlanRequest:
+    """The startup's plan of a study's ``plan`` name, ``tolerance`` a length with its unit (e.g. "3mm").
+    Raises StudyError."""
+    try:
+        return PlanRequest.named(plan, None if tolerance is None else parse_length(tolerance, "--tolerance"))
+    except PlanRequestError as exc:
+        raise StudyError(str(exc)) from exc
+
+
+def startup_request(task: RunTask, out: str, truth: str, sim_config: str | None) -> StartupRequest:
+    """The startup of one run: the simulated prototype in this process, no HTML report, no progress line."""
+    return StartupRequest(backend="sim", plan=plan_request(task.plan, task.config.tolerance), out=Path(out),
+                          robot=task.config.robot, seed=task.seed, truth=truth, sim_config=sim_config,
+                          sim_plant="inline", html=False, progress=False)
 
 
 def study_sim_config(path: str | None, effects: Sequence[str], n: int) -> dict[str, Any]:
@@ -181,11 +187,12 @@ def _children_cpu() -> float:
 
 
 def run_in_this_process(task: RunTask) -> dict[str, Any]:
-    """One run: ``cdpr startup --backend sim`` in a temporary folder (deleted after) with the simulated plant
-    in this process (``--sim-plant inline``, see the module docstring). Returns :func:`run_result` or
-    :func:`failed_result`; a usage error of the startup (exit status 2) comes back with status ``usage`` and
-    its sentence: it would fail every run, so the study stops on it instead of recording it."""
-    from acquisition.cli import main
+    """One run: a simulated startup (:func:`acquisition.session.run_startup`) in a temporary folder (deleted
+    after) with the simulated plant in this process (see the module docstring). Returns :func:`run_result` or
+    :func:`failed_result`; a refused startup (bad input, exit status 2 at the command line) comes back with
+    status ``usage`` and its sentence: it would fail every run, so the study stops on it instead of recording
+    it."""
+    from acquisition import session
 
     with tempfile.TemporaryDirectory(prefix=f"cdpr-study-{task.name}-") as tmp:
         sim_file = None
@@ -193,17 +200,13 @@ def run_in_this_process(task: RunTask) -> dict[str, Any]:
             sim_file = os.path.join(tmp, "sim-config.yaml")
             Path(sim_file).write_text(yaml.safe_dump(task.config.sim_config))
         truth = os.path.join(tmp, "truth.json")
-        out, err = io.StringIO(), io.StringIO()
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                code = main(startup_args(task, os.path.join(tmp, "run"), truth, sim_file))
-            except SystemExit as exc:  # argparse's own errors
-                code = exc.code if isinstance(exc.code, int) else 2
-        if code == 0:
-            return run_result(task, json.loads(out.getvalue()), json.loads(Path(truth).read_text()))
-    sentence = (err.getvalue().strip().splitlines() or [f"exit status {code}"])[-1].removeprefix("cdpr: ")
-    status = "usage" if code == 2 else "safe_stop" if sentence.startswith("safe stop") else "failed"
-    return failed_result(task, status, sentence)
+        try:
+            outcome = session.run_startup(startup_request(task, os.path.join(tmp, "run"), truth, sim_file))
+        except CdprError as exc:
+            status = ("usage" if exc.exit_status == 2 else
+                      "safe_stop" if getattr(exc, "safe_stop", False) else "failed")
+            return failed_result(task, status, str(exc))
+        return run_result(task, outcome.summary.to_dict(), outcome.truth)
 
 
 def run_result(task: RunTask, summary: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
@@ -211,7 +214,8 @@ def run_result(task: RunTask, summary: dict[str, Any], truth: dict[str, Any]) ->
     pose averaged over the reference window (the pose at the reference sample for a truth file without it),
     the printed 1-sigma (m), the robot time (s) and the windows held.
 
-    summary: what ``cdpr startup --json`` printed; truth: the ``--truth`` file."""
+    summary: the startup's summary (``cdpr startup --json``); truth: the simulator's truth (the ``--truth``
+    file)."""
     sol = summary["solution"]
     # the solve estimates the pose of the reference window's mean readings: its truth is the true pose
     # averaged over that window (the pose at its middle sample differs by the platform's own motion, tens of
@@ -437,149 +441,6 @@ def plan_statistics(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
 def study_statistics(results: Sequence[dict[str, Any]], plans: Sequence[str]) -> dict[str, dict[str, Any]]:
     """:func:`plan_statistics` of each plan."""
     return {p: plan_statistics([r for r in results if r["plan"] == p]) for p in plans}
-
-
-def _fmt(q: dict[str, float] | None, key: str, digits: int) -> str:
-    return "-" if q is None else f"{q[key]:.{digits}f}"
-
-
-def render_table(stats: dict[str, dict[str, Any]]) -> str:
-    """The console table of :func:`study_statistics`."""
-    head = (f"{'plan':<11}{'ok/runs':>9} | {'position error (mm)':^34} | {'printed':>7} {'rms/':>5} | "
-            f"{'coverage':^11} | {'robot time (s)':^27}")
-    sub = (f"{'':<11}{'':>9} | {'median':>6} {'q1':>6} {'q3':>6} {'p90':>6} {'rms':>6} | {'rms 1σ':>7} {'1σ':>5} | "
-           f"{'1σ':>5} {'2σ':>5} | {'median':>6} {'q1':>6} {'q3':>6} {'p90':>6}")
-    lines = [head, sub]
-    for plan, s in stats.items():
-        e, t = s["error_mm"], s["robot_time_s"]
-        r = s["rms_error_over_sigma"]
-        c1, c2 = s["coverage_1sigma"], s["coverage_2sigma"]
-        lines.append(
-            f"{plan:<11}{s['ok']:>4}/{s['runs']:<4} | " + " ".join(_fmt(e, k, 2).rjust(6) for k in
-                                                                 ("median", "q1", "q3", "p90", "rms"))
-            + f" | {_fmt(s['sigma_mm'], 'rms', 2):>7} {'-' if r is None else f'{r:.2f}':>5} | "
-            + f"{'-' if c1 is None else f'{100 * c1:.0f}%':>5} {'-' if c2 is None else f'{100 * c2:.0f}%':>5} | "
-            + " ".join(_fmt(t, k, 1).rjust(6) for k in ("median", "q1", "q3", "p90")))
-    lines.append(f"coverage: share of |error| within the printed 1σ and 2σ per axis (calibrated: "
-                 f"{100 * COVERAGE_EXPECTED[0]:.0f}% and {100 * COVERAGE_EXPECTED[1]:.0f}%); rms/1σ: RMS error over "
-                 f"the RMS printed 1σ of the position (calibrated: 1)")
-    return "\n".join(lines) + "\n"
-
-
-def _ok(results: Sequence[dict[str, Any]], plan: str) -> list[dict[str, Any]]:
-    return [r for r in results if r["plan"] == plan and r["status"] == "ok"]
-
-
-def plot_errors(results: Sequence[dict[str, Any]], plans: Sequence[str]):
-    """Figure: the distribution of the initial-position error (mm) per plan, medians dashed."""
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(7, 3.5))
-    fig.subplots_adjust(left=0.1, right=0.97, bottom=0.15, top=0.9)
-    ax = fig.add_subplot()
-    errors = {plan: np.array([r["error_m"] for r in _ok(results, plan)]) * 1000.0 for plan in plans}
-    every = np.concatenate([np.zeros(0), *errors.values()])
-    bins = np.histogram_bin_edges(every, bins=max(5, min(40, len(every) // (4 * len(plans)))))
-    for plan, e in errors.items():
-        if len(e):
-            line = ax.hist(e, bins=bins, histtype="step", lw=1.2, label=plan)[2][0]
-            ax.axvline(float(np.median(e)), ls="--", lw=0.8, color=line.get_edgecolor())
-    ax.set_xlabel("initial-position error |p - p_true| (mm)")
-    ax.set_ylabel("runs")
-    ax.set_title("initial-position error per plan (medians dashed)", loc="left", fontsize=10)
-    ax.legend(fontsize=8, frameon=False)
-    return fig
-
-
-def plot_robot_time(results: Sequence[dict[str, Any]], plans: Sequence[str]):
-    """Figure: the robot time (s) of the startups per plan (box: quartiles, whiskers: 10th-90th percentile)."""
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(7, 3.5))
-    fig.subplots_adjust(left=0.1, right=0.97, bottom=0.1, top=0.9)
-    ax = fig.add_subplot()
-    data = [[r["robot_time_s"] for r in _ok(results, p)] for p in plans]
-    keep = [(p, d) for p, d in zip(plans, data, strict=True) if d]
-    if keep:
-        ax.boxplot([d for _, d in keep], whis=(10, 90))
-        ax.set_xticks(range(1, len(keep) + 1), [p for p, _ in keep])
-    ax.set_ylabel("robot time of the startup (s)")
-    ax.set_title("robot time per plan", loc="left", fontsize=10)
-    return fig
-
-
-def plot_error_vs_sigma(results: Sequence[dict[str, Any]], plans: Sequence[str]):
-    """Figure: each run's position error against its printed 1-sigma (both the norm over x, y, z, mm; log
-    axes, a printed sigma may be off by orders of magnitude); a calibrated sigma puts the RMS of the errors on
-    the diagonal."""
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(5, 4.5))
-    fig.subplots_adjust(left=0.13, right=0.97, bottom=0.12, top=0.92)
-    ax = fig.add_subplot()
-    span = [math.inf, 0.0]
-    for plan in plans:
-        ok = _ok(results, plan)
-        s = np.array([r["sigma_m"] for r in ok]) * 1000.0
-        e = np.array([r["error_m"] for r in ok]) * 1000.0
-        if len(e):
-            ax.scatter(s, e, s=10, alpha=0.7, label=plan)
-            both = np.concatenate([s, e])
-            both = both[both > 0]
-            span = [min(span[0], float(both.min(initial=math.inf))), max(span[1], float(both.max(initial=0.0)))]
-    if span[1] > 0:
-        ax.plot(span, span, color="k", lw=0.8, ls=":", label="error = 1σ")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-    ax.set_xlabel("printed 1σ of the position (mm)")
-    ax.set_ylabel("position error (mm)")
-    ax.set_title("error against the printed 1σ", loc="left", fontsize=10)
-    ax.legend(fontsize=8, frameon=False)
-    return fig
-
-
-def render_study_html(stats: dict[str, dict[str, Any]], results: Sequence[dict[str, Any]],
-                      config: StudyConfig, seeds: Sequence[int]) -> str:
-    """The study's self-contained HTML page: the table and three figures (SVG embedded)."""
-    esc = html.escape
-    plans = list(stats)
-    rows = []
-    for plan, s in stats.items():
-        e, t = s["error_mm"], s["robot_time_s"]
-        cells = [plan, f"{s['ok']}/{s['runs']}", *(_fmt(e, k, 2) for k in ("median", "q1", "q3", "p90", "rms")),
-                 _fmt(s["sigma_mm"], "rms", 2),
-                 "-" if s["rms_error_over_sigma"] is None else f"{s['rms_error_over_sigma']:.2f}",
-                 *("-" if s[k] is None else f"{100 * s[k]:.0f}%" for k in ("coverage_1sigma", "coverage_2sigma")),
-                 *(_fmt(t, k, 1) for k in ("median", "q1", "q3", "p90"))]
-        rows.append("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in cells) + "</tr>")
-    failures = [r for r in results if r["status"] != "ok"]
-    parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>cdpr study</title>",
-        "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}td,th{padding:2px 8px;text-align:right}"
-        "table{border-collapse:collapse}tr:nth-child(even){background:#f4f4f4}pre{background:#f8f8f8}</style>",
-        "</head><body><h1>Monte-Carlo study of the startup</h1>",
-        f"<p>robot {esc(config.robot)}, seeds {min(seeds)}..{max(seeds)}, plans {esc(', '.join(plans))}"
-        + (f", tolerance {esc(config.tolerance)}" if config.tolerance else "") + "</p>",
-        "<table><tr><th>plan</th><th>ok/runs</th><th colspan='5'>position error (mm): median, q1, q3, p90, RMS</th>"
-        "<th>RMS printed 1&sigma; (mm)</th><th>RMS error / 1&sigma;</th>"
-        "<th>within 1&sigma;</th><th>within 2&sigma;</th>"
-        "<th colspan='4'>robot time (s): median, q1, q3, p90</th></tr>",
-        *rows, "</table>",
-        "<p>Within 1&sigma;/2&sigma;: the share of the per-axis errors inside the printed bounds (68% and 95% when "
-        "the printed 1&sigma; is right).</p>",
-        f"<img alt='error distribution' src='{_svg(plot_errors(results, plans))}'>",
-        f"<img alt='robot time' src='{_svg(plot_robot_time(results, plans))}'>",
-        f"<img alt='error against sigma' src='{_svg(plot_error_vs_sigma(results, plans))}'>",
-        "<h2>Simulation configuration</h2>",
-        f"<pre>{esc(yaml.safe_dump(config.sim_config) if config.sim_config else 'nominal')}</pre>",
-    ]
-    if failures:
-        parts.append("<h2>Runs without a solution</h2><ul>")
-        parts += [f"<li>{esc(r['plan'])} seed {r['seed']}: {esc(r['status'])}: {esc(r['message'])}</li>"
-                  for r in failures]
-        parts.append("</ul>")
-    parts.append("</body></html>")
-    return "\n".join(parts)
 
 
 if __name__ == "__main__":  # one run of a study: the process run_startup starts

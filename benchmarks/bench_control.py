@@ -20,7 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.clock import RealClock
-from acquisition.startup import Plan, StartupConfig, StartupRoutine, connect
+from acquisition.connect import connect
+from acquisition.plans import Plan
+from acquisition.startup import StartupConfig, StartupRoutine
 from calib.robot import load_robot
 from sim_backend.backend import SimBackend
 

@@ -17,8 +17,9 @@ import time
 
 import numpy as np
 
-from calib.diagnose import diagnose, pose_error
+from calib.diagnose import diagnose
 from calib.effects.builtin import pulley_gauge_basis
+from calib.fitting import pose_error
 from calib.planning import plan_poses
 from calib.robot import load_robot
 from sim_backend.config import sim_config_from_dict

@@ -43,9 +43,9 @@ def diagnose(paths, max_effects, marks: list[float] | None = None):
     """The diagnosis of the runs (imports, each run's rows, the selection); ``marks`` receives the CPU time
     after the rows."""
     from acquisition.runlog import read_run
-    from calib.diagnose import run_rows
     from calib.effects import available_effects
     from calib.multirun import NOT_CANDIDATES
+    from calib.runrows import run_rows
     from calib.runselect import Judge, select
 
     classes = available_effects()

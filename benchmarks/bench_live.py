@@ -33,9 +33,11 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.clock import RealClock
+from acquisition.connect import ahrs_rate_for, connect
 from acquisition.live import LiveView
+from acquisition.plans import Plan
 from acquisition.safety import SafetyLimits
-from acquisition.startup import Plan, StartupConfig, StartupRoutine, ahrs_rate_for, connect
+from acquisition.startup import StartupConfig, StartupRoutine
 from calib.robot import load_robot
 from sim_backend.backend import SimBackend
 

@@ -36,8 +36,8 @@ CONFIGS = {"white": "rigid", "sway": "rigid_sway"}
 def one(config: str, seed: int, grid: int) -> dict | None:
     """One simulated startup and its estimate-noise solve: chi2, dof, error and sigma of the position (m)."""
     from acquisition.cli.errors import OperationError, UsageError
-    from acquisition.cli.startup import simulated_startup
     from acquisition.runlog import read_run
+    from acquisition.session import simulated_startup
     from calib.selfcal import solve
     from sim_backend.config import example_path
 

@@ -69,8 +69,8 @@ def one(seed: int, config: str, grid: int) -> dict | None:
     """One simulated startup and the default solve of its run: per used window its offset from rest (m), the
     chi2 and dof, the position error and printed sigma (m)."""
     from acquisition.cli.errors import OperationError, UsageError
-    from acquisition.cli.startup import simulated_startup
     from acquisition.runlog import read_run
+    from acquisition.session import simulated_startup
     from calib.selfcal import solve
     from sim_backend.config import example_path, load_sim_config
 

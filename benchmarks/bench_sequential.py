@@ -30,19 +30,15 @@ import numpy as np
 from loop_runs import runs
 
 from calib.design import (
-    OnlineSolve,
-    SequentialDesign,
     TimeModel,
-    WindowMean,
     candidates,
-    drive,
     loop_noise,
     planning_model,
-    sequential_acquisition,
 )
 from calib.planning import PosePlan, plan_poses
 from calib.robot import load_robot
 from calib.selfcal import solve
+from calib.sequential import OnlineSolve, SequentialDesign, WindowMean, drive, sequential_acquisition
 from sim_backend.config import load_sim_config
 from sim_backend.equilibrium_rows import simulated_rows
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.startup import feedback_every
+from acquisition.connect import feedback_every
 from calib.equilibrium import direct_statics
 from calib.robot import load_robot
 from sim_backend.backend import SimBackend

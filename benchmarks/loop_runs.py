@@ -22,8 +22,8 @@ CONFIG = "rigid_sway"
 
 def one(plan: str, seed: int, tolerance: float | None, step: float) -> dict:
     """One simulated startup and its estimate-noise solve: error and 1-sigma (m), robot time (s), poses."""
-    from acquisition.cli.startup import simulated_startup
     from acquisition.runlog import read_run
+    from acquisition.session import simulated_startup
     from calib.robot import load_robot
     from calib.selfcal import solve
     from sim_backend.config import example_path

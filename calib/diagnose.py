@@ -25,8 +25,10 @@ Steps, on the equilibrium rows of a run (or any :class:`calib.selfcal.Measuremen
    ``max_effects``. Every candidate carries the decision and its reason.
 
 :func:`run_rows` and :func:`effect_chain` are shared with ``cdpr solve --effects``: the refits reported
-here and that command's fits are the same computation. The words, tables and plots are in
-``acquisition/diagnose_report.py``.
+here and that command's fits are the same computation (:mod:`calib.runrows`). The fit machinery is
+:mod:`calib.fitting`, each candidate's evidence :mod:`calib.evidence`; the diagnosis returns reason codes and
+numbers (:class:`calib.evidence.Reason`, :class:`Verdict`), whose words are :mod:`calib.diagnose_words`; the
+tables and plots are in ``acquisition/diagnose_report.py``.
 
 Significance is family-wise: an effect is significant at level ``alpha`` when its likelihood-ratio p-value
 is below ``alpha / number of candidates`` (Bonferroni over the library).
@@ -36,304 +38,30 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
-from calib.effects import BUILTIN, Effect, EffectModel, Implausible, Projected
-from calib.effects.builtin import DeviceAccuracy, ReferenceNoise
-from calib.prediction import LEVEL, Prediction, leave_one_pose_out
+from calib.effects import BUILTIN, Effect
+from calib.effects.priors import DeviceAccuracy, ReferenceNoise
+from calib.evidence import OVERLAP, Candidate, Reason, _num, _rank_round
+from calib.fitting import (
+    REFIT_ITER,
+    Fit,
+    Residuals,
+    fit,
+    pose_error,
+    predict_unseen,
+    refit,
+    residuals,
+)
+from calib.prediction import LEVEL, Prediction
 from calib.robot import Robot
-from calib.selfcal.lm import levenberg_marquardt
+from calib.runrows import run_rows
 from calib.selfcal.model import CHANNELS
-from calib.selfcal.problem import Measurements, Problem
-
-OVERLAP = 0.95  # share of an explained direction another candidate must reproduce to be a confusion
-
-
-@dataclass
-class Fit:
-    """A fitted model: effects, theta (p,), poses (k, 6), theta covariance, chi2, residual count."""
-
-    effects: list[Effect]
-    model: EffectModel
-    problem: Problem
-    theta: np.ndarray
-    poses: np.ndarray
-    cov_theta: np.ndarray
-    chi2: float
-    n_residuals: int
-    converged: bool
-    iterations: int = 0
-
-    @property
-    def n_free(self) -> int:
-        return self.model.n_params + 6 * self.poses.shape[0]
-
-    @property
-    def dof(self) -> int:
-        return self.n_residuals - self.n_free
-
-    @property
-    def names(self) -> list[str]:
-        return [e.name for e in self.effects]
-
-    def params(self) -> dict[str, dict[str, float]]:
-        return self.model.report(self.theta)
-
-    def param_sigmas(self) -> dict[str, dict[str, float]]:
-        """1-sigma uncertainty of each effect parameter (for restricted effects, of the full parameters)."""
-        out = {}
-        for e, sl, specs in zip(self.model.effects, self.model.slices, self.model.specs, strict=True):
-            cov = self.cov_theta[sl, sl]
-            if isinstance(e, Projected):
-                cov, specs = e.covariance(cov), e.inner.params(self.model.robot)
-            sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-            out[e.name] = {s.name: float(v) for s, v in zip(specs, sd, strict=True)}
-        return out
-
-
-@dataclass
-class Residuals:
-    """Weighted residuals (m,) and dense Jacobian (m, 6k + p) at a solution, observed entries only, with
-    labels: channel name, cable/component index, row index (-1: the reference row)."""
-
-    r: np.ndarray
-    A: np.ndarray
-    si: np.ndarray
-    channel: np.ndarray
-    index: np.ndarray
-    row: np.ndarray
-
-
-def residuals(problem: Problem, theta: np.ndarray, poses: np.ndarray, jacobian: bool = True,
-              physical: tuple | None = None) -> Residuals:
-    """Dense weighted residuals and Jacobian (columns: the k pose blocks, then theta). Order: per group,
-    channel and component, the observed rows; then the reference row's observed entries; then the priors
-    (``Problem.observed``). ``physical``: as :meth:`Problem.evaluate`'s."""
-    ev = problem.evaluate(theta, poses, derivatives=jacobian, physical=physical)
-    obs = problem.observed
-    k, p = poses.shape[0], theta.shape[0]
-    ok, m0, q = obs.ref, obs.n_ref, problem.prior_idx.size
-    rs, sis, Js, Gs = [], [], [], []
-    for (_, r, J, G), (flat, w) in zip(ev.groups, obs.groups, strict=True):
-        rs.append(r.ravel()[flat])
-        sis.append(rs[-1] / w)
-        if jacobian:
-            Js.append(J.reshape(-1, 6)[flat])
-            Gs.append(G.reshape(-1, p)[flat])
-    rs += [ev.r0[ok], ev.r0[m0:m0 + q]]
-    sis += [ev.r0[ok] / problem.ref_weight[ok], ev.r0[m0:m0 + q] * problem.prior_sd]
-    if jacobian:
-        start = obs.pose_cols.shape[0]
-        A = np.zeros((start + ok.size + q, 6 * k + p))
-        if start:
-            A[np.arange(start)[:, None], obs.pose_cols] = np.concatenate(Js)
-            A[:start, 6 * k:] = np.concatenate(Gs)
-        A[start:start + ok.size, 6 * k:] = ev.g0[ok]
-        A[start + ok.size:, 6 * k:] = ev.g0[m0:m0 + q]
-    else:
-        A = np.zeros((0, 0))
-    return Residuals(np.concatenate(rs), A, np.concatenate(sis), obs.channel, obs.index, obs.row)
-
-
-OBSERVABLE = 1e-2  # a typical-size change must move the weighted residuals by this much (noise units)
-
-
-def observable_basis(MC: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Observable directions of an effect's projected columns MC (m, q) with typical parameter sizes
-    scales (q,): basis B (q, r) in parameter units, left singular vectors (m, r), singular values (r,)."""
-    if MC.shape[1] == 0:
-        return np.zeros((0, 0)), np.zeros((MC.shape[0], 0)), np.zeros(0)
-    U, s, Vt = np.linalg.svd(MC * scales, full_matrices=False)
-    keep = s > max(OBSERVABLE, 1e-6 * s.max(initial=0.0))
-    return scales[:, None] * Vt[keep].T, U[:, keep], s[keep]
-
-
-def restrict_to_observable(robot: Robot, meas: Measurements, sigma, effects: list[Effect], theta0: np.ndarray,
-              poses0: np.ndarray) -> list[Effect]:
-    """The effects, each restricted to the parameter directions this data can observe (Projected) where
-    some are not (after projecting out the pose and zeta_0 directions)."""
-    model = EffectModel(robot, effects)
-    problem = Problem(model, meas, sigma)
-    res = residuals(problem, theta0, poses0)
-    k = poses0.shape[0]
-    Q = orthonormal_columns(res.A[:, : 6 * k + 6])
-    out = []
-    for e, sl, specs in zip(effects, model.slices, model.specs, strict=True):
-        C = res.A[:, 6 * k + sl.start : 6 * k + sl.stop]
-        B, _, _ = observable_basis(C - Q @ (Q.T @ C), np.array([sp.scale for sp in specs]))
-        if B.shape[1] == len(specs) or isinstance(e, Projected):
-            out.append(e)
-        else:
-            out.append(Projected(e, B))
-    return out
-
-
-def orthonormal_columns(A: np.ndarray) -> np.ndarray:
-    scale = np.linalg.norm(A, axis=0)
-    scale[scale == 0] = 1.0
-    U, s, _ = np.linalg.svd(A / scale, full_matrices=False)
-    return U[:, s > 1e-10 * s.max(initial=0.0)]
-
-
-def fit(
-    robot: Robot, meas: Measurements, sigma: dict[str, np.ndarray], effects: Sequence[Effect],
-    theta0: np.ndarray, poses0: np.ndarray, max_iter: int = 200, restrict: bool = True,
-) -> Fit:
-    """Fit zeta_0, the row poses and the effects' parameters from a guess (theta0 may be zeta_0 or the
-    theta of a model with fewer effects: missing effect values start absent). With ``restrict``, effects
-    with unobservable parameter directions are fitted in their observable subspace (the rest absent)."""
-    effects = list(effects)
-    theta0 = np.asarray(theta0, float)
-    poses0 = np.asarray(poses0, float).reshape(-1, 6)
-    model = EffectModel(robot, effects)
-    if theta0.shape[0] < model.n_params:
-        theta0 = np.r_[theta0, model.absent_values()[theta0.shape[0] - 6 :]]
-    if restrict and effects:
-        new = restrict_to_observable(robot, meas, sigma, effects, theta0, poses0)
-        if any(a is not b for a, b in zip(new, effects, strict=True)):
-            # restart the restricted effects at their absent values, keep the others' values
-            vals = []
-            for a, b, sl in zip(new, effects, model.slices, strict=True):
-                vals.append(np.zeros(a.basis.shape[1]) if a is not b else theta0[sl])
-            effects = new
-            model = EffectModel(robot, effects)
-            theta0 = np.r_[theta0[:6], np.concatenate(vals) if vals else np.zeros(0)]
-    problem = Problem(model, meas, sigma)
-    res = levenberg_marquardt(problem, theta0, poses0, max_iter=max_iter)
-    return Fit(effects, model, problem, res.theta, res.poses, res.cov_theta, 2.0 * res.cost,
-               problem.n_residuals, bool(res.converged), int(res.iterations))
-
-
-@dataclass
-class Candidate:
-    """One candidate effect's evidence. ``score``/``score_dof``/``score_p``: the LM test at the current
-    solution, ``epc``: the expected parameter change of that test (one Gauss-Newton step, as reported);
-    ``delta_chi2``/``p_value``/``delta_aic``/``delta_bic``: from the refit (None when not refitted);
-    ``params`` and ``params_sigma`` as fitted, ``implausible``: the fitted values outside their plausible
-    ranges; ``cv_gain``: how much lower the leave-one-pose-out chi2 is with the effect (positive: it
-    predicts unseen equilibrium poses better); ``channels``: share of each channel's chi2 removed;
-    ``confused_with``: candidates that explain the same thing with this data; ``decision``: why it is
-    recommended or rejected."""
-
-    effect: str
-    n_params: int
-    score: float
-    score_dof: int
-    score_p: float
-    epc: dict[str, float] = field(default_factory=dict)
-    delta_chi2: float | None = None
-    p_value: float | None = None
-    delta_aic: float | None = None
-    delta_bic: float | None = None
-    params: dict[str, float] = field(default_factory=dict)
-    params_sigma: dict[str, float] = field(default_factory=dict)
-    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
-    implausible: list[Implausible] = field(default_factory=list)
-    cv_chi2: float | None = None
-    cv_gain: float | None = None
-    cv_p: float | None = None
-    adequate: bool = False
-    channels: dict[str, float] = field(default_factory=dict)
-    confused_with: list[str] = field(default_factory=list)
-    significant: bool = False
-    refit_failed: bool = False
-    decision: str = ""
-    refit: Fit | None = field(default=None, repr=False)
-    prediction: Prediction | None = field(default=None, repr=False)
-    span: np.ndarray | None = field(default=None, repr=False)
-    direction: np.ndarray | None = field(default=None, repr=False)
-
-    @property
-    def plausible(self) -> bool:
-        return not self.implausible
-
-    @property
-    def eligible(self) -> bool:
-        """Significant, refitted, physically plausible and predicting unseen poses better; where the model
-        with it still does not fit (its chi2 test rejects: the likelihood-ratio test then rests on a wrong
-        model), better on most of them (one-sided signed-rank p below calib.prediction.LEVEL)."""
-        return (self.significant and self.plausible and self.cv_gain is not None and self.cv_gain > 0
-                and (self.adequate or (self.cv_p is not None and self.cv_p < LEVEL)))
-
-    def to_json(self) -> dict[str, Any]:
-        d = self.delta_chi2 if self.delta_chi2 is not None else self.score
-        p = self.p_value if self.p_value is not None else self.score_p
-        return {
-            "effect": self.effect,
-            "delta_chi2": float(d),
-            "p_value": float(p),
-            "params": {k: _num(v) for k, v in self.params.items()},
-            "params_sigma": {k: _num(v) for k, v in self.params_sigma.items()},
-            "plausible_range": {k: [_num(a), _num(b)] for k, (a, b) in self.bounds.items()},
-            "plausible": self.plausible,
-            "implausible": [str(v) for v in self.implausible],
-            "score": float(self.score),
-            "score_dof": int(self.score_dof),
-            "score_p": float(self.score_p),
-            "expected_change": {k: _num(v) for k, v in self.epc.items()},
-            "refitted": self.delta_chi2 is not None,
-            "refit_failed": bool(self.refit_failed),
-            "delta_aic": None if self.delta_aic is None else float(self.delta_aic),
-            "delta_bic": None if self.delta_bic is None else float(self.delta_bic),
-            "cv_chi2": None if self.cv_chi2 is None else float(self.cv_chi2),
-            "cv_gain": None if self.cv_gain is None else float(self.cv_gain),
-            "cv_p": None if self.cv_p is None else float(self.cv_p),
-            "significant": bool(self.significant),
-            "channels": {k: float(v) for k, v in self.channels.items()},
-            "confused_with": list(self.confused_with),
-            "decision": self.decision,
-        }
-
-
-def _num(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
-
-
-@dataclass
-class ScoreBasis:
-    """Orthonormal basis of the nuisance directions (poses and theta) at a solution, and the residual."""
-
-    Q: np.ndarray
-    r: np.ndarray
-
-
-def score_basis(res: Residuals) -> ScoreBasis:
-    return ScoreBasis(orthonormal_columns(res.A), res.r)
-
-
-@dataclass
-class Score:
-    """A score test: LM statistic, its dof (observable directions), the unit vector of the explained part
-    of the residual (m,), an orthonormal basis of the effect's projected span (m, dof) and the expected
-    parameter change (the effect's values after one Gauss-Newton step from absent, q)."""
-
-    lm: float
-    dof: int
-    direction: np.ndarray
-    span: np.ndarray
-    values: np.ndarray
-
-
-def score_test(fit0: Fit, effect: Effect, basis: ScoreBasis) -> Score:
-    """Score test of adding ``effect`` to ``fit0`` (no refit)."""
-    model = EffectModel(fit0.model.robot, fit0.effects + [effect])
-    problem = Problem(model, fit0.problem.meas, fit0.problem.sigma)
-    absent = model.absent_values()[fit0.theta.shape[0] - 6 :]
-    theta = np.r_[fit0.theta, absent]
-    res = residuals(problem, theta, fit0.poses)
-    C = res.A[:, 6 * fit0.poses.shape[0] + fit0.theta.shape[0] :]
-    Q = basis.Q
-    B, Uk, s = observable_basis(C - Q @ (Q.T @ C), np.array([sp.scale for sp in model.specs[-1]]))
-    proj = Uk.T @ basis.r
-    lm = float(proj @ proj)
-    u = Uk @ proj
-    nu = np.linalg.norm(u)
-    values = absent + (B @ (-proj / s) if s.size else 0.0)  # r is prediction - reading: the step is -pinv(C) r
-    return Score(lm, int(Uk.shape[1]), (u / nu if nu > 0 else u), Uk, values)
+from calib.selfcal.problem import Measurements
 
 
 @dataclass
@@ -353,12 +81,19 @@ class Diagnosis:
     ranking: list[Candidate]
     selected: list[str]
     steps: list[dict[str, Any]]
-    verdict: str
+    outcome: Verdict | None
     alpha: float
     residual_data: Residuals
     final: Fit
     reference_sample: int | None = None
     finding: Candidate | None = None  # the implausible candidate that explains most (a description error?)
+
+    @property
+    def verdict(self) -> str:
+        """The outcome in words (:func:`calib.diagnose_words.verdict_text`)."""
+        from calib.diagnose_words import verdict_text
+
+        return verdict_text(self)
 
     def to_json(self) -> dict[str, Any]:
         """The `cdpr diagnose --json` object of spec/cli.md (plus extra keys)."""
@@ -433,122 +168,6 @@ def _channel_tables(res: Residuals, n: int, meas: Measurements, ref_sample: int 
     return channels, cables, rows
 
 
-REFIT_ITER = 30  # a candidate's refit that has not converged after this many LM iterations is not evidence
-
-
-def refit(fit0: Fit, effect: Effect, max_iter: int = 200) -> Fit:
-    """``fit0`` with one more effect, started from fit0's solution (the effect absent)."""
-    return fit(fit0.model.robot, fit0.problem.meas, fit0.problem.sigma, fit0.effects + [effect], fit0.theta,
-               fit0.poses, max_iter=max_iter)
-
-
-def predict_unseen(f: Fit) -> Prediction:
-    """Leave-one-pose-out chi2 of a fit (:mod:`calib.prediction`)."""
-    res = residuals(f.problem, f.theta, f.poses)
-    return leave_one_pose_out(res.r, res.A, res.row, f.poses.shape[0])
-
-
-def _bounds(effect: Effect, robot: Robot) -> dict[str, tuple[float, float]]:
-    inner = effect.inner if isinstance(effect, Projected) else effect
-    return {s.name: s.plausible for s in inner.params(robot) if np.isfinite(s.plausible).any()}
-
-
-def _rank_round(fit0: Fit, pred0: Prediction, candidates: Sequence[Effect], alpha: float, alpha_each: float,
-                refits: int) -> list[Candidate]:
-    """Score tests of every candidate at fit0; refits (with their leave-one-pose-out chi2) of the
-    significant ones and of the ``refits`` best scores; ordered: eligible first by predictive gain, then
-    the other refitted ones by AIC, then those only scored."""
-    base = residuals(fit0.problem, fit0.theta, fit0.poses)
-    basis = score_basis(base)
-    m = base.r.shape[0]
-    robot = fit0.model.robot
-    out: list[Candidate] = []
-    for eff in candidates:
-        sc = score_test(fit0, eff, basis)
-        p = float(stats.chi2.sf(sc.lm, sc.dof)) if sc.dof > 0 else 1.0
-        out.append(Candidate(eff.name, len(eff.params(robot)), sc.lm, sc.dof, p, span=sc.span,
-                             direction=sc.direction, bounds=_bounds(eff, robot),
-                             epc=eff.report(robot, sc.values) if sc.dof > 0 else {}))
-    by_score = sorted(range(len(out)), key=lambda i: (out[i].score_p, -out[i].score))
-    chosen = [i for i in by_score if out[i].score_dof > 0][: max(refits, 0)]
-    chosen += [i for i in by_score if out[i].score_p < alpha_each and i not in chosen and out[i].score_dof > 0]
-    per_channel0 = {c: float(np.sum(base.r[base.channel == c] ** 2)) for c in CHANNELS}
-    for i in chosen:
-        cand = out[i]
-        eff = candidates[i]
-        f1 = refit(fit0, eff, REFIT_ITER)
-        d = fit0.chi2 - f1.chi2
-        q = cand.score_dof
-        cand.refit = f1
-        cand.delta_chi2 = d
-        cand.p_value = float(stats.chi2.sf(max(d, 0.0), q))
-        cand.delta_aic = d - 2 * q
-        cand.delta_bic = d - q * math.log(max(m, 2))
-        cand.params = f1.params()[eff.name]
-        cand.params_sigma = f1.param_sigmas()[eff.name]
-        used = f1.effects[-1]
-        cand.implausible = used.implausible(robot, f1.theta[f1.model.slices[-1]])
-        r1 = residuals(f1.problem, f1.theta, f1.poses)
-        cand.prediction = leave_one_pose_out(r1.r, r1.A, r1.row, f1.poses.shape[0])
-        cand.cv_chi2 = cand.prediction.total
-        cand.cv_gain = cand.prediction.gain_over(pred0)
-        cand.cv_p = cand.prediction.better_p(pred0)
-        cand.adequate = bool(stats.chi2.sf(f1.chi2, max(f1.dof, 1)) >= alpha)
-        cand.channels = {
-            c: (per_channel0[c] - float(np.sum(r1.r[r1.channel == c] ** 2))) / per_channel0[c]
-            for c in CHANNELS if per_channel0[c] > 0
-        }
-        # a refit that recovers almost nothing of a large score failed to move (an ill-conditioned start)
-        cand.refit_failed = (not f1.converged) or (cand.score > 25.0 and d < 0.1 * cand.score)
-        cand.significant = cand.p_value < alpha_each and not cand.refit_failed
-    for a in out:
-        if a.score_dof == 0 or np.linalg.norm(a.direction) == 0:
-            continue
-        for b in out:
-            if a is b or b.score_dof == 0 or np.linalg.norm(b.direction) == 0:
-                continue
-            ab = np.linalg.norm(b.span.T @ a.direction)
-            ba = np.linalg.norm(a.span.T @ b.direction)
-            if ab > OVERLAP and ba > OVERLAP:
-                a.confused_with.append(b.effect)
-    for c in out:
-        c.decision = _rejection(c, alpha_each)
-
-    def key(c: Candidate):
-        if c.eligible:
-            return (0, -c.cv_gain)
-        if c.delta_chi2 is not None and not c.refit_failed:
-            return (1, -c.delta_aic)
-        if c.delta_chi2 is None:
-            return (2, c.score_p)
-        return (3, -c.delta_aic)
-
-    return sorted(out, key=key)
-
-
-def _rejection(c: Candidate, alpha_each: float) -> str:
-    """Why a candidate is not (yet) recommended, in words; empty when it is eligible."""
-    if c.score_dof == 0:
-        return "rejected: this data cannot observe it"
-    if c.delta_chi2 is None:
-        return f"rejected: not significant (score test p = {c.score_p:.2g}, needs < {alpha_each:.2g})"
-    if c.refit_failed:
-        return (f"rejected: its refit did not converge in {REFIT_ITER} iterations" if not c.refit.converged
-                else "rejected: its refit did not move (ill-conditioned)")
-    if not c.significant:
-        return f"rejected: not significant (p = {c.p_value:.2g}, needs < {alpha_each:.2g})"
-    if not c.plausible:
-        return "rejected: implausibly large (" + "; ".join(str(v) for v in c.implausible[:3]) + ")"
-    if c.cv_gain is not None and c.cv_gain <= 0:
-        return (f"rejected: does not predict left-out poses better (cross-validated chi2 "
-                f"{c.cv_chi2:.1f}, {-c.cv_gain:+.1f})")
-    if not c.adequate and c.cv_p is not None and c.cv_p >= LEVEL:
-        return (f"rejected: the model still does not fit with it, and it predicts some left-out poses better, "
-                f"others worse (cross-validated chi2 {c.cv_gain:.1f} lower in sum, signed-rank p = {c.cv_p:.2g} "
-                f">= {LEVEL:g})")
-    return ""
-
-
 def _nested(small: Candidate, large: Candidate) -> bool:
     """The smaller candidate's explained direction lies in the larger one's span."""
     u = small.direction
@@ -567,12 +186,11 @@ def choose(ranked: list[Candidate]) -> Candidate | None:
                and not best.prediction.clearly_better_than(c.prediction)]
     if simpler:
         pick = min(simpler, key=lambda c: (c.score_dof, -c.cv_gain))
-        best.decision = (f"rejected: {pick.effect} ({pick.score_dof} parameter(s)) explains the same misfit and "
-                         f"{best.effect} ({best.score_dof}) does not predict left-out poses clearly better")
+        best.reason = Reason("simpler_explains", {"simpler": pick.effect, "simpler_dof": pick.score_dof})
         best = pick
     for c in ok:
-        if c is not best and not c.decision:
-            c.decision = f"not added: {best.effect} predicts left-out poses better"
+        if c is not best and c.reason is None:
+            c.reason = Reason("better_candidate", {"better": best.effect})
     return best
 
 
@@ -594,7 +212,7 @@ def diagnose(
 ) -> Diagnosis:
     """Fit, locate the misfit and rank the candidate effects (module doc). theta0/poses0: initial guess.
     With ``device_priors`` every fit holds the devices' constant errors within their datasheet accuracy
-    (:class:`calib.effects.builtin.DeviceAccuracy`), so an effect must exceed those to be reported."""
+    (:class:`calib.effects.priors.DeviceAccuracy`), so an effect must exceed those to be reported."""
     if candidates is None:
         candidates = [cls() for cls in BUILTIN.values()]
     if device_priors and not any(isinstance(e, DeviceAccuracy) for e in included):
@@ -616,12 +234,10 @@ def diagnose(
     while len(selected) < max_effects and rank_now:
         finding = implausible_finding(rank_now)
         if finding is not None:  # what explains most is out of its range: a finding, nothing that explains less
-            finding.decision = ("FINDING: explains the most (delta chi2 " f"{finding.delta_chi2:.1f}) only with "
-                                + "; ".join(str(v) for v in finding.implausible[:3])
-                                + ": a likely error in the robot description or the setup")
+            finding.reason = Reason("finding")
             for c in rank_now:
                 if c is not finding and c.eligible:
-                    c.decision = f"not added: it explains less than {finding.effect}, whose value is a finding"
+                    c.reason = Reason("below_finding", {"finding": finding.effect})
             break
         best = choose(rank_now)
         if best is None:
@@ -633,17 +249,14 @@ def diagnose(
             (a, b), f2, pred2 = pair
             for c, f, pr in ((a, a.refit, a.prediction), (b, f2, pred2)):
                 selected.append(c.effect)
-                first[c.effect].decision = (
-                    f"recommended (step {len(selected)}, with {b.effect if c is a else a.effect}): neither alone "
-                    f"explains the misfit; together significant, within their plausible ranges, and predicting "
-                    f"left-out poses better (cross-validated chi2 {pred2.gain_over(pred_now):+.1f} lower)")
+                first[c.effect].reason = Reason("recommended_pair", {
+                    "step": len(selected), "partner": b.effect if c is a else a.effect,
+                    "cv_gain": pred2.gain_over(pred_now)})
                 steps.append(_step(f, pr, reference_pose))
             current, pred_now = f2, pred2
         else:
             selected.append(best.effect)
-            first[best.effect].decision = (f"recommended (step {len(selected)}): significant, within its "
-                                           f"plausible range, predicts left-out poses better (cross-validated "
-                                           f"chi2 {best.cv_gain:+.1f} lower)")
+            first[best.effect].reason = Reason("recommended", {"step": len(selected), "cv_gain": best.cv_gain})
             current, pred_now = best.refit, best.prediction
             steps.append(_step(current, pred_now, reference_pose))
         rest = [c for c in cands if c.name not in selected]
@@ -654,8 +267,8 @@ def diagnose(
     more = bool(selected) and len(selected) >= max_effects and any(
         c.eligible for c in rank_now if c.effect not in selected)
     diag = Diagnosis(fit0, fit0.chi2, fit0.dof, p_fit, noise_source, channels, cables, rows, ranking, selected,
-                     steps, "", alpha, res0, current, reference_sample, finding)
-    diag.verdict = _verdict(diag, more)
+                     steps, None, alpha, res0, current, reference_sample, finding)
+    diag.outcome = verdict_of(diag, more)
     return diag
 
 
@@ -701,25 +314,6 @@ def _step(f: Fit, pred: Prediction, reference_pose: np.ndarray | None = None) ->
     return out
 
 
-def misfit_location(diag: Diagnosis, top: int = 2) -> dict[str, list[str]]:
-    """Where the misfit sits: the channels by share of chi2, in each the cables (components) with the
-    largest rms, and the rows (poses) with the largest chi2, named."""
-    tot = sum(d["chi2"] for d in diag.channels.values()) or 1.0
-    chans = sorted(diag.channels, key=lambda c: -diag.channels[c]["chi2"])
-    names = {"orientation": ("roll", "pitch", "yaw")}
-    out_ch, out_cab = [], []
-    for c in chans[:top]:
-        out_ch.append(f"{c} ({100 * diag.channels[c]['chi2'] / tot:.0f}% of chi2)")
-        vals = diag.cables.get(c, [])
-        worst = np.argsort(vals)[::-1][:top]
-        label = names.get(c, [f"cable {i + 1}" for i in range(len(vals))])
-        out_cab += [f"{c} {label[j]} (rms {vals[j]:.1f} sigma)" for j in worst]
-    rows = sorted(diag.rows, key=lambda r: -r["chi2"])[:top + 1]
-    out_rows = [f"{r['label']}" + (f" (sample {r['sample']})" if r["sample"] >= 0 else "")
-                + f": worst {r['worst']}, rms {r['rms_normalized']:.1f} sigma" for r in rows]
-    return {"channels": out_ch, "cables": out_cab, "rows": out_rows}
-
-
 FINDING_RATIO = 1.5  # an implausible candidate explaining this many times the best plausible one's delta chi2
 
 
@@ -740,140 +334,58 @@ def implausible_finding(ranked: list[Candidate]) -> Candidate | None:
     return top
 
 
-def _verdict(diag: Diagnosis, more: bool = False) -> str:
-    text = _verdict_text(diag, more)
-    f = diag.finding
-    if f is None:
-        return text
-    lead = (f"FINDING: {f.effect} explains the most (delta chi2 {f.delta_chi2:.1f}, predicting left-out poses "
-            f"better by {f.cv_gain:.1f}) with " + "; ".join(str(v) for v in f.implausible[:3])
-            + ": likely an error in the robot description or the setup (check it); nothing that explains less is "
-            "recommended in its place")
-    return lead + (f"; {text}" if diag.selected else "")
+@dataclass(frozen=True)
+class Verdict:
+    """What the diagnosis concludes, in numbers and names; :func:`calib.diagnose_words.verdict_text` says it.
+
+    ``code``: 'fits' (the model fits within the noise, nothing selected), 'unexplained' (it does not fit and
+    nothing in the library explains it), 'implausible' (it does not fit and ``implausible`` would explain it
+    only outside its plausible range), 'explained' (``first`` and the rest of ``selected`` explain it and the
+    final model fits), 'explained_partly' (the final model still does not fit). ``chi2``, ``dof``, ``p``: the
+    base fit's test (dof at least 1), ``excess`` = chi2 - dof; ``share``: the first selected effect's delta
+    chi2 over the excess (1 when there is none); ``final_chi2``, ``final_dof``, ``final_p``: the final fit's;
+    ``more``: other eligible effects remain after ``max_effects``; ``partial``: ``share`` below PARTIAL;
+    ``finding``: the implausible candidate that explains most, said first."""
+
+    code: str
+    chi2: float
+    dof: int
+    p: float
+    alpha: float
+    excess: float
+    selected: tuple[str, ...] = ()
+    first: Candidate | None = None
+    share: float = 1.0
+    final_chi2: float = math.nan
+    final_dof: int = 0
+    final_p: float = math.nan
+    more: bool = False
+    partial: bool = False
+    implausible: Candidate | None = None
+    finding: Candidate | None = None
 
 
-def _verdict_text(diag: Diagnosis, more: bool = False) -> str:
+def verdict_of(diag: Diagnosis, more: bool = False) -> Verdict:
+    """The :class:`Verdict` of a diagnosis; ``more``: eligible effects remain beyond ``max_effects``."""
     fit0, ranking, selected, final, alpha = diag.fit, diag.ranking, diag.selected, diag.final, diag.alpha
     dof = max(fit0.dof, 1)
     excess = fit0.chi2 - dof
-    p0 = stats.chi2.sf(fit0.chi2, dof)
+    p0 = float(stats.chi2.sf(fit0.chi2, dof))
+    implausible = next((c for c in ranking if c.significant and not c.plausible), None)
+    base = {"chi2": fit0.chi2, "dof": dof, "p": p0, "alpha": alpha, "excess": excess, "finding": diag.finding,
+            "implausible": implausible, "selected": tuple(selected)}
     if p0 >= alpha and not selected:
-        return (f"the model fits within the noise (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}); "
-                f"no effect in the library is significant at the {alpha:g} level")
-    where = misfit_location(diag)
-    loc = f"the misfit sits in {', '.join(where['channels'])}; worst at {'; '.join(where['rows'][:2])}"
-    implausible = [c for c in ranking if c.significant and not c.plausible]
+        return Verdict("fits", **base)
     if not selected:
-        text = f"the model does not fit (chi2 {fit0.chi2:.1f} on {dof} dof, p = {p0:.2g}): {loc}. "
-        if implausible:
-            c = implausible[0]
-            text += (f"{c.effect} would explain {100 * min(1.0, c.delta_chi2 / excess):.0f}% of the excess only "
-                     f"with {c.implausible[0]}, implausibly large: something outside the library acts there")
-        else:
-            text += "nothing in the library explains it and predicts left-out poses better: look for an effect "
-            text += "outside it"
-        return text
+        return Verdict("implausible" if implausible is not None else "unexplained", **base)
     first = next(c for c in ranking if c.effect == selected[0])
     share = first.delta_chi2 / excess if excess > 0 else 1.0
-    if excess > 0:
-        text = f"{first.effect} explains {100.0 * min(1.0, share):.0f}% of the excess"
-    else:
-        text = (f"{first.effect} explains a significant part (delta chi2 {first.delta_chi2:.1f}, p = "
-                f"{first.p_value:.2g}) although chi2 is within the noise")
-    if first.confused_with:
-        text += f" (cannot be told apart from {', '.join(first.confused_with)} with this data)"
-    text += f"; refit with --effects {','.join(selected)}"
-    pf = stats.chi2.sf(final.chi2, max(final.dof, 1))
-    if pf < alpha:
-        left = final.chi2 - max(final.dof, 1)
-        pct = f"{100.0 * left / excess:.0f}% of the excess" if excess > 0 else "part of the misfit"
-        text += f"; chi2 {final.chi2:.1f} on {final.dof} dof remains (p = {pf:.2g}): {pct} is not explained"
-        text += f" by {', '.join(selected)}"
-        if more:
-            text += " (other library effects still predict better: raise --max-effects"
-            text += ", but no single one explains most of the misfit: it may lie outside the library)" if (
-                share < PARTIAL) else ")"
-        elif share < PARTIAL:
-            text += (" nor by anything else in the library that predicts left-out poses better: no single effect"
-                     " explains most of the misfit, it may lie outside the library")
-        elif implausible:
-            c = implausible[0]
-            text += (f"; {c.effect} would take more only with {c.implausible[0]}, implausibly large: something "
-                     "outside the library acts there")
-        else:
-            text += " nor by anything else in the library that predicts left-out poses better"
-    elif share < PARTIAL and len(selected) > 1:
-        text += f" (no single effect explains most of the misfit: {first.effect} alone {100.0 * share:.0f}%)"
-    return text
+    pf = float(stats.chi2.sf(final.chi2, max(final.dof, 1)))
+    return Verdict("explained_partly" if pf < alpha else "explained", **base, first=first, share=share,
+                   final_chi2=final.chi2, final_dof=final.dof, final_p=pf, more=more, partial=share < PARTIAL)
 
 
 PARTIAL = 0.9  # a single effect explaining less than this share of the excess only explains part of it
-
-
-def pose_error(a: np.ndarray, b: np.ndarray) -> float:
-    """Distance between the positions of two poses, m."""
-    return float(np.linalg.norm(np.asarray(a, float)[:3] - np.asarray(b, float)[:3]))
-
-
-@dataclass
-class RunRows:
-    """What both the diagnosis and ``cdpr solve --effects`` fit on a run: the rows of a method's windows,
-    their noise (``source`` names it), the rigid solve whose solution is the start of every fit."""
-
-    robot: Robot
-    meas: Measurements
-    sigma: dict[str, np.ndarray]
-    source: str
-    solution: Any
-    reference: Effect | None = None  # the reference window's noise (ReferenceNoise), in every fit
-
-
-def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: int = 1,
-             reference_sample: int | None = None) -> RunRows:
-    """The rows, noise and start of a run: the windows, rows and initial guess are those of
-    ``calib.selfcal.solve(method)``; noise ``estimate`` is that solve's (the noise of window means,
-    calib.selfcal.noise, with its refinements and the reference window's noise), ``accuracy`` that noise
-    floored at the sensors' accuracy class, ``paper`` (eq. 18) and ``sensors`` as in solve."""
-    from calib.selfcal import measurement_rows, noise_levels, run_signals, sensor_noise, solve
-
-    robot = run.robot
-    sol = solve(robot, run, method=method, noise="estimate" if noise == "accuracy" else noise, stride=stride,
-                reference_sample=reference_sample)
-    sig = run_signals(robot, run)
-    meas = measurement_rows(sig, sol.windows, method, stride, sol.reference_sample)[0]
-    # the estimate-noise solve's own sigmas: the kinematic ones without the motion the rows' poses absorb
-    solved = {c: np.asarray(v, float) for c, v in sol.noise.items()}
-    if noise == "estimate":
-        sigma, source = solved, "estimate"
-    elif noise == "accuracy":  # the noise of a window mean floored at the sensors' accuracy
-        acc = sensor_noise(robot)
-        sigma = {c: np.maximum(v, acc[c]) for c, v in solved.items()}
-        source = "accuracy"
-    else:
-        sigma, source = noise_levels(robot, noise, sig, sol.windows)
-    reference = None
-    if noise in ("estimate", "accuracy") and sol.reference_noise:  # the solve's: the same priors in every fit
-        reference = ReferenceNoise(**sol.reference_noise)
-    return RunRows(robot, meas, sigma, source, sol, reference)
-
-
-def base_fit(rows: RunRows, included: Sequence[Effect] = ()) -> Fit:
-    """The diagnosis's base model on a run's rows: the devices' constant errors within their datasheet
-    accuracy, the reference window's noise (with the estimate-noise solve's priors) and the included
-    effects, started from the rigid solve."""
-    sol = rows.solution
-    base = [DeviceAccuracy()] + ([rows.reference] if rows.reference is not None else [])
-    return fit(rows.robot, rows.meas, rows.sigma, [*base, *included], sol.theta[:6], sol.poses)
-
-
-def effect_chain(rows: RunRows, effects: Sequence[Effect]) -> list[Fit]:
-    """The base fit, then the effects added one at a time, each fit started from the previous one: the
-    fits the diagnosis's forward selection makes, and those of ``cdpr solve --effects`` (same noise, same
-    priors, same start, so the same numbers)."""
-    fits = [base_fit(rows)]
-    for e in effects:
-        fits.append(refit(fits[-1], e))
-    return fits
 
 
 def diagnose_run(

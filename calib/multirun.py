@@ -11,7 +11,7 @@ Unknowns of a joint fit over runs r = 1..R:
 
 Each run keeps its own :class:`calib.selfcal.problem.Problem` (its rows and weights); the theta of run r is
 [zeta_0, its own effect values, the shared values], so the joint Jacobian is the runs' dense Jacobians
-(:func:`calib.diagnose.residuals`) side by side on the shared columns. It is solved by a dense
+(:func:`calib.fitting.residuals`) side by side on the shared columns. It is solved by a dense
 Levenberg-Marquardt on unit-norm columns (a ridge keeps the directions no run sees where they started).
 
 **Weights that fit the data** (:func:`fit_runs` with ``components``): the sigma of each run's channel group
@@ -31,10 +31,12 @@ from typing import Any
 
 import numpy as np
 
-from calib.diagnose import Residuals, RunRows, residuals
 from calib.effects import Effect, EffectModel, ParamSpec, Projected
 from calib.effects.base import Physical, physical_rows
-from calib.effects.builtin import AhrsYawDrift, DeviceAccuracy, ReferenceNoise
+from calib.effects.builtin import AhrsYawDrift
+from calib.effects.priors import DeviceAccuracy, ReferenceNoise
+from calib.fitting import Residuals, residuals
+from calib.runrows import RunRows
 from calib.selfcal.model import CHANNELS
 from calib.selfcal.problem import Problem
 

@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from calib.diagnose import RunRows, residuals
 from calib.effects import Effect, Implausible
+from calib.fitting import residuals
 from calib.multirun import (
     GROUPS,
     JointFit,
@@ -41,6 +41,7 @@ from calib.multirun import (
     stack,
 )
 from calib.prediction import leave_one_pose_out
+from calib.runrows import RunRows
 from calib.selfcal.problem import Problem
 
 PROBE = 3  # single candidates judged by prediction per step (the best by joint fit)

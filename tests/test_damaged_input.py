@@ -15,8 +15,10 @@ import scipy.io
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from acquisition.damage import DamagedInputWarning
 from acquisition.importers import IrmaImportError, irma_run
-from acquisition.runlog import DamagedInputWarning, RunFormatError, new_run, read_run, write_run
+from acquisition.runlog import RunFormatError, read_run
+from acquisition.runwriter import new_run, write_run
 
 SETTINGS = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 

@@ -10,26 +10,21 @@ import numpy as np
 import pytest
 
 from acquisition.cli import main
-from acquisition.cli.startup import simulated_startup
+from acquisition.estimates import EstimateWorker
 from acquisition.runlog import read_run
-from acquisition.startup import EstimateWorker
+from acquisition.session import simulated_startup
 from calib.design import (
     LOOP_POSE_NOISE,
-    OnlineSolve,
     PoseNoise,
-    SequentialDesign,
     TimeModel,
-    WindowMean,
     assess,
     candidates,
-    drive,
     information,
     lateral_stiffness,
     optimal_plan,
     planning_model,
     predict_loop,
     separating_poses,
-    sequential_acquisition,
     window_mean_noise,
 )
 from calib.diagnose import diagnose
@@ -38,6 +33,7 @@ from calib.equilibrium import inverse_geometrico_static
 from calib.planning import PlanningError, PosePlan, plan_poses
 from calib.robot import load_robot
 from calib.selfcal import solve
+from calib.sequential import OnlineSolve, SequentialDesign, WindowMean, drive, sequential_acquisition
 from sim_backend.config import HiddenEffects, SimConfig, load_sim_config
 from sim_backend.equilibrium_rows import WINDOW_NOISE, simulated_rows
 

@@ -11,9 +11,11 @@ import pytest
 import scipy.io
 
 from acquisition.cli import main as cdpr
-from calib.diagnose import diagnose, fit, pose_error
+from calib.diagnose import diagnose
 from calib.effects import BUILTIN, make_effects
-from calib.effects.builtin import DeviceAccuracy, pulley_gauge_basis
+from calib.effects.builtin import pulley_gauge_basis
+from calib.effects.priors import DeviceAccuracy
+from calib.fitting import fit, pose_error
 from calib.robot import load_robot
 from sim_backend.config import sim_config_from_dict
 from sim_backend.equilibrium_rows import simulated_rows

@@ -216,7 +216,7 @@ def test_device_accuracy_columns_and_its_prior_pseudo_readings():
     parameters adds one pseudo-reading (theta_j - 0) / sd_j, sd = accuracy / sqrt(3): the degrees of
     freedom of a fit do not change. The AHRS yaw drifts at a rate within the gyro's in-run bias stability
     (8 deg/h): its column is the rows' time."""
-    from calib.effects.builtin import DeviceAccuracy
+    from calib.effects.priors import DeviceAccuracy
     from calib.selfcal.problem import Measurements, Problem
 
     rng = np.random.default_rng(3)
@@ -318,7 +318,7 @@ def test_reference_noise_shifts_every_row_of_a_relative_channel_by_one_value_per
     """The reference window's noise is one offset per cable in lengths and swivel angles and one in yaw,
     the same in every row (exact columns), with priors of the reference mean's sigma: the rows' sigma
     scaled by sqrt(harmonic-mean window size / reference window size)."""
-    from calib.effects.builtin import DeviceAccuracy, ReferenceNoise
+    from calib.effects.priors import DeviceAccuracy, ReferenceNoise
 
     sigma = {"tension": np.full(4, 0.1), "length": np.full(4, 4e-5), "swivel": np.full(4, 1e-5),
              "orientation": np.array([1e-4, 1e-4, 2e-4])}

@@ -13,7 +13,8 @@ import scipy.io
 from acquisition.cli import main
 from acquisition.export import ExportError, export_run
 from acquisition.importers import IRMA_HOMING_LENGTHS, IRMA_HOMING_SWIVELS, import_irma
-from acquisition.runlog import new_run, read_run, write_run, write_solution
+from acquisition.runlog import read_run
+from acquisition.runwriter import new_run, write_run, write_solution
 
 SOLUTION = {
     "method": "tlse",

@@ -15,7 +15,8 @@ from mcap.reader import make_reader
 
 from acquisition.cli import main
 from acquisition.importers import import_irma
-from acquisition.runlog import new_run, read_run, write_run, write_solution
+from acquisition.runlog import read_run
+from acquisition.runwriter import new_run, write_run, write_solution
 
 SOLUTION = {"method": "tlse", "initial_pose": [0.3604, 0.3675, 1.158, 0.0847, -0.0717, 0.007],
             "sensor_offsets": {"length": [1.65, 1.10, 1.64, 2.04], "swivel": [1.28, -1.08, 1.05, -1.28], "yaw": 0.01},

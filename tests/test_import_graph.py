@@ -166,7 +166,7 @@ def test_the_walk_sees_the_repository(graph):
     assert {"drivers.can_bus", "drivers.open", "sim_backend.backend", "acquisition.startup", "calib.robot",
             "test_canopen_drive", "bench_sim"} <= set(graph)
     assert "drivers.can_bus" in graph["drivers.canopen_node"]
-    assert "drivers.open" in graph["acquisition.startup"]  # a deferred import inside connect()
+    assert "drivers.open" in graph["acquisition.connect"]  # a deferred import inside connect()
     assert "test_canopen_drive" in graph["test_swivel_encoder"]
 
 

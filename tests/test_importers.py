@@ -10,6 +10,7 @@ import pytest
 import scipy.io
 from scipy.optimize import least_squares
 
+from acquisition.damage import CUT, DamagedInputWarning
 from acquisition.importers import (
     IRMA_HOMING_LENGTHS,
     IRMA_HOMING_SWIVELS,
@@ -18,9 +19,9 @@ from acquisition.importers import (
     import_irma,
     irma_run,
     read_irma_log,
-    segment_targets,
 )
-from acquisition.runlog import CUT, DamagedInputWarning, read_run
+from acquisition.runlog import read_run
+from acquisition.segmentation import segment_targets
 from calib.kinematics import inverse_kinematics
 from calib.robot import load_robot
 

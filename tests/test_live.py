@@ -245,8 +245,10 @@ def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_threa
     import threading
 
     from acquisition.clock import LOOP_SWITCH_INTERVAL, SimClock
-    from acquisition.runlog import RunWriter
-    from acquisition.startup import Plan, StartupConfig, StartupRoutine, ahrs_rate_for, connect
+    from acquisition.connect import ahrs_rate_for, connect
+    from acquisition.plans import Plan
+    from acquisition.runwriter import RunWriter
+    from acquisition.startup import StartupConfig, StartupRoutine
     from sim_backend.backend import SimBackend
 
     robot = load_robot("irma4u")
@@ -293,7 +295,7 @@ def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_threa
 
 
 def test_a_run_log_write_that_fails_on_the_log_worker_is_raised(tmp_path):
-    from acquisition.startup import LogWorker
+    from acquisition.estimates import LogWorker
 
     worker = LogWorker()
     worker.submit(open, tmp_path / "no such folder" / "run.yaml", "w")

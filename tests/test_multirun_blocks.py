@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.diagnose import residuals
 from calib.effects import EffectModel, make_effects
 from calib.effects.base import physical_rows
+from calib.fitting import residuals
 from calib.multirun import RIDGE, Arrow, RunFit, stack
 from calib.planning import plan_poses
 from calib.robot import load_robot

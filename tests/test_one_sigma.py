@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from acquisition.cli import main
-from acquisition.cli.startup import simulated_startup
 from acquisition.report import pose_lines
+from acquisition.session import simulated_startup
 from acquisition.study import RunTask, StudyConfig, plan_statistics, run_result
 
 

@@ -12,17 +12,9 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from acquisition.runlog import (
-    DamagedInputWarning,
-    RunFormatError,
-    RunWriter,
-    new_run,
-    read_run,
-    read_solution,
-    sample_columns,
-    write_run,
-    write_solution,
-)
+from acquisition.damage import DamagedInputWarning
+from acquisition.runlog import RunFormatError, read_run, read_solution, sample_columns
+from acquisition.runwriter import RunWriter, new_run, write_run, write_solution
 from calib.robot import load_robot
 
 

@@ -116,7 +116,8 @@ def test_bad_input_exits_2_with_one_sentence(tmp_path, parsed_run, capsys):
 
 def test_run_without_equilibria_exits_1(parsed_run, tmp_path, capsys):
     """A run cut to a transition only: no equilibrium window, one sentence, exit status 1."""
-    from acquisition.runlog import read_run, write_run
+    from acquisition.runlog import read_run
+    from acquisition.runwriter import write_run
 
     run = read_run(parsed_run)
     cut = tmp_path / "cut"

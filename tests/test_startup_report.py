@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import yaml
 
+from acquisition.progress import ProgressBar
 from acquisition.report import (
-    ProgressBar,
     ReportRenderer,
     StartupSummary,
     offsets_document,

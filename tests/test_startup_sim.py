@@ -239,7 +239,7 @@ def test_bad_options_and_absent_devices_end_with_one_sentence(tmp_path, capsys):
 
 def test_feedback_rates_halve_the_frames_and_every_log_tick_is_fresh():
     from acquisition.clock import SimClock
-    from acquisition.startup import ahrs_rate_for, connect, feedback_every
+    from acquisition.connect import ahrs_rate_for, connect, feedback_every
     from calib.robot import load_robot
     from sim_backend.backend import SimBackend
 

@@ -10,13 +10,7 @@ import pytest
 
 from acquisition.cli import build_parser, main
 from acquisition.cli.study import check_startup_accepts
-from acquisition.study import (
-    RunTask,
-    StudyConfig,
-    plan_args,
-    plan_statistics,
-    run_startup,
-)
+from acquisition.study import RunTask, StudyConfig, plan_args, plan_statistics, run_startup
 
 
 @pytest.fixture(scope="module")

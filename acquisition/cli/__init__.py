@@ -176,7 +176,7 @@ LENGTH_OPTIONS = ("--tolerance",)  # options whose value is a length: a leading 
 
 def _join_signed_values(argv: list[str]) -> list[str]:
     """``--tolerance -3mm`` as ``--tolerance=-3mm``: argparse would read ``-3mm`` as an unknown option and say
-    only "expected one argument"; joined, the value reaches ``acquisition.cli.args.parse_length``, which says
+    only "expected one argument"; joined, the value reaches ``acquisition.plans.parse_length``, which says
     what is wrong."""
     out, i = [], 0
     while i < len(argv):

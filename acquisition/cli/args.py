@@ -10,7 +10,6 @@ import numpy as np
 
 from acquisition.cli.errors import UsageError
 from acquisition.outputs import OutputExistsError, Replaced, check_output, claim_output
-from calib.fields import quote
 
 
 def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
@@ -26,41 +25,21 @@ def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | No
     return np.array(vals)
 
 
-LENGTH_UNITS = (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0))
-
-
-def parse_length(text: str, option: str) -> float:
-    """A positive length with its unit (mm, cm or m), in metres; anything else is one sentence (UsageError)."""
-    t = text.strip().lower()
-    unit = next(((u, f) for u, f in LENGTH_UNITS if t.endswith(u)), None)
-    try:
-        value = float(t[: -len(unit[0])]) * unit[1] if unit else float(t)
-    except ValueError:
-        raise UsageError(f"{option} {quote(text)} is not a length: give a number and its unit, e.g. 3mm, 0.5cm "
-                         "or 0.003m.") from None
-    if unit is None:
-        raise UsageError(f"{option} {quote(text)} needs its unit: {t}mm, {t}cm or {t}m.")
-    if not (value > 0 and math.isfinite(value)):
-        raise UsageError(f"{option} {quote(text)} must be a positive length.")
-    return value
-
-
-GRID_POINTS = (2, 6)  # calibration grid points per axis that `cdpr startup` can acquire and solve
-
-
-def check_grid(grid: int) -> None:
-    """Refuse a --grid outside GRID_POINTS: the same range for planning (poses) and acquiring (startup)."""
-    lo, hi = GRID_POINTS
-    if not lo <= grid <= hi:
-        raise UsageError(f"--grid {grid} is out of range: give {lo} to {hi} grid points per axis.")
-
-
 FORCE_HELP = "move an existing output aside (kept as NAME.replaced-<time>) instead of refusing"
 
 
 def add_force(parser) -> None:
     """The --force option of a command that writes outputs (acquisition/outputs.py)."""
     parser.add_argument("--force", action="store_true", help=FORCE_HELP)
+
+
+def add_effect_options(parser) -> None:
+    """The options `cdpr solve` gains from the effect library (issue 7): --effects and --effects-from (read
+    by acquisition/cli/effect_options.py only when given, so a plain solve loads no effect library)."""
+    parser.add_argument("--effects", default=None, metavar="A,B",
+                        help="physical effects to include in the model (see cdpr diagnose)")
+    parser.add_argument("--effects-from", action="append", default=[], metavar="MODULE",
+                        help="a Python file or module defining more effects (repeatable)")
 
 
 def check_output_option(path, force: bool, option: str, inputs=()) -> None:

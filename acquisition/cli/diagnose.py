@@ -121,21 +121,14 @@ def _diagnose(args) -> int:
 
 # ---- cdpr solve --effects --------------------------------------------------------------------------------
 
-def add_solve_options(parser) -> None:
-    """The options `cdpr solve` gains from the effect library."""
-    parser.add_argument("--effects", default=None, metavar="A,B",
-                        help="physical effects to include in the model (see cdpr diagnose)")
-    parser.add_argument("--effects-from", action="append", default=[], metavar="MODULE",
-                        help="a Python file or module defining more effects (repeatable)")
-
-
 def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: dict[str, Any]):
     """Solve with the effects of ``args.effects`` added one by one: the fits of
-    :func:`calib.diagnose.effect_chain` (the diagnosis's own refits: same noise, device priors and start),
+    :func:`calib.runrows.effect_chain` (the diagnosis's own refits: same noise, device priors and start),
     each returned as a Solution. Returns the final Solution (its ``effects`` filled) and the before/after
     table; writes the plot RUN/effects_chi2.png."""
     from acquisition.diagnose_report import parameter_units, plot_steps
-    from calib.diagnose import effect_chain, pose_error, run_rows
+    from calib.fitting import pose_error
+    from calib.runrows import effect_chain, run_rows
     from calib.selfcal import solve
 
     classes = effect_classes(getattr(args, "effects_from", []) or [])
@@ -169,7 +162,7 @@ def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: di
 def effects_table(sols, effects: list[Effect], reference: np.ndarray | None, units: dict[str, str] | None = None
                   ) -> str:
     """Before/after: chi2, per-channel RMS (normalised), change of the initial pose, eps_p where known."""
-    from calib.diagnose import pose_error
+    from calib.fitting import pose_error
 
     chans = list(sols[0].residuals)
     widths = [max(len(c), 7) for c in chans]

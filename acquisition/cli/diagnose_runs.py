@@ -20,7 +20,7 @@ from acquisition.runlog import RunFormatError, read_run
 
 
 def _rows(path: Path, noise: str):
-    from calib.diagnose import run_rows
+    from calib.runrows import run_rows
     from calib.selfcal import SelfCalFailure, SelfCalInputError
 
     try:
@@ -98,8 +98,8 @@ def solve_with_model_file(args, run, reference, solve_kwargs: dict[str, Any]):
     """`cdpr solve RUN --model MODEL.yaml`: the run solved with the model's effects as priors and its own
     unknowns refitted (weights by variance components); the Solution and a line on the model."""
     from acquisition.cli.effect_options import effect_classes
-    from calib.diagnose import run_rows
     from calib.robot_model import solve_with_model
+    from calib.runrows import run_rows
     from calib.selfcal import solve
 
     classes = effect_classes(getattr(args, "effects_from", []) or [])

@@ -7,8 +7,9 @@ import sys
 
 import numpy as np
 
-from acquisition.cli.args import add_force, check_grid, check_output_option, claim_output_option
+from acquisition.cli.args import add_force, check_output_option, claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
+from acquisition.plans import check_grid, check_step
 from calib.planning import PlanningError, kinematic_path, plan_poses
 from calib.robot import load_robot
 
@@ -92,8 +93,7 @@ def _optimal(args, robot) -> int:
 
     if args.optimal < 1:
         raise UsageError(f"--optimal must be a positive number of poses, got {args.optimal}.")
-    if not args.step > 0:
-        raise UsageError(f"--step must be positive, got {args.step}.")
+    check_step(args.step)
     noise, times = LOOP_POSE_NOISE, TimeModel()
     try:
         grid = plan_poses(robot, args.grid)
@@ -163,8 +163,7 @@ def _workspace(args) -> int:
     from calib.workspace import plot_workspace, static_workspace
 
     robot = load_robot(args.robot)
-    if not args.step > 0:
-        raise UsageError(f"--step must be positive, got {args.step}.")
+    check_step(args.step)
     if args.plot:
         check_output_option(args.plot, args.force, "--plot")
     from acquisition.cli.progress import Progress

@@ -9,7 +9,8 @@ from acquisition.cli.args import add_force, check_output_option, claim_output_op
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.export import FORMATS, export_run
 from acquisition.importers import irma_run
-from acquisition.runlog import read_run, write_run
+from acquisition.runlog import read_run
+from acquisition.runwriter import write_run
 
 
 def register(sub) -> None:

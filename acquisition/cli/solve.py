@@ -11,19 +11,13 @@ import sys
 import warnings
 from pathlib import Path
 
-from acquisition.cli.args import parse_pose
+from acquisition.cli.args import add_effect_options, parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import read_run
-from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, solve
+from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, default_noise, solve
 from calib.selfcal.result import chi2_sf
 
 SOLUTION_FILE = "solution.json"
-
-
-def default_noise(method: str) -> str:
-    """The weights a solve takes unless told: the run's own noise of a window mean ('estimate', whose 1-sigma
-    covers the truth as often as it says) for the window methods, the paper's (eq. 18) for lse's samples."""
-    return "paper" if method == "lse" else "estimate"
 
 
 def register(sub) -> None:
@@ -46,9 +40,7 @@ def register(sub) -> None:
                    help="make this solve the run's solution (RUN/solution.json, what export carries); without it "
                    "only the first solve with the default options writes it, and exploring (--effects, --noise, "
                    "--method...) changes nothing")
-    from acquisition.cli.diagnose import add_solve_options  # --effects, --effects-from (issue 7)
-
-    add_solve_options(p)
+    add_effect_options(p)
     p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
                    help="a learned robot model (cdpr diagnose --model-out): its effects as priors, this run's own "
                    "unknowns refitted, weights by variance components (docs/robot-model.md)")

@@ -30,12 +30,11 @@ from acquisition.study import (
     StudyProgress,
     dask_client,
     plan_args,
-    render_study_html,
-    render_table,
     run_study,
     study_sim_config,
     study_statistics,
 )
+from acquisition.study_report import render_study_html, render_table
 
 
 def register(sub) -> None:
@@ -100,7 +99,7 @@ def run(args) -> int:
     if args.tolerance is not None and "sequential" not in plans:
         raise UsageError("--tolerance applies to --plan sequential only.")
     if args.tolerance is not None:
-        from acquisition.cli.args import parse_length
+        from acquisition.plans import parse_length
 
         parse_length(args.tolerance, "--tolerance")
     try:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import importlib.util
 import inspect
 from collections.abc import Iterable, Sequence
-from importlib.metadata import entry_points
 from pathlib import Path
 
 from calib.effects import builtin, cable, swivel
@@ -77,6 +76,8 @@ def load_effect_file(path: str | Path) -> dict[str, type[Effect]]:
 
 
 def _entry_point_effects() -> dict[str, type[Effect]]:
+    from importlib.metadata import entry_points  # 0.1-0.2 s: only when the installed effects are listed
+
     out: dict[str, type[Effect]] = {}
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         try:

@@ -32,27 +32,11 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
-from calib.robot import NoiseLevels, Robot
-from calib.selfcal._solve import (
-    APPROACH_LENGTH,
-    APPROACH_SWIVEL,
-    APPROACH_TENSION,
-    METHODS,
-    NOISE,
-    Prepared,
-    approach_directions,
-    measurement_rows,
-    noise_levels,
-    paper_noise,
-    prepare,
-    run_signals,
-    sensor_noise,
-    solve_run,
-)
+from calib.robot import Robot
+from calib.selfcal.guess import Prepared, prepare
 from calib.selfcal.model import CHANNELS, ChannelPrediction, MeasurementModel, channel_width
 from calib.selfcal.noise import ChannelNoise, WindowNoise, resolution_floor, window_mean_noise
+from calib.selfcal.options import METHODS, NOISE, SolveOptions, default_noise
 from calib.selfcal.problem import Measurements, Problem
 from calib.selfcal.result import (
     MISFIT_P,
@@ -63,6 +47,17 @@ from calib.selfcal.result import (
     TooFewWindows,
     compare_pose,
     sigma_scale,
+)
+from calib.selfcal.rows import (
+    APPROACH_LENGTH,
+    APPROACH_SWIVEL,
+    APPROACH_TENSION,
+    approach_directions,
+    measurement_rows,
+    noise_levels,
+    paper_noise,
+    run_signals,
+    sensor_noise,
 )
 from calib.selfcal.windows import (
     MissingSetpoint,
@@ -82,6 +77,8 @@ __all__ = [
     "resolution_floor",
     "window_mean_noise",
     "solve",
+    "SolveOptions",
+    "default_noise",
     "Solution",
     "ReferenceComparison",
     "Measurements",
@@ -117,36 +114,19 @@ __all__ = [
 ]
 
 
-def solve(
-    robot: Robot,
-    run: Any,
-    method: str = "tlse",
-    noise: str | NoiseLevels | dict = "paper",
-    stride: int = 1,
-    reference_sample: int | None = None,
-    windows: list[Window] | None = None,
-    window_options: WindowOptions | None = None,
-    model: MeasurementModel | None = None,
-    guess: tuple[np.ndarray, np.ndarray] | None = None,
-    reference_pose: np.ndarray | None = None,
-    max_iter: int = 200,
-) -> Solution:
+def solve(robot: Robot, run: Any, options: SolveOptions | None = None, **changes: Any) -> Solution:
     """Estimate the initial pose and the relative sensors' offsets of a run.
 
     run: a Run (arrays t (N,), tau, dl, dsigma (N, n), roll, pitch, dyaw (N,); optional tau_ref,
         setpoints, ideal_poses) or a :class:`Measurements` of readings already relative to the reference
-        (then ``guess`` = (theta0, poses0) is used if given, else the robot's home pose and pose estimation).
-    method: 'tlse' | 'lse' | 'hybrid'. noise: 'paper' | 'sensors' | 'estimate' | NoiseLevels | per-channel
-        dict of sigmas. stride: for lse/hybrid, every stride-th sample. reference_sample: the sample whose
-        pose is zeta_0 (default: the middle of the first equilibrium window, else sample 0).
-    windows: use these equilibrium windows instead of finding them. model: a measurement model (effects).
-    guess: (theta0, poses0) instead of the initial guess of Section 3.3 (poses0 None: estimated from the
-        readings given theta0). reference_pose: a known
-        zeta_0 to compare with (Solution.reference: eps_p, eps_r of eq. 20, geodesic angle).
+        (then ``options.guess`` = (theta0, poses0) is used if given, else the robot's home pose and pose
+        estimation).
+    options: a :class:`SolveOptions` (method, noise, stride, reference sample, windows, model, guess,
+        reference pose, iterations); ``changes``: its fields by name, over ``options`` or the defaults
+        (``solve(robot, run, method="tlse", noise="estimate")``).
 
     Raises SelfCalInputError (bad run or arguments) or SelfCalFailure (no equilibrium, no convergence).
     """
-    return solve_run(
-        robot, run, method, noise, stride, reference_sample, windows, window_options, model, guess,
-        reference_pose, max_iter,
-    )
+    from calib.selfcal import _solve
+
+    return _solve.solve_run(robot, run, SolveOptions.of(options, **changes))

@@ -30,7 +30,7 @@ platform's motion out of the kinematic groups, and :func:`variance_factors` / :f
 group down to what its window means scatter by around the fit, and up only where the model misses it by more
 than sqrt(MISFIT_FACTOR) times its noise (model error: it must not pull the poses to its misfit; issue 28).
 The reference window's own noise,
-which every relative row carries at once, is a parameter with a prior (calib.effects.builtin.ReferenceNoise).
+which every relative row carries at once, is a parameter with a prior (calib.effects.priors.ReferenceNoise).
 """
 
 from __future__ import annotations

@@ -30,7 +30,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from calib.robot import Robot
 
@@ -162,6 +161,18 @@ def slow_drift(x: np.ndarray, w: int, rest: np.ndarray) -> np.ndarray:
     return np.median(change[keep], axis=0) if keep.any() else np.zeros(x.shape[1:])
 
 
+def running_max(x: np.ndarray, w: int) -> np.ndarray:
+    """The maximum of every ``w`` consecutive rows of ``x`` (N, c): (N - w + 1, c), entry k that of
+    x[k : k + w]; exact, O(N) (van Herk / Gil-Werman: prefix and suffix maxima within blocks of ``w``)."""
+    n = x.shape[0]
+    blocks = -(-n // w)
+    pad = np.full((blocks * w - n, *x.shape[1:]), -np.inf)
+    b = np.concatenate([x, pad]).reshape(blocks, w, -1)
+    ahead = np.maximum.accumulate(b, axis=1).reshape(blocks * w, -1)
+    behind = np.maximum.accumulate(b[:, ::-1], axis=1)[:, ::-1].reshape(blocks * w, -1)
+    return np.maximum(behind[: n - w + 1], ahead[w - 1 : n]).reshape(n - w + 1, *x.shape[1:])
+
+
 @dataclass(frozen=True)
 class Activity:
     """What the signals do over each centred span of ``span`` samples: the range (max - min) per channel and
@@ -177,12 +188,12 @@ class Activity:
         if size < w:
             return cls(w, {c: np.full(x.shape, np.inf) for c, x in channels.items()}, np.full(size, np.inf))
         m, lo = size - w + 1, w // 2
-        # every channel's columns side by side: one running max and one running min (scipy.ndimage, C loops);
+        # every channel's columns side by side: one running max and one running min (:func:`running_max`);
         # entry i covers x[i - w//2 : i - w//2 + w], the edges repeat the first and last full span
         names = list(channels)
         x = np.concatenate([channels[c].reshape(size, -1) for c in names], axis=1)
-        rng = maximum_filter1d(x, w, axis=0)
-        rng -= minimum_filter1d(x, w, axis=0)
+        rng = np.empty_like(x)
+        rng[lo : lo + m] = running_max(x, w) + running_max(-x, w)
         rng[:lo] = rng[lo]
         rng[lo + m :] = rng[lo + m - 1]
         ranges, start = {}, 0

@@ -1,0 +1,62 @@
+"""The options of a solve, in one frozen dataclass (:class:`SolveOptions`), and what each defaults to."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from calib.robot import NoiseLevels
+from calib.selfcal.model import MeasurementModel
+from calib.selfcal.result import SelfCalInputError
+from calib.selfcal.windows import Window, WindowOptions
+
+METHODS = ("tlse", "lse", "hybrid")
+NOISE = ("paper", "estimate", "sensors")
+
+
+def default_noise(method: str) -> str:
+    """The weights a solve takes unless told: the run's own noise of a window mean ('estimate', whose 1-sigma
+    covers the truth as often as it says) for the window methods, the paper's (eq. 18) for lse's samples."""
+    return "paper" if method == "lse" else "estimate"
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """How :func:`calib.selfcal.solve` solves a run.
+
+    method: 'tlse' | 'lse' | 'hybrid'. noise: 'paper' | 'sensors' | 'estimate' | NoiseLevels | per-channel
+        dict of sigmas. stride: for lse/hybrid, every stride-th sample. reference_sample: the sample whose
+        pose is zeta_0 (default: the middle of the first equilibrium window, else sample 0).
+    windows: use these equilibrium windows instead of finding them (``window_options``: how to find them).
+    model: a measurement model (effects). guess: (theta0, poses0) instead of the initial guess of Section 3.3
+        (poses0 None: estimated from the readings given theta0). reference_pose: a known zeta_0 (6,) to
+        compare with (Solution.reference: eps_p, eps_r of eq. 20, geodesic angle). max_iter: LM iterations
+        (0: the guess is taken as the solution).
+    """
+
+    method: str = "tlse"
+    noise: str | NoiseLevels | dict = "paper"
+    stride: int = 1
+    reference_sample: int | None = None
+    windows: list[Window] | None = None
+    window_options: WindowOptions | None = None
+    model: MeasurementModel | None = None
+    guess: tuple[np.ndarray, np.ndarray] | None = None
+    reference_pose: np.ndarray | None = None
+    max_iter: int = 200
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise SelfCalInputError(f"method '{self.method}' is not one of {', '.join(METHODS)}.")
+        if int(self.stride) < 1:
+            raise SelfCalInputError(f"stride {self.stride} must be a positive integer.")
+
+    @classmethod
+    def of(cls, options: SolveOptions | None = None, **changes: Any) -> SolveOptions:
+        """``options`` (default: the defaults) with the named fields changed."""
+        if options is None:
+            return cls(**changes)
+        return dataclasses.replace(options, **changes) if changes else options
