@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from calib.effects import EffectModel
-from calib.effects.builtin import DeviceAccuracy
+from calib.effects.priors import DeviceAccuracy
 from calib.robot import RobotDescriptionError, load_robot, robot_from_dict
 from calib.selfcal.model import MeasurementModel
 from calib.statics import tension_model
