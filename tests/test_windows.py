@@ -265,7 +265,7 @@ def test_on_the_real_sc_8_final_the_ends_test_cuts_only_motion_and_keeps_the_pap
     length noise, ~0.01 mm, from the kept window's mean), the 8 setpoints keep a window each and the
     paper-weights solve moves by under 0.2 mm (0.13 mm measured)."""
     from acquisition.importers import import_irma
-    from calib.selfcal import solve_run
+    from calib.selfcal import solve
 
     run = import_irma(irma_data / "sc_8_final_parsed.mat", tmp_path / "r",
                       targets=irma_data / "sc_control_target_8_final.mat")
@@ -285,6 +285,6 @@ def test_on_the_real_sc_8_final_the_ends_test_cuts_only_motion_and_keeps_the_pap
             cut += 1
             assert np.max(np.abs(run.dl[end] - kept) / noise) > 10.0, (w0, w1, end)
     assert cut >= 8
-    pose = [solve_run(run.robot, run, noise="paper", window_options=o).initial_pose[:3]
+    pose = [solve(run.robot, run, noise="paper", window_options=o).initial_pose[:3]
             for o in (WindowOptions(ends_p=0.0), WindowOptions(ends_p=1e-3))]
     assert np.linalg.norm(pose[1] - pose[0]) < 0.2e-3
