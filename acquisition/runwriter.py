@@ -295,7 +295,7 @@ class RunWriter:
                 raise ValueError(f"extra column name {c!r} is empty, has a comma, or is a standard column.")
         self.columns = std + list(self.extra_columns)
         _prepare_folder(self.path, overwrite)
-        _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
+        self.save_meta()
         self._fh = open(self.path / SAMPLES_CSV, "w", encoding="utf-8", newline="\n")  # noqa: SIM115
         self._fh.write(",".join(self.columns) + "\n")
         self._fh.flush()
@@ -343,7 +343,16 @@ class RunWriter:
 
     def add_event(self, t: float, kind: str, message: str) -> None:
         """Append an event {t, kind, message} to run.yaml (atomic rewrite)."""
+        self.record_event(t, kind, message)
+        self.save_meta()
+
+    def record_event(self, t: float, kind: str, message: str) -> None:
+        """Append an event {t, kind, message} to the run's metadata in memory; :meth:`save_meta` writes it
+        (the control loop records on its own thread and leaves the rewrite to its log worker)."""
         self.meta["events"].append({"t": float(t), "kind": str(kind), "message": str(message)})
+
+    def save_meta(self) -> None:
+        """Rewrite run.yaml from the metadata in memory (atomic)."""
         _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
 
     def update_procedure(self, setpoints: Any, ideal_poses: Any) -> None:
@@ -352,7 +361,7 @@ class RunWriter:
         fresh = _base_meta(m["robot"], pro["method"], pro["sample_period"], m["source"], setpoints, ideal_poses,
                            self.robot.n, None)
         m["procedure"] = fresh["procedure"]
-        _write_atomic(self.path / RUN_YAML, _dump_yaml(m))
+        self.save_meta()
 
     def update_meta(self, **keys: Any) -> None:
         """Add or replace extra top-level keys of run.yaml (e.g. where the sensors were zeroed)."""
@@ -360,7 +369,7 @@ class RunWriter:
             if k in ("format", "robot", "procedure", "events"):
                 raise ValueError(f"update_meta may not replace the standard key '{k}'.")
         self.meta.update(to_plain(keys))
-        _write_atomic(self.path / RUN_YAML, _dump_yaml(self.meta))
+        self.save_meta()
 
     def close(self) -> None:
         """Flush, fsync and close samples.csv."""

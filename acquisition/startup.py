@@ -362,12 +362,9 @@ class StartupRoutine:
         the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap)."""
         with loop_runtime():
             try:
-                result = self._procedure()
-            except BaseException:
-                self._io.close()  # the run log's pending writes are on disk before the stop is reported
-                raise
-            self._io.close()
-            return result
+                return self._procedure()
+            finally:
+                self._io.close()  # the run log's pending writes are on disk before the run or its stop is reported
 
     def _procedure(self) -> StartupResult:
         wall0 = time.perf_counter()
@@ -489,7 +486,10 @@ class StartupRoutine:
             for row in self._prerun:
                 self._write(row)
         if log and self._log_open:
-            self._io.submit(self.writer.add_event, t_now - (self._t_run0 or 0.0), stop.kind, stop.message)
+            # recorded now, on the loop's thread (whoever watches the run sees the stop with its first tick);
+            # run.yaml's rewrite on the log worker
+            self.writer.record_event(t_now - (self._t_run0 or 0.0), stop.kind, stop.message)
+            self._io.submit(self.writer.save_meta)
         self._mark_dead(stop)
         if stop.channels:
             self.controller.open_loop(np.array(stop.channels))
