@@ -108,7 +108,7 @@ def main() -> int:
             ok &= good
             conv = {"tension": 1.0, "length": 1e3, "swivel": 57.29577951308232, "orientation": 57.29577951308232}
             rms = ", ".join(f"{c[:3]} {a[c] * conv[c]:.3g}->{b[c] * conv[c]:.3g}" for c in WEIGHTS if c in a)
-            print(f"{p.name:<16} {','.join(s2.selected) or '-':<44} {ja:>8.1f} {jb:>8.1f} {jb / ja:>6.2f}  {rms}"
+            print(f"{p.name:<16} {','.join(s2.selected) or '-':<44} {ja:>8.1f} {jb:>8.1f} {jb / ja:>6.3f}  {rms}"
                   f"  {'ok' if good else 'MISS' + (' (grows: ' + ','.join(grow) + ')' if grow else '')}")
     return 0 if ok else 1
 
