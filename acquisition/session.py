@@ -222,6 +222,8 @@ class _Acquisition:
             sim_config = load_sim_config(req.sim_config, robot.n)
         except SimConfigError as exc:
             raise StartupRefused(str(exc)) from exc
+        # the simulated prototype as described (its cables' stretch): run.yaml records it, the solves use it
+        robot = self.robot = sim_config.described_robot(robot)
         period = 1.0 / cfg.rate
         clock = RealClock(period, lockstep=True) if req.realtime else SimClock(period)
         supervisor = _supervisor(robot, cfg)

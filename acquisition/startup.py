@@ -339,7 +339,7 @@ class StartupRoutine:
             **self.meta,
         }
         self._writer_ready = self._io.submit(partial(
-            RunWriter, self.out, self.robot.name, self.cfg.method, self.cfg.log_period, self.source,
+            RunWriter, self.out, self.robot, self.cfg.method, self.cfg.log_period, self.source,
             setpoints=plan.setpoints if len(plan.setpoints) else None,
             ideal_poses=plan.ideal_poses if len(plan.ideal_poses) else None,
             extra_columns=("tick",), meta_extra=meta, overwrite=True))

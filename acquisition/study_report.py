@@ -36,6 +36,13 @@ def render_table(stats: dict[str, dict[str, Any]]) -> str:
             + f" | {_fmt(s['sigma_mm'], 'rms', 2):>7} {'-' if r is None else f'{r:.2f}':>5} | "
             + f"{'-' if c1 is None else f'{100 * c1:.0f}%':>5} {'-' if c2 is None else f'{100 * c2:.0f}%':>5} | "
             + " ".join(_fmt(t, k, 1).rjust(6) for k in ("median", "q1", "q3", "p90")))
+    for plan, s in stats.items():
+        a = s.get("axes")
+        if a:
+            lines.append(f"{plan}: per axis x, y, z: rms(error/σ) "
+                         + " / ".join(f"{v:.2f}" for v in a["rms_error_over_sigma"]) + ", coverage of the 1σ "
+                         + " / ".join(f"{100 * v:.0f}%" for v in a["coverage_1sigma"]) + ", of the 2σ "
+                         + " / ".join(f"{100 * v:.0f}%" for v in a["coverage_2sigma"]))
     lines.append(f"coverage: share of |error| within the printed 1σ and 2σ per axis (calibrated: "
                  f"{100 * COVERAGE_EXPECTED[0]:.0f}% and {100 * COVERAGE_EXPECTED[1]:.0f}%); rms/1σ: RMS error over "
                  f"the RMS printed 1σ of the position (calibrated: 1)")

@@ -202,6 +202,15 @@ class SimConfig:
             p = dataclasses.replace(p, pulley_mu=mu, pulley_friction=f)
         return p
 
+    def described_robot(self, robot: Robot) -> Robot:
+        """The description of the simulated prototype: ``robot`` with the cables' axial stiffness the simulator
+        gives them where ``robot`` names none (``physics.ea`` of this file, else the nominal
+        ``PhysicsParams.ea``), so that the model solving a simulated run knows the stretch the simulator
+        makes; a hidden ``cable_elasticity`` stays hidden (the description keeps the nominal figure)."""
+        if robot.axial_stiffness is not None:
+            return robot
+        return robot.replace(axial_stiffness=np.full(robot.n, float(self.physics.ea)))
+
     def tension_offset(self, n: int) -> np.ndarray:
         return np.zeros(n) if self.effects.tension_offset is None else np.asarray(self.effects.tension_offset)
 

@@ -11,6 +11,7 @@ import pytest
 from acquisition.cli import build_parser, main
 from acquisition.cli.study import check_startup_accepts
 from acquisition.study import RunTask, StudyConfig, plan_args, plan_statistics, run_startup
+from acquisition.study_report import render_table
 
 
 @pytest.fixture(scope="module")
@@ -100,6 +101,12 @@ def test_statistics_of_known_errors():
     assert s["rms_error_over_sigma"] == pytest.approx(np.sqrt(np.mean(norms**2) / 3))
     # per axis within 1 sigma: x in 2 of 4 runs, y in all, z in none: 6 of 12; within 2 sigma: x 2, y 4, z 0
     assert s["coverage_1sigma"] == pytest.approx(6 / 12) and s["coverage_2sigma"] == pytest.approx(6 / 12)
+    # axis by axis: x within 1 sigma in 2 of 4 runs (errors 0, 3, 4, 0 sigma), y in 4, z in none (2.5 sigma)
+    np.testing.assert_allclose(s["axes"]["coverage_1sigma"], [0.5, 1.0, 0.0])
+    np.testing.assert_allclose(s["axes"]["coverage_2sigma"], [0.5, 1.0, 0.0])
+    np.testing.assert_allclose(s["axes"]["rms_error_over_sigma"], [np.sqrt(25 / 4), 0.5, 2.5])
+    assert "p: per axis x, y, z: rms(error/σ) 2.50 / 0.50 / 2.50, coverage of the 1σ 50% / 100% / 0%" \
+        in render_table({"p": s})
     assert s["robot_time_s"]["median"] == pytest.approx(25.0) and s["robot_time_s"]["p90"] == pytest.approx(37.0)
 
 
