@@ -109,7 +109,7 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
     view, client = LiveView.off(), None
     if live:
         view = LiveView.start("127.0.0.1:0", robot, rate, SafetyLimits.for_robot(robot), stream=sys.stderr)
-        client = subprocess.Popen([sys.executable, "-c", CLIENT, str(view.server.port)], stdout=subprocess.PIPE,
+        client = subprocess.Popen([sys.executable, "-c", CLIENT, str(view.port)], stdout=subprocess.PIPE,
                                   text=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
         assert client.stdout.readline().strip() == "subscribed"
     load0, t0 = os.getloadavg()[0], time.perf_counter()
