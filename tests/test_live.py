@@ -301,3 +301,42 @@ def test_a_run_log_write_that_fails_on_the_log_worker_is_raised(tmp_path):
     worker.submit(open, tmp_path / "no such folder" / "run.yaml", "w")
     with pytest.raises(FileNotFoundError):
         worker.close()
+
+
+def test_on_a_real_clock_the_detector_refreshes_its_thresholds_on_a_worker_without_waiting():
+    """Issue 32: the detector's refresh (the offline statistics of up to 600 s of samples, 15 ms at 6000) is
+    handed to a worker; the sample that asks never waits for it and keeps the thresholds it had, the first
+    sample after it is ready takes exactly the thresholds the in-line detector took at the asking sample."""
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
+
+    cfg = DetectorConfig.for_robot(load_robot("irma4u"))
+    held: list[tuple] = []
+
+    def later(fn, *args) -> Future:  # a worker that has not run the call yet
+        held.append((fn, args))
+        return Future()
+
+    inline, slow = EquilibriumDetector(0.1, cfg), EquilibriumDetector(0.1, cfg, background=later)
+    pool = ThreadPoolExecutor(1)
+    worker = EquilibriumDetector(0.1, cfg, background=pool.submit)
+    rng = np.random.default_rng(3)
+    for det in (inline, slow, worker):
+        det.start(0.0)
+    for k in range(1, 61):
+        row = (100.0 + 0.3 * rng.standard_normal(4), 2e-5 * rng.standard_normal(4), 1e-4 * rng.standard_normal(4),
+               1e-4 * rng.standard_normal(), 1e-4 * rng.standard_normal())
+        before = slow.stillness
+        states = [det.push(0.1 * k, *row) for det in (inline, slow, worker)]
+        assert slow.stillness is before  # asked, not waited for
+        if k % 10 == 0:  # a refresh: the in-line detector took new thresholds at once, the worker's comes later
+            assert inline.stillness.ripple_tol != before.ripple_tol or k == 10
+            worker._refreshing.result(timeout=60)
+        elif k % 10 == 1 and k > 1:
+            a, b = worker.stillness, inline.stillness
+            assert a.ripple_tol == b.ripple_tol and a.ends == b.ends and all(
+                np.array_equal(a.thresholds[c], b.thresholds[c]) for c in b.thresholds)
+            assert states[2] == states[0]  # judged with the same thresholds
+    pool.shutdown()
+    assert len(held) == 1 and slow.stillness.ripple_tol == cfg.ripple_floor  # one refresh asked, none taken
