@@ -47,7 +47,7 @@ from acquisition.scene import (
 from calib.robot import Robot
 
 SCENE_RATE = 20.0  # Hz, scene updates during a startup
-PIPE_SIZE = 1 << 18  # bytes the pipe to the publisher holds (~500 records); what does not fit is dropped
+PIPE_SIZE = 1 << 18  # bytes the pipe to the publisher holds (~1000 records of ~250 bytes); what does not fit is dropped
 PUBLISHER_NICE = 10  # the publisher process's niceness above the loop's
 START_TIMEOUT = 60.0  # s to wait for the publisher process to listen
 
@@ -275,6 +275,7 @@ class LiveTap:
         self.fd = fd
         self.dropped = 0
         self.handed = 0
+        self.gone = False  # the publisher closed its end (its process ended)
         self._routine = None
         self._windows = self._events = self._estimates = 0  # seen so far
         self._ghosts = 0  # planned poses sent so far
@@ -326,7 +327,11 @@ class LiveTap:
             return False
         try:
             os.write(self.fd, frame)
-        except (BlockingIOError, BrokenPipeError):  # the pipe is full (or the publisher is gone): dropped
+        except BlockingIOError:  # the pipe is full: dropped
+            self.dropped += 1
+            return False
+        except BrokenPipeError:  # the publisher is gone: the run goes on
+            self.gone = True
             self.dropped += 1
             return False
         return True
@@ -340,7 +345,7 @@ class LiveTap:
         end = time.monotonic() + timeout
         while not self._send(None):
             self.dropped -= 1  # the end of the run is not a tick
-            if time.monotonic() > end:
+            if self.gone or time.monotonic() > end:
                 return False
             time.sleep(0.01)
         return True
@@ -449,7 +454,10 @@ def _serve(records, control, address: LiveAddress, robot: Robot, slack: float, o
         pub.finish()
     finally:
         server.close()
-        control.send(("done", pub.published, pub.scenes, pub.errors))
+        try:
+            control.send(("done", pub.published, pub.scenes, pub.errors))
+        except OSError:  # the loop's process is gone
+            pass
 
 
 class LiveView:
@@ -471,10 +479,11 @@ class LiveView:
 
     @classmethod
     def start(cls, address: str | LiveAddress, robot: Robot, rate: float, limits, scene_rate: float = SCENE_RATE,
-              stream=None, timeout: float = START_TIMEOUT) -> LiveView:
+              stream=None, timeout: float = START_TIMEOUT, pipe_size: int = PIPE_SIZE) -> LiveView:
         """Start the publisher process listening on ``address`` ([HOST:]PORT) for a startup at ``rate`` Hz whose
         supervisor has ``limits`` (acquisition.safety.SafetyLimits); scene updates at ``scene_rate`` Hz; says
-        where it listens on ``stream``. Raises ValueError (address) or OSError (cannot listen)."""
+        where it listens on ``stream``; the pipe to it holds ``pipe_size`` bytes. Raises ValueError (address)
+        or OSError (cannot listen)."""
         import multiprocessing
 
         addr = address if isinstance(address, LiveAddress) else LiveAddress.parse(address)
@@ -501,7 +510,7 @@ class LiveView:
             raise OSError(got[1])
         fd = records_w.fileno()
         os.set_blocking(fd, False)
-        _grow_pipe(fd)
+        _size_pipe(fd, pipe_size)
         view = cls(LiveTap(int(round(rate / scene_rate)), fd), proc, control_r, got[1], got[2], stream)
         view._records = records_w  # kept open (the tap writes its file descriptor) until close
         view._stream.write(listening(view.host, view.port))
@@ -549,7 +558,7 @@ def listening(host: str, port: int) -> str:
             f"this URL; layout docs/foxglove-layout.json)\n")
 
 
-def _grow_pipe(fd: int, size: int = PIPE_SIZE) -> None:
+def _size_pipe(fd: int, size: int) -> None:
     """Let the pipe hold ``size`` bytes (Linux; the system's default, 64 KiB, elsewhere or if refused)."""
     import fcntl
 
