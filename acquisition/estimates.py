@@ -76,6 +76,7 @@ class LogWorker:
         from concurrent.futures import ThreadPoolExecutor
 
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cdpr-runlog")
+        self._pool.submit(int).result()  # its thread started now, not by the first call (in a tick: 5-9 ms)
         self._pending: list = []
 
     def submit(self, fn: Callable[..., Any], *args: Any):
