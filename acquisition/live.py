@@ -50,6 +50,8 @@ SCENE_RATE = 20.0  # Hz, scene updates during a startup
 PIPE_SIZE = 1 << 18  # bytes the pipe to the publisher holds (~1000 records of ~250 bytes); what does not fit is dropped
 PUBLISHER_NICE = 10  # the publisher process's niceness above the loop's
 START_TIMEOUT = 60.0  # s to wait for the publisher process to listen
+NEWS = 4  # windows, events and estimates per record at most (a record is one write of at most PIPE_BUF bytes)
+GHOST_ROWS = 16  # planned poses per record at most
 
 
 @dataclass(frozen=True)
@@ -295,11 +297,14 @@ class LiveTap:
         if not (news or (not final and (logged or snap.tick % self.every == 0))):
             return
         extra = None
-        if news:
-            extra = (r._windows[self._windows:], r.writer.meta["events"][self._events:] if events else [],
-                     [_plain_estimate(est) for _, est in r._history[self._estimates:]], self._estimates)
-        ghosts = r.plan.ideal_poses
-        new_ghosts = ghosts.tolist() if len(ghosts) != self._ghosts else None
+        if news:  # at most NEWS of each per record (the record stays within one atomic write); the rest follows
+            evs = r.writer.meta["events"] if events else []
+            extra = (r._windows[self._windows:self._windows + NEWS], evs[self._events:self._events + NEWS],
+                     [_plain_estimate(est) for _, est in r._history[self._estimates:self._estimates + NEWS]],
+                     self._estimates)
+        ghosts = r.plan.ideal_poses  # GHOST_ROWS of the planned poses not sent yet, with the first one's index
+        new_ghosts = ((self._ghosts, ghosts[self._ghosts:self._ghosts + GHOST_ROWS].tolist())
+                      if len(ghosts) > self._ghosts else None)
         z, t0 = r._zero, r._t_run0
         if z:
             dl, ds, dyaw = (snap.dl - z["dl"]).tolist(), (snap.dsigma - z["dsigma"]).tolist(), snap.yaw - z["yaw"]
@@ -313,10 +318,12 @@ class LiveTap:
         if not self._send(record):
             return
         self.handed += 1
-        if news:
-            self._windows, self._events, self._estimates = wins, events, estimates
+        if extra is not None:
+            self._windows += len(extra[0])
+            self._events += len(extra[1])
+            self._estimates += len(extra[2])
         if new_ghosts is not None:
-            self._ghosts = len(ghosts)
+            self._ghosts += len(new_ghosts[1])
 
     def _send(self, record) -> bool:
         """Write one record in one atomic write (the pipe's size limit for that, PIPE_BUF) or drop it."""
@@ -340,8 +347,11 @@ class LiveTap:
         """Hand over what the routine recorded since its last tick (a stop's event), then tell the publisher the
         run is over (tries for at most ``timeout`` s while the pipe is full); False if it could not."""
         r = self._routine
-        if r is not None and r._last is not None:
+        for _ in range(100 if r is not None and r._last is not None else 0):  # NEWS at a time
+            seen = (self._windows, self._events, self._estimates)
             self._hand(r._last, final=True)
+            if (self._windows, self._events, self._estimates) == seen:
+                break
         end = time.monotonic() + timeout
         while not self._send(None):
             self.dropped -= 1  # the end of the run is not a tick
@@ -376,6 +386,7 @@ class LivePublisher:
         self._nwin = 0  # windows published (held in setpoint order)
         self._stopped_by: str | None = None  # the stop recorded in run.yaml, once there is one
         self._times: dict[int, float] = {}  # run time of the logged samples seen, by row (window times)
+        self._ghosts: list[list[float]] = []  # the planned poses received
 
     def publish(self, record: tuple) -> None:
         """One record; a failure is kept in ``errors`` (the view is not the run), never raised."""
@@ -394,8 +405,10 @@ class LivePublisher:
     def _publish(self, t_ns, t, tau, ref, dl, ds, roll, pitch, dyaw, phase, setpoint, sync, logged, index,
                  requested, extra, ghosts) -> None:
         out: list[tuple[str, Any]] = []
-        if ghosts is not None:
-            self.view.set_ghosts(np.array(ghosts, dtype=float).reshape(-1, 6))
+        if ghosts is not None:  # (index of the first, rows): the planned poses as they come
+            first, rows = ghosts
+            self._ghosts = self._ghosts[:first] + rows
+            self.view.set_ghosts(np.array(self._ghosts, dtype=float).reshape(-1, 6))
         if logged:
             self._times[index] = t
         tau = np.array(tau, dtype=float)
