@@ -16,10 +16,11 @@ samples, as an offline window needs. A detection that does not come within ``tim
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -66,9 +67,15 @@ class EquilibriumDetector:
         self.background = background
         self._refreshing: Future | None = None
         self.sample_period = float(sample_period)
-        opt = self.config.options
+        # the offline ends test, on here even where the offline search leaves it off (the recordings' default),
+        # a sway's wander allowed over the settle_s block it judges
+        given = self.config.options
+        opt = replace(given, ends_p=given.ends_p or given.settle_p,
+                      ends_reach_s=max(given.ends_reach_s, 0.5 * given.settle_s))
+        self.options = opt
         self.span = span_samples(opt, self.sample_period)
-        self.needed = min_samples(opt, self.sample_period)  # consecutive still judgements that make a rest
+        # consecutive still judgements that make a rest: a window's length, and at least settle_s
+        self.needed = max(min_samples(opt, self.sample_period), int(math.ceil(opt.settle_s / self.sample_period)))
         keep = max(2 * self.span, int(round(self.config.history / self.sample_period)))
         self._past: deque[np.ndarray] = deque(maxlen=keep)  # rows [tau, dl, dsigma, roll, pitch]
         # the same rows since start, a window's worth: the latest span is judged, the whole block's ends
@@ -104,7 +111,7 @@ class EquilibriumDetector:
     def _thresholds_of(self, rows: list[np.ndarray]) -> Stillness:
         """Stillness.of_samples of the rows (pure: the worker's call)."""
         tau, ch = self._split(np.array(rows))
-        return Stillness.of_samples(tau, ch, self.span, self.config.options, self.config.ripple_floor)
+        return Stillness.of_samples(tau, ch, self.span, self.options, self.config.ripple_floor)
 
     def _refresh_thresholds(self) -> None:
         """In line (no ``background``), else asked of the worker unless a refresh is already on its way."""
