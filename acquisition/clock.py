@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import abc
 import gc
+import importlib
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -17,6 +18,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 LOOP_SWITCH_INTERVAL = 0.0005  # s, sys.setswitchinterval while a control loop runs (CPython's default: 0.005)
+# modules a library imports on first use that the loop would otherwise import inside a tick: numpy.ma, which
+# numpy imports at the first np.median (its NaN check), 10-25 ms in the tick that ends the pretension's rest
+LOOP_IMPORTS = ("numpy.ma",)
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,10 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL) -> Iterator[None
     full collection of them took 40-100 ms in one tick at 200 Hz; the young objects the loop makes are
     collected as before). The thread switch interval is ``switch_interval`` s, so that the loop's thread,
     waking from its sleep or from a device wait, waits at most about that long for another thread (a live
-    view's publisher, a run-log writer) to give up the interpreter. Nested use is harmless."""
+    view's publisher, a run-log writer) to give up the interpreter. The modules of :data:`LOOP_IMPORTS` are
+    imported first (and frozen with the rest). Nested use is harmless."""
+    for name in LOOP_IMPORTS:
+        importlib.import_module(name)
     frozen = gc.get_freeze_count() == 0
     switch = sys.getswitchinterval()
     if frozen:

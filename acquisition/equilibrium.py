@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -56,10 +58,14 @@ class DetectorState:
 
 
 class EquilibriumDetector:
-    """The offline stillness test on a sliding span of samples taken every ``sample_period`` s."""
+    """The offline stillness test on a sliding span of samples taken every ``sample_period`` s; ``background``:
+    submits a call to a worker and returns its Future (the thresholds' refresh off the caller's thread)."""
 
-    def __init__(self, sample_period: float, config: DetectorConfig | None = None):
+    def __init__(self, sample_period: float, config: DetectorConfig | None = None,
+                 background: Callable[..., Future] | None = None):
         self.config = config or DetectorConfig()
+        self.background = background
+        self._refreshing: Future | None = None
         self.sample_period = float(sample_period)
         # the offline ends test, on here even where the offline search leaves it off (the recordings' default),
         # a sway's wander allowed over the settle_s block it judges
@@ -90,7 +96,7 @@ class EquilibriumDetector:
         self._run = 0
         self._t0 = float(t)
         self.timeout = self.config.timeout if timeout is None else float(timeout)
-        self.update_thresholds()
+        self._refresh_thresholds()
 
     def _split(self, rows: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         n = self._n
@@ -100,8 +106,25 @@ class EquilibriumDetector:
     def update_thresholds(self) -> None:
         """The offline thresholds (:meth:`Stillness.of_samples`) of the samples kept in the history."""
         if len(self._past) >= 3 and self.config.stillness is None:
-            tau, ch = self._split(np.array(self._past))
-            self.stillness = Stillness.of_samples(tau, ch, self.span, self.options, self.config.ripple_floor)
+            self.stillness = self._thresholds_of(list(self._past))
+
+    def _thresholds_of(self, rows: list[np.ndarray]) -> Stillness:
+        """Stillness.of_samples of the rows (pure: the worker's call)."""
+        tau, ch = self._split(np.array(rows))
+        return Stillness.of_samples(tau, ch, self.span, self.options, self.config.ripple_floor)
+
+    def _refresh_thresholds(self) -> None:
+        """In line (no ``background``), else asked of the worker unless a refresh is already on its way."""
+        if self.background is None:
+            self.update_thresholds()
+        elif self._refreshing is None and len(self._past) >= 3 and self.config.stillness is None:
+            self._refreshing = self.background(self._thresholds_of, list(self._past))
+
+    def _take_thresholds(self) -> None:
+        """The worker's thresholds once they are ready (never waits)."""
+        if self._refreshing is not None and self._refreshing.done():
+            done, self._refreshing = self._refreshing, None
+            self.stillness = done.result()
 
     def push(self, t: float, tau: np.ndarray, dl: np.ndarray, dsigma: np.ndarray, roll: float,
              pitch: float) -> DetectorState:
@@ -111,8 +134,9 @@ class EquilibriumDetector:
         self._past.append(row)
         self._recent.append(row)
         self._count += 1
+        self._take_thresholds()
         if self._count % self._refresh == 0:
-            self.update_thresholds()
+            self._refresh_thresholds()
         elapsed = float(t) - self._t0
         still, scores = False, (float("nan"), float("nan"))
         if len(self._recent) >= self.span:

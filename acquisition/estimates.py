@@ -67,7 +67,8 @@ class EstimateWorker:
 class LogWorker:
     """The run log's slow calls off the control loop's thread: creating the run folder and run.yaml, the fsync
     at each window, run.yaml's rewrites (a sequential plan's setpoints, an event) and the final close, each a
-    yaml dump and an fsync (10-15 ms of interpreter time on the lab PC, more on a slow disk). One thread
+    yaml dump and an fsync (10-15 ms of interpreter time on the lab PC, more on a slow disk), and on a real
+    clock the equilibrium detector's refresh of its thresholds (acquisition/equilibrium.py). One thread
     does them in the order they are asked for; the loop's own samples.csv lines (written and flushed, not
     fsynced, by the loop) are untouched. A failure is raised by the next :meth:`submit` or by :meth:`close`."""
 
@@ -75,6 +76,7 @@ class LogWorker:
         from concurrent.futures import ThreadPoolExecutor
 
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="cdpr-runlog")
+        self._pool.submit(int).result()  # its thread started now, not by the first call (in a tick: 5-9 ms)
         self._pending: list = []
 
     def submit(self, fn: Callable[..., Any], *args: Any):

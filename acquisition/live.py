@@ -6,21 +6,23 @@ The Foxglove SDK's WebSocket server (``foxglove-sdk``; protocol subprotocol ``fo
 services, no parameters, no playback control), so whatever a client sends is refused by the server with an
 error status and never reaches this process; it binds 127.0.0.1 unless a host is named.
 
-The control loop never waits for it: :class:`LiveTap` runs in the loop's thread at each tick and only, every
-``every`` ticks and at each logged sample, puts the tick's snapshot (read-only arrays, no copy) into a
-bounded queue, dropping it when the queue is full; :class:`LivePublisher`, a thread of its own, takes them
-out, estimates the platform's pose (:class:`acquisition.scene.PoseTracker`), encodes and logs the messages.
-The server's own threads send them; a client that is slow, connects or vanishes only changes what it
-receives. The loop's thread, waking from its sleep, waits for the publisher's thread at most the switch
-interval the routine runs at (:func:`acquisition.clock.loop_runtime`, with or without the view); a replay's
-publisher sets the same :data:`SWITCH_INTERVAL`.
+The control loop never waits for it, nor shares its interpreter with it: :class:`LiveTap` runs in the loop's
+thread at each tick and only, every ``every`` ticks and at each logged sample, writes the tick's record (a few
+hundred bytes of plain numbers) into a pipe in one non-blocking write, dropping it when the pipe is full;
+the publisher, a process of its own (spawned, at a lower priority: :func:`_serve`), runs the server, estimates
+the platform's pose (:class:`acquisition.scene.PoseTracker`), builds, encodes and logs the messages. The
+server's own threads send them; a client that is slow, connects or vanishes only changes what it receives.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
-import queue
+import os
+import pickle
+import select
+import struct
 import sys
 import threading
 import time
@@ -29,25 +31,25 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.clock import LOOP_SWITCH_INTERVAL
+from acquisition.live_messages import Frame, RunView
 from acquisition.scene import (
     ESTIMATE_SCHEMA,
     EVENT_SCHEMA,
     SUPERVISOR_SCHEMA,
     WINDOW_SCHEMA,
     PoseTracker,
-    SceneModel,
     foxglove_schemas,
-    log_message,
-    number,
     sample_schema,
     startup_columns,
 )
 from calib.robot import Robot
 
 SCENE_RATE = 20.0  # Hz, scene updates during a startup
-QUEUE_SIZE = 256  # snapshots waiting for the publisher; more are dropped
-SWITCH_INTERVAL = LOOP_SWITCH_INTERVAL  # s, sys.setswitchinterval while a publisher runs (also the loop's)
+PIPE_SIZE = 1 << 18  # bytes the pipe to the publisher holds (~1000 records of ~250 bytes); what does not fit is dropped
+PUBLISHER_NICE = 10  # the publisher process's niceness above the loop's
+START_TIMEOUT = 60.0  # s to wait for the publisher process to listen
+NEWS = 4  # windows, events and estimates per record at most (a record is one write of at most PIPE_BUF bytes)
+GHOST_ROWS = 16  # planned poses per record at most
 
 
 @dataclass(frozen=True)
@@ -93,120 +95,6 @@ def encode(msg: Any) -> bytes:
     return json.dumps(msg).encode() if isinstance(msg, dict) else msg.encode()
 
 
-@dataclass(frozen=True)
-class Frame:
-    """One moment of a run for the view: log time (ns), run time t (s; NaN before the run log starts), the
-    readings as logged (tau (n,) N, tau_ref (n,) N, dl (n,) m and dsigma (n,) rad since power-on, roll, pitch,
-    dyaw rad), phase, setpoint, SYNC tick, and whether it is a row of samples.csv."""
-
-    t_ns: int
-    t: float
-    tau: np.ndarray
-    tau_ref: np.ndarray
-    dl: np.ndarray
-    dsigma: np.ndarray
-    roll: float
-    pitch: float
-    dyaw: float
-    phase: str
-    setpoint: int
-    tick: int
-    logged: bool
-
-
-class RunView:
-    """The messages of a run's view (topic, message), frame by frame; remembers the phase and the supervisor's
-    state to log their changes. Shared by the live startup, the live replay and the MCAP export."""
-
-    def __init__(self, robot: Robot, ghosts: np.ndarray | None, slack: float, overload: float):
-        self.robot = robot
-        self.scene = SceneModel.for_robot(robot, ghosts)
-        self.slack, self.overload = float(slack), float(overload)
-        self._phase: tuple[str, int] | None = None
-        self._state: tuple[str, str | None] | None = None
-        self._state_ns = 0
-
-    @property
-    def stop(self) -> str | None:
-        """The stop the supervisor reported last (None: no stop)."""
-        return None if self._state is None else self._state[1]
-
-    def set_ghosts(self, ghosts: np.ndarray) -> None:
-        """The planned poses (k, 6) shown as ghosts (a sequential plan grows)."""
-        self.scene = SceneModel.for_robot(self.robot, ghosts)
-
-    def sample(self, f: Frame) -> dict[str, Any]:
-        """The /samples message: the columns of samples.csv by name."""
-        n = self.robot.n
-        msg: dict[str, Any] = {"t": number(f.t)}
-        for g, a in (("tau", f.tau), ("tau_ref", f.tau_ref), ("dl", f.dl), ("dsigma", f.dsigma)):
-            vals = np.asarray(a, dtype=float).tolist()
-            for i in range(n):
-                msg[f"{g}_{i + 1}"] = number(vals[i])
-        msg.update(roll=number(f.roll), pitch=number(f.pitch), dyaw=number(f.dyaw), phase=str(f.phase),
-                   setpoint=int(f.setpoint), tick=int(f.tick))
-        return msg
-
-    def frame(self, f: Frame, pose: np.ndarray | None, scene: bool = True, solved: np.ndarray | None = None
-              ) -> list[tuple[str, Any]]:
-        """The messages of one frame: its sample (if logged), the scene and transform at ``pose`` (6,) (None:
-        unknown; ``solved``: the solve's initial pose, see SceneModel.update), and a log line when the phase or
-        setpoint changes."""
-        out: list[tuple[str, Any]] = []
-        if f.logged:
-            out.append(("/samples", self.sample(f)))
-        if (f.phase, f.setpoint) != self._phase:
-            self._phase = (f.phase, f.setpoint)
-            where = f" setpoint {f.setpoint}" if f.setpoint >= 0 else ""
-            out.append(("/log", log_message(f.t_ns, f"phase {f.phase}{where}")))
-        if scene:
-            label = f"{f.phase}" + (f" {f.setpoint}" if f.setpoint >= 0 else "")
-            out.append(("/scene", self.scene.update(f.t_ns, pose, f.tau, label, solved)))
-            if pose is not None:
-                out.append(("/tf", self.scene.transform(f.t_ns, pose)))
-        return out
-
-    def supervisor(self, t_ns: int, t: float, state: str, stop: str | None, every_ns: int = 1_000_000_000
-                   ) -> list[tuple[str, Any]]:
-        """/supervisor when its state changes, else once per ``every_ns``; a stop is also a /log error."""
-        key = (state, stop)
-        if key == self._state and t_ns - self._state_ns < every_ns:
-            return []
-        out: list[tuple[str, Any]] = [("/supervisor", {"t": number(t) if number(t) is not None else 0.0,
-                                                      "state": state, "slack_N": self.slack,
-                                                      "overload_N": self.overload, "stop": stop})]
-        if key != self._state and state != "watching":
-            out.append(("/log", log_message(t_ns, f"supervisor: {state}" + (f": {stop}" if stop else ""),
-                                            "Error" if stop else "Warning")))
-        self._state, self._state_ns = key, t_ns
-        return out
-
-    @staticmethod
-    def window(t_ns: int, first: int, last: int, t_first: float, t_last: float, setpoint: int,
-               source: str) -> list[tuple[str, Any]]:
-        msg = {"first": int(first), "last": int(last), "t_first": float(t_first), "t_last": float(t_last),
-               "setpoint": int(setpoint), "source": source}
-        return [("/windows", msg), ("/log", log_message(t_ns, f"equilibrium window of setpoint {setpoint}: samples "
-                                                          f"{first}..{last} ({t_first:.1f}..{t_last:.1f} s)"))]
-
-    @staticmethod
-    def event(t_ns: int, ev: dict[str, Any]) -> list[tuple[str, Any]]:
-        msg = {"t": float(ev["t"]), "kind": str(ev["kind"]), "message": str(ev["message"])}
-        return [("/events", msg), ("/log", log_message(t_ns, f"{msg['kind']}: {msg['message']}", "Error"))]
-
-    @staticmethod
-    def estimate(t_ns: int, pose: int, t: float, initial_pose, sigma, position_sigma: float | None
-                 ) -> list[tuple[str, Any]]:
-        p = [float(v) for v in initial_pose][:6]
-        ps = None if position_sigma is None else number(position_sigma)
-        msg = {"pose": int(pose), "t": float(t), "initial_pose": p,
-               "initial_pose_sigma": None if sigma is None else [number(v) for v in sigma][:6],
-               "position_sigma_m": ps}
-        text = (f"online estimate after pose {pose}: x0 {p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f} m"
-                + (f", 1-sigma {1000 * ps:.2f} mm" if ps is not None else " (reference window)"))
-        return [("/estimate", msg), ("/log", log_message(t_ns, text))]
-
-
 class _Subscriptions:
     """The server's listener: it only notes that a viewer subscribed (the server has no capability, so a
     client's messages, service calls and parameters are refused before any listener would hear of them)."""
@@ -241,9 +129,7 @@ class LiveServer:
         except Exception as exc:  # the SDK raises its own error type: say where it could not listen
             raise OSError(f"the live view cannot listen on {address.host}:{address.port} ({exc}).") from exc
         self.host, self.port = address.host, int(self.server.port)
-        (stream or sys.stderr).write(f"cdpr: live view on ws://{self.host}:{self.port} (read-only; Foxglove: "
-                                     f"Open connection, Foxglove WebSocket, this URL; layout docs/foxglove-layout"
-                                     f".json)\n")
+        (stream or sys.stderr).write(listening(self.host, self.port))
 
     def publish(self, topic: str, msg: Any, t_ns: int) -> None:
         self._channels[topic].log(encode(msg), log_time=int(t_ns))
@@ -266,16 +152,19 @@ class LiveServer:
 
 class LiveTap:
     """The control loop's side of the live view: ``on_tick`` (StartupRoutine's hook) hands every ``every``-th
-    tick and every logged sample to a bounded queue, dropping what does not fit; never blocks, never writes
-    to the routine. :meth:`attach` the routine before it runs."""
+    tick and every logged sample, as one small pickled record, to the publisher process through a pipe it
+    writes without waiting (a write that does not fit is dropped and counted); never blocks, never writes to
+    the routine. :meth:`attach` the routine before it runs. ``fd``: the pipe's write end (non-blocking)."""
 
-    def __init__(self, every: int, maxsize: int = QUEUE_SIZE):
+    def __init__(self, every: int, fd: int):
         self.every = max(int(every), 1)
-        self.queue: queue.Queue = queue.Queue(maxsize)
+        self.fd = fd
         self.dropped = 0
         self.handed = 0
+        self.gone = False  # the publisher closed its end (its process ended)
         self._routine = None
         self._windows = self._events = self._estimates = 0  # seen so far
+        self._ghosts = 0  # planned poses sent so far
 
     def attach(self, routine) -> None:
         self._routine = routine
@@ -292,104 +181,137 @@ class LiveTap:
         if not (news or (not final and (logged or snap.tick % self.every == 0))):
             return
         extra = None
-        if news:
-            extra = (r._windows[self._windows:], r.writer.meta["events"][self._events:] if events else [],
-                     [est for _, est in r._history[self._estimates:]], self._estimates)
-        item = (time.time_ns(), snap, r._ref, r._phase, r._setpoint, logged, r._t_run0, r._zero,
-                r.supervisor.requested, extra, r.plan.ideal_poses)
-        try:
-            self.queue.put_nowait(item)
-        except queue.Full:  # dropped; a window, event or estimate in it goes with the next tick handed over
-            self.dropped += 1
+        if news:  # at most NEWS of each per record (the record stays within one atomic write); the rest follows
+            evs = r.writer.meta["events"] if events else []
+            extra = (r._windows[self._windows:self._windows + NEWS], evs[self._events:self._events + NEWS],
+                     [_plain_estimate(est) for _, est in r._history[self._estimates:self._estimates + NEWS]],
+                     self._estimates)
+        ghosts = r.plan.ideal_poses  # GHOST_ROWS of the planned poses not sent yet, with the first one's index
+        new_ghosts = ((self._ghosts, ghosts[self._ghosts:self._ghosts + GHOST_ROWS].tolist())
+                      if len(ghosts) > self._ghosts else None)
+        z, t0 = r._zero, r._t_run0
+        if z:
+            dl, ds, dyaw = (snap.dl - z["dl"]).tolist(), (snap.dsigma - z["dsigma"]).tolist(), snap.yaw - z["yaw"]
+        else:
+            dl = ds = [math.nan] * len(snap.tau)
+            dyaw = math.nan
+        t = round(snap.t - t0, 9) if t0 is not None else math.nan  # the run log's time
+        index = r.writer.count - 1 if logged and r.writer is not None else -1  # the sample's row in samples.csv
+        record = (time.time_ns(), t, snap.tau.tolist(), r._ref.tolist(), dl, ds, snap.roll, snap.pitch, dyaw,
+                  r._phase, r._setpoint, snap.sync, logged, index, r.supervisor.requested, extra, new_ghosts)
+        if not self._send(record):
             return
         self.handed += 1
-        if news:
-            self._windows, self._events, self._estimates = wins, events, estimates
+        if extra is not None:
+            self._windows += len(extra[0])
+            self._events += len(extra[1])
+            self._estimates += len(extra[2])
+        if new_ghosts is not None:
+            self._ghosts += len(new_ghosts[1])
 
-    def close(self, timeout: float = 5.0) -> None:
-        """Hand over what the routine recorded since its last tick (a stop's event), then tell the publisher the
-        run is over (waits at most ``timeout`` s for room in the queue)."""
-        r = self._routine
-        if r is not None and r._last is not None:
-            self._hand(r._last, final=True)
+    def _send(self, record) -> bool:
+        """Write one record in one atomic write (the pipe's size limit for that, PIPE_BUF) or drop it."""
+        data = pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL)
+        frame = struct.pack("!i", len(data)) + data  # multiprocessing.Connection's framing: the child recv_bytes
+        if len(frame) > select.PIPE_BUF:
+            self.dropped += 1
+            return False
         try:
-            self.queue.put(None, timeout=timeout)
-        except queue.Full:
-            pass
+            os.write(self.fd, frame)
+        except BlockingIOError:  # the pipe is full: dropped
+            self.dropped += 1
+            return False
+        except BrokenPipeError:  # the publisher is gone: the run goes on
+            self.gone = True
+            self.dropped += 1
+            return False
+        return True
+
+    def close(self, timeout: float = 5.0) -> bool:
+        """Hand over what the routine recorded since its last tick (a stop's event), then tell the publisher the
+        run is over (tries for at most ``timeout`` s while the pipe is full); False if it could not."""
+        r = self._routine
+        for _ in range(100 if r is not None and r._last is not None else 0):  # NEWS at a time
+            seen = (self._windows, self._events, self._estimates)
+            self._hand(r._last, final=True)
+            if (self._windows, self._events, self._estimates) == seen:
+                break
+        end = time.monotonic() + timeout
+        while not self._send(None):
+            self.dropped -= 1  # the end of the run is not a tick
+            if self.gone or time.monotonic() > end:
+                return False
+            time.sleep(0.01)
+        return True
 
 
-class LivePublisher(threading.Thread):
-    """Publishes what a :class:`LiveTap` hands over, on a :class:`LiveServer`; stops at the tap's close."""
+def _plain_estimate(est) -> tuple | None:
+    """An online estimate as plain numbers: initial pose (6), its 1-sigma (6, None without a covariance) and
+    the position 1-sigma (m, None for the reference window)."""
+    if est is None:
+        return None
+    sigma = None if est.covariance is None else np.sqrt(np.maximum(np.diag(est.covariance)[:6], 0)).tolist()
+    ps = float(est.position_sigma) if math.isfinite(est.position_sigma) else None
+    return [float(v) for v in est.theta[:6]], sigma, ps
 
-    def __init__(self, tap: LiveTap, server: LiveServer, robot: Robot, slack: float, overload: float):
-        super().__init__(name="cdpr-live", daemon=True)
-        self.tap, self.server, self.robot = tap, server, robot
+
+class LivePublisher:
+    """Publishes the records a :class:`LiveTap` hands over on a :class:`LiveServer` (in the publisher process):
+    the platform's pose (:class:`acquisition.scene.PoseTracker`), the scene, the samples, windows, events,
+    estimates and the supervisor's state."""
+
+    def __init__(self, server: LiveServer, robot: Robot, slack: float, overload: float):
+        self.server, self.robot = server, robot
         self.view = RunView(robot, None, slack, overload)
         self.tracker = PoseTracker(robot)
         self.published = 0
         self.scenes = 0
         self.errors: list[str] = []
-        self._ghosts = 0
         self._nwin = 0  # windows published (held in setpoint order)
         self._stopped_by: str | None = None  # the stop recorded in run.yaml, once there is one
-        self._times: list[float] = []  # run time of every logged sample seen (window times)
-        self._switch = sys.getswitchinterval()
+        self._times: dict[int, float] = {}  # run time of the logged samples seen, by row (window times)
+        self._ghosts: list[list[float]] = []  # the planned poses received
 
-    def start(self) -> None:
-        sys.setswitchinterval(SWITCH_INTERVAL)
-        super().start()
+    def publish(self, record: tuple) -> None:
+        """One record; a failure is kept in ``errors`` (the view is not the run), never raised."""
+        try:
+            self._publish(*record)
+        except Exception as exc:
+            if len(self.errors) < 10:
+                self.errors.append(f"{type(exc).__name__}: {exc}")
 
-    def stop(self, timeout: float = 10.0) -> None:
-        """Close the tap and wait for the queue to be published (at most ``timeout`` s)."""
-        self.tap.close()
-        self.join(timeout)
-        sys.setswitchinterval(self._switch)
-
-    def run(self) -> None:
-        while True:
-            item = self.tap.queue.get()
-            if item is None:
-                break
-            try:
-                self._publish(*item)
-            except Exception as exc:  # the view is not the run: a failure here is reported, never raised
-                if len(self.errors) < 10:
-                    self.errors.append(f"{type(exc).__name__}: {exc}")
-        t_ns = time.time_ns()  # the run is over: the supervisor's last word
+    def finish(self) -> None:
+        """The run is over: the supervisor's last word."""
+        t_ns = time.time_ns()
         for topic, msg in self.view.supervisor(t_ns, math.nan, "stopped", self.view.stop, every_ns=0):
             self.server.publish(topic, msg, t_ns)
 
-    def _publish(self, t_ns, snap, ref, phase, setpoint, logged, t_run0, zero, requested, extra, ghosts) -> None:
+    def _publish(self, t_ns, t, tau, ref, dl, ds, roll, pitch, dyaw, phase, setpoint, sync, logged, index,
+                 requested, extra, ghosts) -> None:
         out: list[tuple[str, Any]] = []
-        if len(ghosts) != self._ghosts:
-            self.view.set_ghosts(ghosts)
-            self._ghosts = len(ghosts)
-        t = round(snap.t - t_run0, 9) if t_run0 is not None else math.nan  # the run log's time
+        if ghosts is not None:  # (index of the first, rows): the planned poses as they come
+            first, rows = ghosts
+            self._ghosts = self._ghosts[:first] + rows
+            self.view.set_ghosts(np.array(self._ghosts, dtype=float).reshape(-1, 6))
         if logged:
-            self._times.append(t)
-        if zero:
-            dl, ds, dyaw = snap.dl - zero["dl"], snap.dsigma - zero["dsigma"], snap.yaw - zero["yaw"]
-        else:
-            dl, ds, dyaw = snap.dl * math.nan, snap.dsigma * math.nan, math.nan
-        f = Frame(t_ns, t, snap.tau, ref, dl, ds, snap.roll, snap.pitch, dyaw, phase, setpoint, snap.sync, logged)
-        pose = self.tracker.update(snap.tau)
-        out += self.view.frame(f, pose)
+            self._times[index] = t
+        tau = np.array(tau, dtype=float)
+        f = Frame(t_ns, t, tau, np.array(ref), np.array(dl), np.array(ds), roll, pitch, dyaw, phase, setpoint,
+                  sync, logged)
+        out += self.view.frame(f, self.tracker.update(tau))
         state = "stopping" if phase == "safe_stop" else "watching"
         if extra is not None:
             wins, events, estimates, first_pose = extra
             for first, last in wins:
                 j, self._nwin = self._nwin, self._nwin + 1
-                tf, tl = (self._times[first], self._times[last]) if last < len(self._times) else (math.nan, math.nan)
+                tf, tl = self._times.get(first, math.nan), self._times.get(last, math.nan)
                 out += self.view.window(t_ns, first, last, tf, tl, j, "startup")
             for ev in events:
                 out += self.view.event(t_ns, ev)
                 self._stopped_by = str(ev["message"])
             for k, est in enumerate(estimates):
-                if est is None:
-                    continue
-                sigma = None if est.covariance is None else np.sqrt(np.maximum(np.diag(est.covariance)[:6], 0))
-                ps = est.position_sigma if math.isfinite(est.position_sigma) else None
-                out += self.view.estimate(t_ns, first_pose + k, t, est.theta[:6], sigma, ps)
+                if est is not None:
+                    out += self.view.estimate(t_ns, first_pose + k, t, *est)
         out += self.view.supervisor(t_ns, t, state, self._stopped_by or requested)
         for topic, msg in out:
             self.server.publish(topic, msg, t_ns)
@@ -397,13 +319,55 @@ class LivePublisher(threading.Thread):
             self.scenes += topic == "/scene"
 
 
-class LiveView:
-    """What ``cdpr startup --live`` runs beside the loop: the server, the loop's tap and the publisher thread;
-    :meth:`off` is the view of a startup without ``--live`` (no hook, nothing started)."""
+def _serve(records, control, address: LiveAddress, robot: Robot, slack: float, overload: float) -> None:
+    """The publisher process: the server on ``address``, then every record of the pipe ``records`` published
+    until the end record (None) or the loop's process is gone; ``control`` says where it listens (or why it
+    cannot) and, at the end, what it published. Runs at a lower priority than the loop (nice +10) and leaves
+    SIGINT/SIGTERM to the routine (its safe stop is shown to the end)."""
+    import signal
 
-    def __init__(self, server: LiveServer | None = None, tap: LiveTap | None = None,
-                 publisher: LivePublisher | None = None, stream=None):
-        self.server, self.tap, self.publisher = server, tap, publisher
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        os.nice(PUBLISHER_NICE)
+    except OSError:  # not allowed: the same priority as the loop, still in a process of its own
+        pass
+    try:
+        server = LiveServer(address, robot.n, stream=io.StringIO())
+    except OSError as exc:
+        control.send(("error", str(exc)))
+        return
+    control.send(("listening", server.host, server.port))
+    pub = LivePublisher(server, robot, slack, overload)
+    try:
+        while True:
+            try:
+                record = pickle.loads(records.recv_bytes())
+            except EOFError:  # the loop's process is gone
+                break
+            if record is None:
+                break
+            pub.publish(record)
+        pub.finish()
+    finally:
+        server.close()
+        try:
+            control.send(("done", pub.published, pub.scenes, pub.errors))
+        except OSError:  # the loop's process is gone
+            pass
+
+
+class LiveView:
+    """What ``cdpr startup --live`` runs beside the loop: the loop's tap and the publisher process (the server,
+    the scene, the encoding: off the loop's interpreter, so it never holds the loop's GIL); :meth:`off` is the
+    view of a startup without ``--live`` (no hook, nothing started)."""
+
+    def __init__(self, tap: LiveTap | None = None, process=None, control=None, host: str = "", port: int = 0,
+                 stream=None):
+        self.tap, self.process, self.control = tap, process, control
+        self.host, self.port = host, port
+        self.published = self.scenes = 0
+        self.errors: list[str] = []
         self._stream = stream or sys.stderr
 
     @classmethod
@@ -412,14 +376,42 @@ class LiveView:
 
     @classmethod
     def start(cls, address: str | LiveAddress, robot: Robot, rate: float, limits, scene_rate: float = SCENE_RATE,
-              stream=None) -> LiveView:
-        """Listen on ``address`` ([HOST:]PORT) for a startup at ``rate`` Hz whose supervisor has ``limits``
-        (acquisition.safety.SafetyLimits); scene updates at ``scene_rate`` Hz. Raises ValueError (address)
+              stream=None, timeout: float = START_TIMEOUT, pipe_size: int = PIPE_SIZE) -> LiveView:
+        """Start the publisher process listening on ``address`` ([HOST:]PORT) for a startup at ``rate`` Hz whose
+        supervisor has ``limits`` (acquisition.safety.SafetyLimits); scene updates at ``scene_rate`` Hz; says
+        where it listens on ``stream``; the pipe to it holds ``pipe_size`` bytes. Raises ValueError (address)
         or OSError (cannot listen)."""
+        import multiprocessing
+
         addr = address if isinstance(address, LiveAddress) else LiveAddress.parse(address)
-        server = LiveServer(addr, robot.n, stream=stream)
-        tap = LiveTap(int(round(rate / scene_rate)))
-        return cls(server, tap, LivePublisher(tap, server, robot, limits.slack, limits.overload), stream)
+        ctx = multiprocessing.get_context("spawn")  # not forked: the loop's process may have the bus's threads
+        records_r, records_w = ctx.Pipe(duplex=False)
+        control_r, control_w = ctx.Pipe(duplex=False)
+        proc = ctx.Process(target=_serve, name="cdpr-live", daemon=True,
+                           args=(records_r, control_w, addr, robot, limits.slack, limits.overload))
+        proc.start()
+        records_r.close()
+        control_w.close()
+        try:
+            if not control_r.poll(timeout):
+                raise OSError(f"the live view did not start listening on {addr.host}:{addr.port} within "
+                              f"{timeout:g} s.")
+            got = control_r.recv()
+        except (EOFError, OSError) as exc:
+            proc.kill()
+            records_w.close()
+            raise OSError(str(exc) if str(exc) else "the live view's process ended before it listened.") from exc
+        if got[0] == "error":
+            proc.join(timeout)
+            records_w.close()
+            raise OSError(got[1])
+        fd = records_w.fileno()
+        os.set_blocking(fd, False)
+        _size_pipe(fd, pipe_size)
+        view = cls(LiveTap(int(round(rate / scene_rate)), fd), proc, control_r, got[1], got[2], stream)
+        view._records = records_w  # kept open (the tap writes its file descriptor) until close
+        view._stream.write(listening(view.host, view.port))
+        return view
 
     @property
     def hook(self):
@@ -427,23 +419,47 @@ class LiveView:
         return None if self.tap is None else self.tap.on_tick
 
     def started(self, routine):
-        """Attach the routine to the tap and start publishing; returns the routine."""
+        """Attach the routine to the tap; returns the routine."""
         if self.tap is not None:
             self.tap.attach(routine)
-            self.publisher.start()
         return routine
 
-    def close(self) -> None:
-        """Publish what is queued, stop the server (safe to call twice)."""
-        if self.server is None:
+    def close(self, timeout: float = 10.0) -> None:
+        """Publish what is in the pipe, stop the server and its process (safe to call twice)."""
+        if self.process is None:
             return
-        if self.publisher.is_alive():
-            self.publisher.stop()
-        self.server.close()
-        self.server = None
-        tap, pub = self.tap, self.publisher
-        if tap.dropped or pub.errors:
+        proc, self.process = self.process, None
+        ended = self.tap.close()
+        if ended and self.control.poll(timeout):
+            try:
+                _, self.published, self.scenes, self.errors = self.control.recv()
+            except EOFError:
+                pass
+        self._records.close()
+        proc.join(timeout)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(timeout)
+        self.control.close()
+        tap = self.tap
+        if tap.dropped or self.errors:
             self._stream.write(f"cdpr: live view: {tap.dropped} of {tap.dropped + tap.handed} ticks dropped (the "
                                f"publisher fell behind the loop; the run is not affected)"
-                               + (f"; {len(pub.errors)} publishing error(s), the first: {pub.errors[0]}" if pub.errors
-                                  else "") + "\n")
+                               + (f"; {len(self.errors)} publishing error(s), the first: {self.errors[0]}"
+                                  if self.errors else "") + "\n")
+
+
+def listening(host: str, port: int) -> str:
+    """The line a live view says on start: where it listens."""
+    return (f"cdpr: live view on ws://{host}:{port} (read-only; Foxglove: Open connection, Foxglove WebSocket, "
+            f"this URL; layout docs/foxglove-layout.json)\n")
+
+
+def _size_pipe(fd: int, size: int) -> None:
+    """Let the pipe hold ``size`` bytes (Linux; the system's default, 64 KiB, elsewhere or if refused)."""
+    import fcntl
+
+    try:
+        fcntl.fcntl(fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), size)
+    except OSError:
+        pass

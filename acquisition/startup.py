@@ -222,8 +222,10 @@ class StartupRoutine:
         """Hold ``tau`` until the detector says the platform rests; False on its timeout (s)."""
         self._phase, self._setpoint = phase, setpoint
         if self._detector is None:  # one detector for the whole routine: it learns the sensors' noise
+            # on a real clock its thresholds' refresh (up to 15 ms) runs on the log worker, lockstep in line
             self._detector = EquilibriumDetector(self.cfg.log_period,
-                                                 self.cfg.detector or DetectorConfig.for_robot(self.robot))
+                                                 self.cfg.detector or DetectorConfig.for_robot(self.robot),
+                                                 background=None if self.clock.lockstep else self._io.submit)
         det = self._detector
         det.start(self.clock.now(), timeout)
         while True:

@@ -301,3 +301,85 @@ def test_a_run_log_write_that_fails_on_the_log_worker_is_raised(tmp_path):
     worker.submit(open, tmp_path / "no such folder" / "run.yaml", "w")
     with pytest.raises(FileNotFoundError):
         worker.close()
+
+
+def test_on_a_real_clock_the_detector_refreshes_its_thresholds_on_a_worker_without_waiting():
+    """Issue 32: the detector's refresh (the offline statistics of up to 600 s of samples, 15 ms at 6000) is
+    handed to a worker; the sample that asks never waits for it and keeps the thresholds it had, the first
+    sample after it is ready takes exactly the thresholds the in-line detector took at the asking sample."""
+    import pickle
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
+
+    cfg = DetectorConfig.for_robot(load_robot("irma4u"))
+    held: list[tuple] = []
+
+    def later(fn, *args) -> Future:  # a worker that has not run the call yet
+        held.append((fn, args))
+        return Future()
+
+    inline, slow = EquilibriumDetector(0.1, cfg), EquilibriumDetector(0.1, cfg, background=later)
+    pool = ThreadPoolExecutor(1)
+    worker = EquilibriumDetector(0.1, cfg, background=pool.submit)
+    rng = np.random.default_rng(3)
+    for det in (inline, slow, worker):
+        det.start(0.0)
+    for k in range(1, 61):
+        row = (100.0 + 0.3 * rng.standard_normal(4), 2e-5 * rng.standard_normal(4), 1e-4 * rng.standard_normal(4),
+               1e-4 * rng.standard_normal(), 1e-4 * rng.standard_normal())
+        before = slow.stillness
+        states = [det.push(0.1 * k, *row) for det in (inline, slow, worker)]
+        assert slow.stillness is before  # asked, not waited for
+        if k % 10 == 0:  # a refresh: the in-line detector took new thresholds at once, the worker's comes later
+            assert inline.stillness.ripple_tol != before.ripple_tol or k == 10
+            worker._refreshing.result(timeout=60)
+        elif k % 10 == 1 and k > 1:
+            assert pickle.dumps(worker.stillness) == pickle.dumps(inline.stillness)  # every threshold, bit for bit
+            assert states[2] == states[0]  # judged with the same thresholds
+    pool.shutdown()
+    assert len(held) == 1 and slow.stillness.ripple_tol == cfg.ripple_floor  # one refresh asked, none taken
+
+
+def test_a_stalled_publisher_process_costs_the_loop_nothing_but_dropped_ticks(tmp_path):
+    """Issue 32: the publisher is a process of its own and the loop only writes to its pipe without waiting.
+    With that process frozen (SIGSTOP) and a pipe of one page, a one-pose startup runs to its end, the ticks
+    that do not fit are dropped and counted; thawed, the publisher publishes what the pipe held and ends."""
+    import io
+    import signal
+
+    from acquisition.clock import SimClock
+    from acquisition.connect import ahrs_rate_for, connect
+    from acquisition.live import LiveView
+    from acquisition.plans import Plan
+    from acquisition.startup import StartupConfig, StartupRoutine
+    from sim_backend.backend import SimBackend
+
+    robot = load_robot("irma4u")
+    grid = Plan.for_robot(robot, 2, "equilibrium")
+    plan = Plan(grid.setpoints[:1], grid.ideal_poses[:1], grid.tau0)
+    cfg = StartupConfig(hold_time=0.5)
+    said = io.StringIO()
+    view = LiveView.start("127.0.0.1:0", robot, cfg.rate, SafetyLimits.for_robot(robot), stream=said,
+                          pipe_size=4096)
+    assert said.getvalue().startswith(f"cdpr: live view on ws://127.0.0.1:{view.port} (read-only")
+    assert view.process.pid != os.getpid() and view.process.is_alive()
+    os.kill(view.process.pid, signal.SIGSTOP)
+    try:
+        clock = SimClock(1.0 / cfg.rate)
+        with SimBackend(robot, None, 3, clock.period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
+            rig = connect(sim.devices, robot, clock, lockstep=True, period=clock.period)
+            try:
+                result = view.started(StartupRoutine(robot, rig, clock, plan, tmp_path / "run", cfg,
+                                                     on_tick=view.hook)).run()
+            finally:
+                rig.close()
+    finally:
+        os.kill(view.process.pid, signal.SIGCONT)
+    tap = view.tap
+    assert result.windows and tap.handed >= 10 and tap.dropped > 5 * tap.handed  # a page: ~16 records
+    proc = view.process
+    view.close()
+    assert 0 < view.published and view.scenes <= tap.handed and not view.errors
+    assert f"{tap.dropped} of {tap.dropped + tap.handed} ticks dropped" in said.getvalue()
+    assert proc.exitcode == 0  # it ended on the end record, not killed
