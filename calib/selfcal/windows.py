@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.chi2 import chi2_isf
 from calib.robot import Robot
 
 CHANNELS = ("length", "swivel", "tilt")
@@ -247,8 +248,6 @@ class EndsTest:
         ``options.ends_margin_s`` long for a span of ``span`` samples of ``options.span_s``. The slow wander
         is measured where the spans also move within ``noise_factor`` quiet sigmas alone, not the floors: a
         platform still swinging by a millimetre passes those, and would pass for a sway."""
-        from scipy.special import chdtri  # chi2's inverse survival function, without importing scipy.stats
-
         every = {"tension": tau} | dict(channels)
         floors = {"length": options.length_tol, "swivel": options.swivel_tol, "tilt": options.tilt_tol}
         # a sigma at least a twelfth of the channel's range floor: a reading that sits on its counts does not
@@ -262,7 +261,7 @@ class EndsTest:
         per = options.span_s / span  # s per sample
         q = max(1, int(round(options.ends_s / per)))
         columns = sum(int(np.prod(x.shape[1:])) for x in every.values())
-        return cls(span, q, int(round(options.ends_margin_s / per)), float(chdtri(columns, options.ends_p)),
+        return cls(span, q, int(round(options.ends_margin_s / per)), chi2_isf(options.ends_p, columns),
                    sigma, slow)
 
     def scores(self, block: dict[str, np.ndarray]) -> tuple[float, float]:
