@@ -213,7 +213,7 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> P
     else:
         tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
     z = np.zeros((k, n, p))
-    ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention)
+    ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention, kin.R, kin.H)
     L, dL = encoder_lengths(robot, kin.lengths, tau, jac.lengths, dtau)
     return Physical(L, kin.swivel, tau, dL, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
 
