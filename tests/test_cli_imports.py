@@ -7,6 +7,7 @@ import math
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ from scipy.stats import chi2
 from acquisition.cli import COMMAND_MODULES, COMMAND_OWNERS, build_parser, modules_for
 from acquisition.importers import import_irma
 from calib.chi2 import chi2_isf, chi2_sf
+from calib.robust import median
 
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("matplotlib", "scipy.stats", "codac", "dask", "distributed", "scipy.optimize")
@@ -45,8 +47,11 @@ def test_solve_imports_no_plotting_statistics_or_interval_library(irma_data, tmp
     assert status == 0 and "calib.selfcal._solve" in names  # the solve ran
     assert [m for m in HEAVY if m in names] == []
     assert not any(m.startswith(("can.", "canopen", "serial")) or m == "can" for m in names)
-    # no scipy at all: its chi2 tail (calib.chi2 computes it) cost the command ~0.15 s of scipy.special
+    # no scipy at all: its chi2 tail (calib.chi2 computes it) cost the command ~0.15 s of scipy.special; no
+    # numpy.ma (np.median's and np.unique's first call import it, ~25 ms: calib.robust.median), no effect library
     assert sorted(m for m in names if m == "scipy" or m.startswith("scipy.")) == []
+    assert [m for m in ("numpy.ma", "calib.effects.cable", "calib.effects.swivel", "acquisition.outputs")
+            if m in names] == []
 
 
 def test_version_imports_no_scipy_and_no_command():
@@ -100,3 +105,18 @@ def test_chi2_quantile_is_the_tail_inverse_where_the_window_ends_test_uses_it():
     for columns in range(8, 30):  # the ends test's columns (tension, lengths, swivels, tilt) at p = 1e-3
         x = chi2_isf(1e-3, columns)
         assert chi2_sf(x, columns) == pytest.approx(1e-3, rel=1e-13)
+
+
+@pytest.mark.parametrize("shape, axis", [((7,), None), ((8,), None), ((9, 4), 0), ((10, 4), 0), ((1, 3), 0),
+                                         ((6, 3), None), ((0,), None)])
+def test_median_is_numpys_number_for_number(shape, axis):
+    rng = np.random.default_rng(3)
+    for a in (rng.normal(0.0, 10.0, shape), rng.integers(-50, 50, shape)):
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # the median of nothing is NaN, with numpy's warning
+            want, got = np.median(a, axis=axis), median(a, axis=axis)
+        assert type(got) is type(want) and np.array_equal(got, want, equal_nan=True)
+        if a.dtype.kind == "f" and a.size:
+            a[(0,) * a.ndim] = np.nan  # a column with a NaN has a NaN median
+            want, got = np.median(a, axis=axis), median(a, axis=axis)
+            assert type(got) is type(want) and np.array_equal(got, want, equal_nan=True)
