@@ -194,6 +194,16 @@ class Effect:
                 if not s.plausible[0] <= v <= s.plausible[1]]
 
 
+def add_tension_offsets(cols: slice, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+    """Load cell i reads tau_i + values_i (N): the tension prediction shifted, its theta columns ``cols``
+    the identity (what TensionOffset and the devices' priors share)."""
+    if "tension" not in preds:
+        return
+    pr = preds["tension"]
+    pr.value = pr.value + values[None]
+    pr.d_theta[..., cols] = np.eye(values.shape[0])[None]
+
+
 def base_quantities(recompute, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(L, sigma, tau) at the effect's own values: those the model computed already when ``recompute``
     carries them (``recompute.base``), else recomputed."""
