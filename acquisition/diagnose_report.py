@@ -363,7 +363,9 @@ def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
         "verdict": selection_verdict(sel), "base": trial(sel.base), "final": trial(sel.final),
         "steps": [{"options": [trial(t) for t in st["options"]],
                    "chosen": None if st["chosen"] is None else list(st["chosen"].names),
-                   "confused_with_chosen": [list(n) for n in st.get("confused", [])]} for st in sel.steps],
+                   "confused_with_chosen": [list(n) for n in st.get("confused", [])],
+                   "inconsistent": [{"effects": list(t.names), "chi2": t.spread.chi2, "dof": t.spread.dof,
+                                     "p": t.spread.p} for t in st.get("inconsistent", [])]} for st in sel.steps],
         "per_run": runs, "weights_rounds": sel.final.fit.history,
     })
 
@@ -378,6 +380,10 @@ def _json_safe(v: Any) -> Any:
     if isinstance(v, np.integer):
         return int(v)
     return v
+
+
+def _spread(sp) -> str:
+    return f"per-run fits' chi2 {sp.chi2:.1f} on {sp.dof} dof, p = {sp.p:.2g}"
 
 
 def format_selection(sel, paths: Sequence[str], model_out: Path | None = None) -> str:
@@ -403,6 +409,10 @@ def format_selection(sel, paths: Sequence[str], model_out: Path | None = None) -
         if st.get("confused"):
             out.append("  confused with the chosen (fewest parameters kept): "
                        + "; ".join(",".join(n) for n in st["confused"]))
+        for t in st.get("inconsistent", []):
+            out.append(f"  set aside, the runs disagree on its value: {_names(t)} ({_spread(t.spread)})")
+        if st["chosen"] is not None and st["chosen"].spread is not None:
+            out.append(f"  the runs agree on the chosen's value: {_spread(st['chosen'].spread)}")
     out += ["", "per run: rms per channel, base -> with the selected effects (tension N, length mm, swivel deg, "
             "orientation deg); chi2 against the window-scatter noise"]
     for rf0, rf in zip(sel.base.fit.runs, sel.final.fit.runs, strict=True):

@@ -16,8 +16,9 @@ samples, as an offline window needs. A detection that does not come within ``tim
 
 from __future__ import annotations
 
+import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -60,9 +61,15 @@ class EquilibriumDetector:
     def __init__(self, sample_period: float, config: DetectorConfig | None = None):
         self.config = config or DetectorConfig()
         self.sample_period = float(sample_period)
-        opt = self.config.options
+        # the offline ends test, on here even where the offline search leaves it off (the recordings' default),
+        # a sway's wander allowed over the settle_s block it judges
+        given = self.config.options
+        opt = replace(given, ends_p=given.ends_p or given.settle_p,
+                      ends_reach_s=max(given.ends_reach_s, 0.5 * given.settle_s))
+        self.options = opt
         self.span = span_samples(opt, self.sample_period)
-        self.needed = min_samples(opt, self.sample_period)  # consecutive still judgements that make a rest
+        # consecutive still judgements that make a rest: a window's length, and at least settle_s
+        self.needed = max(min_samples(opt, self.sample_period), int(math.ceil(opt.settle_s / self.sample_period)))
         keep = max(2 * self.span, int(round(self.config.history / self.sample_period)))
         self._past: deque[np.ndarray] = deque(maxlen=keep)  # rows [tau, dl, dsigma, roll, pitch]
         # the same rows since start, a window's worth: the latest span is judged, the whole block's ends
@@ -94,7 +101,7 @@ class EquilibriumDetector:
         """The offline thresholds (:meth:`Stillness.of_samples`) of the samples kept in the history."""
         if len(self._past) >= 3 and self.config.stillness is None:
             tau, ch = self._split(np.array(self._past))
-            self.stillness = Stillness.of_samples(tau, ch, self.span, self.config.options, self.config.ripple_floor)
+            self.stillness = Stillness.of_samples(tau, ch, self.span, self.options, self.config.ripple_floor)
 
     def push(self, t: float, tau: np.ndarray, dl: np.ndarray, dsigma: np.ndarray, roll: float,
              pitch: float) -> DetectorState:

@@ -8,7 +8,7 @@ leave-one-run-out table (not collected by pytest).
    refitted) and plainly (``cdpr solve RUN``); J = sum over channels of (rms residual / w)^2, w = 1 N,
    0.5 mm, 0.1 deg, 0.2 deg. Target: J with the model <= 0.35 of the plain J, no channel's rms up > 20 %.
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_diagnose_runs.py [--data DIR] [--max-effects 3]
+    OMP_NUM_THREADS=1 python benchmarks/bench_diagnose_runs.py [--data DIR] [--max-effects 4]
 
 Exits 1 on a miss.
 """
@@ -77,7 +77,7 @@ def main() -> int:
     default = Path(os.environ.get("CDPR_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
                                   / "irma4u"))
     ap.add_argument("--data", type=Path, default=default)
-    ap.add_argument("--max-effects", type=int, default=3)
+    ap.add_argument("--max-effects", type=int, default=4)
     args = ap.parse_args()
     from calib.multirun import WEIGHTS, misfit_j
     from calib.robot_model import model_document, write_model
@@ -108,7 +108,7 @@ def main() -> int:
             ok &= good
             conv = {"tension": 1.0, "length": 1e3, "swivel": 57.29577951308232, "orientation": 57.29577951308232}
             rms = ", ".join(f"{c[:3]} {a[c] * conv[c]:.3g}->{b[c] * conv[c]:.3g}" for c in WEIGHTS if c in a)
-            print(f"{p.name:<16} {','.join(s2.selected) or '-':<44} {ja:>8.1f} {jb:>8.1f} {jb / ja:>6.2f}  {rms}"
+            print(f"{p.name:<16} {','.join(s2.selected) or '-':<44} {ja:>8.1f} {jb:>8.1f} {jb / ja:>6.3f}  {rms}"
                   f"  {'ok' if good else 'MISS' + (' (grows: ' + ','.join(grow) + ')' if grow else '')}")
     return 0 if ok else 1
 

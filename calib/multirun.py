@@ -504,11 +504,13 @@ ROUNDS = 3  # variance-component rounds (each: fit, then new weights)
 
 
 def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, frozen: bool = False,
-             starts=None, sigmas=None, rounds: int = ROUNDS, max_iter: int = 60, covariance: bool = True
-             ) -> JointFit:
+             starts=None, sigmas=None, rounds: int = ROUNDS, max_iter: int = 60, covariance: bool = True,
+             weight_iter: int | None = None) -> JointFit:
     """Joint fit of the runs with the shared effects (values free, or ``frozen`` at their current values:
     only each run's own unknowns fitted), with ``rounds`` of variance components (0: the given weights).
-    Without ``covariance`` (a fit only used as a start) the final covariance is zeros and n_free 0."""
+    Without ``covariance`` (a fit only used as a start) the final covariance is zeros and n_free 0.
+    ``weight_iter``: LM iterations at most of a round that only sets the next round's weights (None:
+    ``max_iter``); the last round always gets ``max_iter``."""
     from calib.selfcal import sensor_noise
 
     shared = list(shared)
@@ -518,7 +520,8 @@ def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, 
     history = []
     it_total, conv = 0, False
     for rnd in range(rounds + 1):
-        runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, max_iter,
+        iters = max_iter if rnd == rounds or weight_iter is None else min(max_iter, weight_iter)
+        runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, iters,
                                                   covariance=covariance or rnd < rounds)
         it_total += it
         history.append({rf.name: {"weights": {c: [float(v) for v in s] for c, s in rf.sigma.items()},

@@ -21,6 +21,7 @@ import yaml
 from calib.effects import Effect
 from calib.errors import CdprError
 from calib.multirun import JointFit, Learned, RunFit, fit_runs
+from calib.spread import between_run_sd, per_run_fits, spread
 
 FORMAT = "cdpr-robot-model"
 VERSION = 1
@@ -95,17 +96,49 @@ def run_summary(rf: RunFit, path: str | None = None) -> dict[str, Any]:
             "rms": rf.rms()}
 
 
+def between_runs(fit: JointFit) -> dict[str, dict[str, Any]]:
+    """Per shared effect: the between-run 1-sigma of each parameter (``tau``, DerSimonian-Laird over the
+    runs' own fits, :func:`calib.spread.between_run_sd`) and the runs' consistency test (chi2, dof, p of
+    :func:`calib.spread.spread` on its parameters). Empty with one run."""
+    if len(fit.runs) < 2:
+        return {}
+    fits = per_run_fits(fit)
+    own = [{e.name: e for e in learned_of(f)} for f in fits]
+    robot = fit.runs[0].rows.robot
+    out, q = {}, 0
+    for e in fit.shared:
+        nq = len(e.params(robot))
+        sp = spread(fit, range(q, q + nq), fits)
+        names = list(own[0][e.name].values)
+        x = np.array([[o[e.name].values[k] for k in names] for o in own])
+        var = np.array([[o[e.name].sigma[k] ** 2 for k in names] for o in own])
+        out[e.name] = {"tau": dict(zip(names, map(float, between_run_sd(x, var)), strict=True)),
+                       "consistency": {"chi2": sp.chi2, "dof": sp.dof, "p": sp.p}}
+        q += nq
+    return out
+
+
 def model_document(fit: JointFit, paths: list[str] | None = None, selection: dict[str, Any] | None = None,
                    robot: str = "") -> dict[str, Any]:
-    """The YAML document of a learned model (docs/robot-model.md)."""
+    """The YAML document of a learned model (docs/robot-model.md). With several runs each parameter's
+    ``sigma`` is the 1-sigma of a new run's value: the joint fit's (``sigma_mean``) and the between-run
+    spread (``between_runs``) in quadrature."""
     eff = learned_of(fit)
     reports = fit.shared_params()
+    spreads = between_runs(fit)
+    docs = []
+    for e in eff:
+        d = {"name": e.name, "values": e.values, "sigma": e.sigma, "report": reports.get(e.name, {})}
+        if e.name in spreads:
+            tau = spreads[e.name]["tau"]
+            d["sigma"] = {k: math.hypot(v, tau[k]) for k, v in e.sigma.items()}
+            d.update(sigma_mean=e.sigma, between_runs=tau, consistency=spreads[e.name]["consistency"])
+        docs.append(d)
     return _plain({
         "format": FORMAT,
         "version": VERSION,
         "robot": robot,
-        "effects": [{"name": e.name, "values": e.values, "sigma": e.sigma, "report": reports.get(e.name, {})}
-                    for e in eff],
+        "effects": docs,
         "runs": [run_summary(rf, None if paths is None else paths[i]) for i, rf in enumerate(fit.runs)],
         "selection": selection or {},
     })

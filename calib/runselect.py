@@ -43,13 +43,16 @@ from calib.multirun import (
 from calib.prediction import leave_one_pose_out
 from calib.runrows import RunRows
 from calib.selfcal.problem import Problem
+from calib.spread import Spread, spread
 
 PROBE = 3  # single candidates judged by prediction per step (the best by joint fit)
 PAIR_POOL = 3  # their pairs judged together
 CONFUSED = 0.10  # an option predicting within this share of the best gain is confused with it
 MIN_GAIN = 2.0  # held-out -2 log-likelihood gain an added option must bring (a likelihood ratio of e)
 QUICK_ITER = 15  # LM iterations of a screening fit
+CONSISTENT_P = 0.01  # an added effect on whose values the runs disagree beyond this p-value is not learned
 FOLD_ROUNDS = 1  # variance-component rounds in the folds (started from the full fit's weights)
+WEIGHT_ITER = 20  # LM iterations of the round that only sets the weights of a judged fit (its last: 60)
 
 
 @dataclass
@@ -65,6 +68,7 @@ class Trial:
     score: float | None = None
     folds: list[dict[str, Any]] = field(default_factory=list)
     implausible: list[Implausible] = field(default_factory=list)
+    spread: Spread | None = None  # the runs' agreement on the effects it adds (several runs, when chosen)
 
     @property
     def plausible(self) -> bool:
@@ -130,15 +134,21 @@ class Judge:
     def effects(self, names: Sequence[str]) -> list[Effect]:
         return [*self.prior, *self.make(names)]
 
-    def fit(self, names: Sequence[str], start: JointFit | None = None) -> Trial:
+    def fit(self, names: Sequence[str], start: JointFit | None = None, also: JointFit | None = None) -> Trial:
         """The joint fit of all runs with these effects (started from ``start``, whose effects are a prefix
-        of these, and its weights; None: from the runs' rigid solves and own weights)."""
+        of these, and its weights; None: from the runs' rigid solves and own weights). ``also``: a fit whose
+        last effect is the last of ``names`` (a pair's other member), whose values start it instead of absent."""
         eff = self.effects(names)
         if start is None:
             f = fit_runs(self.items, eff)
         else:
-            f = fit_runs(self.items, eff, starts=_starts(start, range(len(self.items))),
-                         sigmas=[rf.sigma for rf in start.runs], rounds=FOLD_ROUNDS)
+            starts = _starts(start, range(len(self.items)))
+            if also is not None:
+                nb = len(eff[-1].params(self.robot))
+                starts = [(np.r_[th, rf.theta[rf.theta.shape[0] - nb:]], po)
+                          for (th, po), rf in zip(starts, also.runs, strict=True)]
+            f = fit_runs(self.items, eff, starts=starts, sigmas=[rf.sigma for rf in start.runs],
+                         rounds=FOLD_ROUNDS, weight_iter=WEIGHT_ITER)
         fs = sum(held_out_score(rf) for rf in f.runs)
         return Trial(tuple(names), _n_params(eff, self.robot), f, fs, implausible=_implausible(f))
 
@@ -209,6 +219,29 @@ def _better_on_most(t: Trial, ref: Trial) -> bool:
     return bool((d > 0).sum() > d.size / 2)
 
 
+def _choose(judge: Judge, ok: list[Trial], current: Trial, step: dict[str, Any]) -> Trial | None:
+    """Among the eligible options, the best gain's confused ones (within CONFUSED of it) with the fewest
+    parameters; with several runs it must also be one value on every run (:func:`calib.spread.spread` of
+    the effects it adds: p >= CONSISTENT_P), else it is set aside (``step["inconsistent"]``) and the choice
+    made again among the rest."""
+    ok = list(ok)
+    step["inconsistent"] = []
+    while ok:
+        top_gain = max(current.score - t.score for t in ok)
+        confused = [t for t in ok if current.score - t.score >= (1.0 - CONFUSED) * top_gain]
+        chosen = min(confused, key=lambda t: (t.n_params, t.score))
+        if len(judge.items) >= 2:
+            chosen.spread = spread(chosen.fit, range(current.fit.values.shape[0], chosen.fit.values.shape[0]))
+            if chosen.spread.p < CONSISTENT_P:
+                step["inconsistent"].append(chosen)
+                ok.remove(chosen)
+                continue
+        step["chosen"] = chosen
+        step["confused"] = [t.names for t in confused if t is not chosen]
+        return chosen
+    return None
+
+
 def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Selection:
     """Forward selection by prediction (module doc)."""
     base = judge.judge(judge.fit([]))
@@ -226,7 +259,7 @@ def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Sel
         if len(selected) + 2 <= max_effects:
             for a in range(len(top)):
                 for b in range(a + 1, len(top)):
-                    t = judge.fit([*selected, top[a].names[-1], top[b].names[-1]], top[a].fit)
+                    t = judge.fit([*selected, top[a].names[-1], top[b].names[-1]], top[a].fit, top[b].fit)
                     pairs.append(judge.judge(t))
         options = probe + pairs
         step: dict[str, Any] = {"screen": screen, "options": options, "chosen": None, "current": current,
@@ -240,13 +273,9 @@ def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Sel
                 not ok or min(t.score for t in ok) > best.score + margin):
             finding = best  # the option that predicts clearly best is out of its range: a finding, stop here
             break
-        if not ok:
+        chosen = _choose(judge, ok, current, step)
+        if chosen is None:
             break
-        top_gain = max(current.score - t.score for t in ok)
-        confused = [t for t in ok if current.score - t.score >= (1.0 - CONFUSED) * top_gain]
-        chosen = min(confused, key=lambda t: (t.n_params, t.score))
-        step["chosen"] = chosen
-        step["confused"] = [t.names for t in confused if t is not chosen]
         selected = list(chosen.names)
         current = chosen
     mode = "leave-one-run-out" if len(judge.items) >= 2 else "leave-one-pose-out"

@@ -152,10 +152,12 @@ def test_detector_settles_on_a_decaying_swing_and_times_out_on_a_sustained_one()
         if st.settled:
             settled_at = t
             break
-    # the thresholds learnt from the swing itself (3.2 mm length range over 0.5 s, 1.18 N ripple): the span is
-    # still from about 2.7 s (a 1.6 mm swing), then a window's length of 1 s more plus the span
-    assert settled_at is not None and 3.5 < settled_at < 5.0
-    assert det.stillness.thresholds["length"] == pytest.approx(3.2e-3, rel=0.05)
+    # the thresholds learnt from the swing itself (3.2 mm length range over 0.5 s when the 1 s rule settled at
+    # about 4 s): the span is still from about 2.7 s (a 1.6 mm swing), then settle_s (3 s) more plus the span, whose
+    # samples the ends test finds at rest (issue 29's hold-time rule; a window's length of 1 s settled at
+    # 3.5-5 s); by then half the history rests and the length range is back at its 2 mm floor
+    assert settled_at is not None and 5.5 < settled_at < 7.0
+    assert det.stillness.thresholds["length"] == pytest.approx(2e-3)
     det.start(100.0)
     for k in range(1, 300):
         t = 100.0 + k * dt

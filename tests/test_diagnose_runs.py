@@ -99,6 +99,10 @@ def test_a_model_learned_on_two_real_runs_predicts_the_third(real_runs, tmp_path
     doc = yaml.safe_load(model.read_text())
     assert doc["effects"] and {r["name"] for r in doc["runs"]} == {"sc_8_final", "sc_8_medium_a"}
     assert all(set(e["sigma"]) == set(e["values"]) for e in doc["effects"])
+    # two runs: each 1-sigma is the mean's and the between-run spread's in quadrature, the runs' test beside
+    for e in doc["effects"]:
+        assert all(np.isclose(e["sigma"][k], np.hypot(e["sigma_mean"][k], e["between_runs"][k])) for k in e["sigma"])
+        assert 0.0 <= e["consistency"]["p"] <= 1.0 and e["consistency"]["dof"] >= 1
     assert "tension" in doc["runs"][0]["weights"]
     plain = _solve_rms(real_runs[2], [], capsys)
     learned = _solve_rms(real_runs[2], ["--model", str(model)], capsys)

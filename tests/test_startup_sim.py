@@ -115,7 +115,9 @@ def test_grid3_noisy_sensors_sway_and_pauses_every_window_found_once(tmp_path, c
     w5 = used[5]
     assert set(run.phase[w5["first"] : w5["last"] + 1]) >= {"hold", "pause"}
     home = [w for w in ws["found"] if not w["used"] and "pause" in set(run.phase[w["first"] : w["last"] + 1])]
-    assert len(home) == 1
+    # one stretch, or two when the platform's swing after the move home passes the ranges at a turning point
+    # before it rests (seed 1 since the hold-time rule of issue 29: 1.5 s, 4.6 mm of cable from the rest)
+    assert 1 <= len(home) <= 2
     noise = _sample_noise(run, [(w["first"], w["last"]) for w in used])
     np.testing.assert_allclose(noise["tau"], 0.3, rtol=0.3)
     np.testing.assert_allclose(noise["dl"], 2e-4, rtol=0.3)

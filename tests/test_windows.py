@@ -288,3 +288,59 @@ def test_on_the_real_sc_8_final_the_ends_test_cuts_only_motion_and_keeps_the_pap
     pose = [solve(run.robot, run, noise="paper", window_options=o).initial_pose[:3]
             for o in (WindowOptions(ends_p=0.0), WindowOptions(ends_p=1e-3))]
     assert np.linalg.norm(pose[1] - pose[0]) < 0.2e-3
+
+
+def test_of_the_still_stretches_at_one_setpoint_the_longest_is_its_window(robot):
+    """After a move the platform swings and passes the ranges at a turning point for 1.5 s before it rests
+    for 5 s at the same tensions, 6 mm of cable away: the rest is the setpoint's window, although the
+    turning point's mean tension is the nearer to the setpoint (0.02 N against 0.4 N): of the still
+    stretches at one setpoint the longest, not the nearest (issue 29: a startup's earliest flat spot was
+    taken, seconds before its hold)."""
+    rng = np.random.default_rng(3)
+    tau0, sp = np.full(4, 100.0), np.array([130.0, 80.0, 120.0, 95.0])
+    parts = [np.tile(tau0, (120, 1)), _quintic(tau0, sp, 40), np.tile(sp, (15, 1)), np.tile(sp, (15, 1)),
+             np.tile(sp + 0.4, (50, 1)), _quintic(sp, tau0, 40), np.tile(tau0, (60, 1))]
+    ref = np.vstack(parts)
+    N = ref.shape[0]
+    a = 120 + 40  # the turning point's first sample; its swing to the rest from a + 15 to a + 30
+    offset = np.zeros(N)
+    u = np.linspace(0.0, 1.0, 15)
+    offset[a + 15 : a + 30] = 6e-3 * 0.5 * (1.0 - np.cos(math.pi * u))
+    offset[a + 30 :] = 6e-3
+    offset[a + 80 :] = 0.0  # back under tau0 (the move back starts at a + 80)
+    t = np.arange(N) * DT
+    tau = ref + 0.1 * rng.standard_normal(ref.shape)
+    tau[a : a + 15] += sp - tau[a : a + 15].mean(axis=0)  # its mean exactly the setpoint
+    dl = 2e-3 * (ref - tau0) + offset[:, None] + 2e-5 * rng.standard_normal((N, 4))
+    dsig = 1e-3 * (ref - tau0) + 1e-4 * rng.standard_normal((N, 4))
+    roll, pitch = 1e-4 * rng.standard_normal(N), 1e-4 * rng.standard_normal(N)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp[None], options=WindowOptions(ends_p=0.0))
+    starts = sorted(w.first for w in ws.found if w.first >= a - 5 and w.last <= a + 85)
+    assert len(starts) == 2  # the turning point and the rest, both still by the ranges
+    (used,) = ws.used
+    assert used.setpoint == 0 and used.first > a + 15 and used.size >= 40
+
+
+def test_the_detector_holds_until_the_platform_rests_for_settle_s(robot):
+    """The hold-time rule of new startups: a platform that sits still for 2 s at a swing's turning point and
+    then moves 5 mm is not at rest; the detector calls a rest only after settle_s (3 s) of still samples that
+    the ends test finds resting end to end, and the same detector with a window's length (1 s) would have
+    called the turning point a rest."""
+    rng = np.random.default_rng(8)
+
+    def feed(det):
+        det.start(0.0)
+        for k in range(300):
+            x = 5e-3 * min(max((k - 20) / 10.0, 0.0), 1.0)  # still 2 s, a 5 mm move over 1 s, then still
+            st = det.push(k * DT, 100.0 + 0.1 * rng.standard_normal(4), x + 2e-5 * rng.standard_normal(4),
+                          1e-4 * rng.standard_normal(4), 1e-4 * rng.standard_normal(), 1e-4 * rng.standard_normal())
+            if st.settled or st.timed_out:
+                return k
+        return None
+
+    assert WindowOptions().settle_s == 3.0
+    k = feed(EquilibriumDetector(DT, DetectorConfig.for_robot(robot, history=5.0)))
+    assert k is not None and k >= 30 + 30  # 3 s after the move ended at sample 30
+    early = feed(EquilibriumDetector(DT, DetectorConfig.for_robot(robot, history=5.0,
+                                                                  options=WindowOptions(settle_s=1.0))))
+    assert early is not None and early < 20

@@ -61,6 +61,13 @@ class WindowOptions:
     # from zeta_0_real; 1e-3 is what issue 29 measured on the simulator (docs/windows.md)
     ends_p: float = 0.0
     ends_margin_s: float = 0.2  # s cut beyond an end the test found moving
+    # s: the farthest distance between an end and the centre of the rest that a sway's slow wander grows over
+    # (the online detector's longer blocks take half of settle_s)
+    ends_reach_s: float = 0.5
+    # the online detector (acquisition.equilibrium) calls a rest only after settle_s of still samples that the
+    # ends test at settle_p (when ends_p is 0) finds resting end to end: a hold-time rule for new startups
+    settle_s: float = 3.0
+    settle_p: float = 1e-3
 
 
 @dataclass(frozen=True)
@@ -240,6 +247,7 @@ class EndsTest:
     limit: float
     sigma: dict[str, np.ndarray]
     slow: dict[str, np.ndarray]
+    reach: float = 1.0  # spans: the farthest distance of an end from the rest's centre the slow wander grows over
 
     @classmethod
     def of_samples(cls, tau: np.ndarray, channels: dict[str, np.ndarray], span: int, rest: np.ndarray,
@@ -262,8 +270,9 @@ class EndsTest:
         per = options.span_s / span  # s per sample
         q = max(1, int(round(options.ends_s / per)))
         columns = sum(int(np.prod(x.shape[1:])) for x in every.values())
+        reach = max(1.0, options.ends_reach_s / options.span_s)
         return cls(span, q, int(round(options.ends_margin_s / per)), chi2_isf(options.ends_p, columns),
-                   sigma, slow)
+                   sigma, slow, reach)
 
     def scores(self, block: dict[str, np.ndarray]) -> tuple[float, float]:
         """The chi2 of the start and of the end of a block (channels (L, c) as ``sigma``) against the rest of
@@ -272,7 +281,8 @@ class EndsTest:
         q, r = self.q, L - self.q
         if r < self.q:
             return math.inf, math.inf
-        dist = min(0.5 * L / self.span, 1.0)  # spans between the centres of an end and of the rest (at most 1)
+        # spans between the centres of an end and of the rest: a sway's mean wanders further the further apart
+        dist = min(0.5 * L / self.span, self.reach)
         head = tail = 0.0
         for c, x in block.items():
             x = x.reshape(L, -1)
@@ -438,11 +448,14 @@ def _rest_only(wins: list[Window], tau: np.ndarray, ch: dict[str, np.ndarray], s
     return out
 
 
-def _align(dist: np.ndarray, tol: float) -> list[int]:
-    """Order-keeping assignment of windows (rows) to setpoints (columns): the most matches within ``tol``,
-    then the smallest total distance; per window the setpoint index or -1."""
+def _align(dist: np.ndarray, tol: float, size: np.ndarray) -> list[int]:
+    """Order-keeping assignment of windows (rows, ``size`` samples each) to setpoints (columns): the most
+    matches within ``tol``, then the most samples (of the still stretches at one setpoint the longest: the
+    platform's rest, where the earlier short ones are the flat spots of a swing after the move), then the
+    smallest total distance; per window the setpoint index or -1."""
     m, k = dist.shape
-    gain = np.where(dist <= tol, 1.0 + 1e-3 * (1.0 - dist / tol), -np.inf)
+    longest = 1e-3 * np.asarray(size, float)[:, None] / max(float(np.sum(size)), 1.0)
+    gain = np.where(dist <= tol, 1.0 + longest + 1e-6 / (m + 1) * (1.0 - dist / tol), -np.inf)
     best = np.zeros((m + 1, k + 1))
     for i in range(1, m + 1):
         for j in range(1, k + 1):
@@ -566,7 +579,7 @@ def search_windows(
         dist[i] = _relative(sp, tau[win.slice].mean(axis=0))
         if tau_ref is not None:
             dist[i] = np.minimum(dist[i], _relative(sp, tau_ref[win.slice].mean(axis=0)))
-    labels = _align(dist, opt.setpoint_tol) if wins else []
+    labels = _align(dist, opt.setpoint_tol, np.array([w_.size for w_ in wins])) if wins else []
     wins = [Window(win.first, win.last, j, win.quasi) for win, j in zip(wins, labels, strict=True)]
     extra, missing = _fill_missing(sp, wins, tau, kin, ripple, still, dt, min_len, opt)
     found = sorted(wins + extra, key=lambda c: c.first)
