@@ -43,10 +43,14 @@ def rotation(angles: np.ndarray, convention: str = "xyz") -> np.ndarray:
     ``zyx``: R = Rz(yaw) Ry(pitch) Rx(roll).
     """
     e = np.atleast_2d(np.asarray(angles, dtype=float))
-    c, s = np.cos(e), np.sin(e)
+    return _rotation_of(np.cos(e), np.sin(e), convention)
+
+
+def _rotation_of(c: np.ndarray, s: np.ndarray, convention: str) -> np.ndarray:
+    """:func:`rotation` from the cosines and sines (k, 3) of the angles."""
     c1, c2, c3 = c[:, 0], c[:, 1], c[:, 2]
     s1, s2, s3 = s[:, 0], s[:, 1], s[:, 2]
-    R = np.empty((len(e), 3, 3))
+    R = np.empty((len(c), 3, 3))
     if convention == "xyz":
         R[:, 0, 0] = c2 * c3
         R[:, 0, 1] = -c2 * s3
@@ -78,9 +82,12 @@ def euler_axes(angles: np.ndarray, convention: str = "xyz") -> np.ndarray:
     The angular velocity is omega = H @ d(angles)/dt, and dR/d(angle_j) @ v = H[:, j] x (R @ v).
     """
     e = np.atleast_2d(np.asarray(angles, dtype=float))
-    c, s = np.cos(e), np.sin(e)
-    k = len(e)
-    h = np.zeros((k, 3, 3))
+    return _axes_of(np.cos(e), np.sin(e), convention)
+
+
+def _axes_of(c: np.ndarray, s: np.ndarray, convention: str) -> np.ndarray:
+    """:func:`euler_axes` from the cosines and sines (k, 3) of the angles."""
+    h = np.zeros((len(c), 3, 3))
     if convention == "xyz":  # roll axis e_x; pitch axis Rx e_y; yaw axis Rx Ry e_z
         h[:, 0, 0] = 1.0
         h[:, 1, 1], h[:, 2, 1] = c[:, 0], s[:, 0]
@@ -124,16 +131,19 @@ def rotation_to_euler(rot: np.ndarray, convention: str = "xyz") -> np.ndarray:
     return np.stack([roll, pitch, yaw], -1)
 
 
-def convert_euler(angles: np.ndarray, source: str, target: str) -> tuple[np.ndarray, np.ndarray]:
+def convert_euler(angles: np.ndarray, source: str, target: str, rotations: np.ndarray | None = None,
+                  axes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The same rotations (k, 3 angles in ``source``) in the ``target`` convention, and d(target)/d(source).
 
     The Jacobian (k, 3, 3) is H_target^-1 H_source: both map angle rates to the same angular velocity.
+    ``rotations`` and ``axes``: ``rotation(angles, source)`` and ``euler_axes(angles, source)`` if already
+    computed (a :class:`Kinematics`' R and H), the same numbers.
     """
     a = np.atleast_2d(np.asarray(angles, dtype=float))
     if source == target:
         return a.copy(), np.broadcast_to(np.eye(3), (len(a), 3, 3)).copy()
-    out = rotation_to_euler(rotation(a, source), target)
-    jac = np.linalg.solve(euler_axes(out, target), euler_axes(a, source))
+    out = rotation_to_euler(rotation(a, source) if rotations is None else rotations, target)
+    jac = np.linalg.solve(euler_axes(out, target), euler_axes(a, source) if axes is None else axes)
     return out, jac
 
 
@@ -172,8 +182,9 @@ def inverse_kinematics(robot: Robot, poses: np.ndarray) -> Kinematics:
     trigonometry, and tan(psi/2) from eq. 4 gives cos(psi) and sin(psi) rationally.
     """
     z = _as_poses(poses)
-    R = rotation(z[:, 3:], robot.orientation)
-    H = euler_axes(z[:, 3:], robot.orientation)
+    c, s = np.cos(z[:, 3:]), np.sin(z[:, 3:])  # once for R and H
+    R = _rotation_of(c, s, robot.orientation)
+    H = _axes_of(c, s, robot.orientation)
     a_rel = np.matmul(R, robot.a_local.T).transpose(0, 2, 1)  # (k, n, 3)
     q = a_rel + (z[:, None, :3] - robot.d[None])
     ql = np.empty_like(q)  # (k, n, 3): q.i, q.j, q.k

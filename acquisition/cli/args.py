@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from acquisition.cli.errors import UsageError
-from acquisition.outputs import OutputExistsError, Replaced, check_output, claim_output
+
+if TYPE_CHECKING:
+    from acquisition.outputs import Replaced
 
 
 def parse_pose(text: str | None, option: str = "--reference") -> np.ndarray | None:
@@ -45,6 +48,8 @@ def add_effect_options(parser) -> None:
 def check_output_option(path, force: bool, option: str, inputs=()) -> None:
     """Refuse, before any work, an output that exists and may not be replaced, or that is, holds or is inside
     one of the command's ``inputs`` (one sentence, exit 2)."""
+    from acquisition.outputs import OutputExistsError, check_output  # here: `cdpr solve` writes no output
+
     try:
         check_output(path, force, option, inputs)
     except OutputExistsError as exc:
@@ -54,6 +59,8 @@ def check_output_option(path, force: bool, option: str, inputs=()) -> None:
 def claim_output_option(path, force: bool, option: str, inputs=()) -> Replaced | None:
     """Free an output path for writing (its missing folders made); with --force what was there is moved aside
     and the user told where."""
+    from acquisition.outputs import OutputExistsError, claim_output
+
     try:
         replaced = claim_output(path, force, option, inputs)
     except OutputExistsError as exc:

@@ -14,8 +14,8 @@ from pathlib import Path
 from acquisition.cli.args import add_effect_options, parse_pose
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.runlog import read_run
+from calib.chi2 import chi2_sf
 from calib.selfcal import METHODS, SelfCalFailure, SelfCalInputError, Solution, TooFewWindows, default_noise, solve
-from calib.selfcal.result import chi2_sf
 
 SOLUTION_FILE = "solution.json"
 

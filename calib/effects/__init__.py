@@ -17,15 +17,25 @@ import importlib.util
 import inspect
 from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import Any
 
-from calib.effects import builtin, cable, swivel
 from calib.effects.base import Context, Effect, EffectModel, Implausible, ParamSpec, Physical, Projected
 from calib.errors import CdprError
 
 ENTRY_POINT_GROUP = "cdpr.effects"
-# the library: the rigid-model corrections of issue 7, the cable-transmission effects of issue 17, then the
-# swivel-pulley geometry of issue 28
-BUILTIN: dict[str, type[Effect]] = {**builtin.BUILTIN, **cable.CABLE, **swivel.SWIVEL}
+
+
+def __getattr__(name: str) -> Any:
+    """``BUILTIN``, the library (the rigid-model corrections of issue 7, the cable-transmission effects of
+    issue 17, then the swivel-pulley geometry of issue 28), built on first use: a solve that only needs the
+    model and the device priors does not import the three modules of candidates (PEP 562)."""
+    if name == "BUILTIN":
+        from calib.effects import builtin, cable, swivel
+
+        library: dict[str, type[Effect]] = {**builtin.BUILTIN, **cable.CABLE, **swivel.SWIVEL}
+        globals()["BUILTIN"] = library
+        return library
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "BUILTIN",
@@ -95,7 +105,7 @@ def _entry_point_effects() -> dict[str, type[Effect]]:
 
 def available_effects(extra_files: Sequence[str | Path] = ()) -> dict[str, type[Effect]]:
     """Built-in effects, then the installed plug-ins (``cdpr.effects`` entry points), then the files'."""
-    out: dict[str, type[Effect]] = dict(BUILTIN)
+    out: dict[str, type[Effect]] = dict(__getattr__("BUILTIN"))
     out.update(_entry_point_effects())
     for f in extra_files:
         out.update(load_effect_file(f))
@@ -104,7 +114,7 @@ def available_effects(extra_files: Sequence[str | Path] = ()) -> dict[str, type[
 
 def make_effects(names: Sequence[str], available: dict[str, type[Effect]] | None = None) -> list[Effect]:
     """Instances of the named effects, in the given order."""
-    avail = BUILTIN if available is None else available
+    avail = __getattr__("BUILTIN") if available is None else available
     out = []
     for name in names:
         if name not in avail:

@@ -194,6 +194,16 @@ class Effect:
                 if not s.plausible[0] <= v <= s.plausible[1]]
 
 
+def add_tension_offsets(cols: slice, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
+    """Load cell i reads tau_i + values_i (N): the tension prediction shifted, its theta columns ``cols``
+    the identity (what TensionOffset and the devices' priors share)."""
+    if "tension" not in preds:
+        return
+    pr = preds["tension"]
+    pr.value = pr.value + values[None]
+    pr.d_theta[..., cols] = np.eye(values.shape[0])[None]
+
+
 def base_quantities(recompute, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(L, sigma, tau) at the effect's own values: those the model computed already when ``recompute``
     carries them (``recompute.base``), else recomputed."""
@@ -213,7 +223,7 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> P
     else:
         tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
     z = np.zeros((k, n, p))
-    ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention)
+    ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention, kin.R, kin.H)
     L, dL = encoder_lengths(robot, kin.lengths, tau, jac.lengths, dtau)
     return Physical(L, kin.swivel, tau, dL, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
 

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from calib.effects.base import Context, Effect, Implausible, ParamSpec, base_quantities
+from calib.effects.base import Context, Effect, Implausible, ParamSpec, add_tension_offsets, base_quantities
 from calib.kinematics import euler_axes, inverse_kinematics, rotation, rotation_to_euler
 from calib.robot import Robot
 from calib.selfcal.model import ChannelPrediction
@@ -139,16 +139,6 @@ class TensionOffset(Effect):
 
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         add_tension_offsets(ctx.cols, values, preds)
-
-
-def add_tension_offsets(cols: slice, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
-    """Load cell i reads tau_i + values_i (N): the tension prediction shifted, its theta columns ``cols``
-    the identity (what TensionOffset and the devices' priors share)."""
-    if "tension" not in preds:
-        return
-    pr = preds["tension"]
-    pr.value = pr.value + values[None]
-    pr.d_theta[..., cols] = np.eye(values.shape[0])[None]
 
 
 class AhrsMounting(Effect):

@@ -8,8 +8,7 @@ import math
 
 import numpy as np
 
-from calib.effects.base import Context, Effect, ParamSpec
-from calib.effects.builtin import add_tension_offsets
+from calib.effects.base import Context, Effect, ParamSpec, add_tension_offsets
 from calib.robot import Robot
 from calib.selfcal.model import ChannelPrediction
 

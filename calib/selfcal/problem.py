@@ -126,6 +126,12 @@ class Problem:
             idx = np.flatnonzero(mask)
             if idx.size:
                 self.groups.append(self._group(idx, chans))
+        # each row's group and its place in it (pose_normal_equations selects rows by these, not by np.isin)
+        self._row_group = np.full(meas.k, -1)
+        self._row_place = np.zeros(meas.k, dtype=int)
+        for j, g in enumerate(self.groups):
+            self._row_group[g.idx] = j
+            self._row_place[g.idx] = np.arange(g.idx.size)
         ref_chans = []
         ref_read, ref_w = [], []
         if np.all(np.isfinite(meas.ref_tau)):
@@ -301,11 +307,12 @@ class Problem:
         poses (m, 6) are the poses of those rows."""
         m = rows.shape[0]
         cost, U, b = np.zeros(m), np.zeros((m, 6, 6)), np.zeros((m, 6))
-        for g in self.groups:
-            sel = np.flatnonzero(np.isin(rows, g.idx))
+        in_group = self._row_group[rows]
+        for j, g in enumerate(self.groups):
+            sel = np.flatnonzero(in_group == j)
             if not sel.size:
                 continue
-            pos = np.searchsorted(g.idx, rows[sel])
+            pos = self._row_place[rows[sel]]
             pred = self.model.predict(poses[sel], theta, g.channels, self._times(rows[sel]),
                                       **self._approach(rows[sel]))
             w = g.weight[pos]

@@ -8,22 +8,12 @@ from typing import Any
 
 import numpy as np
 
+from calib.chi2 import chi2_sf
 from calib.errors import CdprError
 from calib.kinematics import rotation
 from calib.selfcal.windows import Window, WindowSearch
 
 MISFIT_P = 1e-3  # a chi2 whose upper-tail probability is below this rejects the model for the noise used
-
-
-def chi2_sf(chi2: float, dof: float) -> float:
-    """Upper-tail probability P(X > chi2) of a chi2 with ``dof`` degrees of freedom, the very float of
-    ``scipy.stats.chi2.sf`` (1 at or below 0, nan for dof <= 0) from scipy.special alone: importing
-    scipy.stats costs a command about a second."""
-    from scipy.special import chdtrc
-
-    if not dof > 0 or math.isnan(chi2):
-        return math.nan
-    return 1.0 if chi2 <= 0 else float(chdtrc(dof, chi2))
 
 
 def sigma_scale(chi2: float, dof: int) -> float:

@@ -31,7 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.chi2 import chi2_isf
 from calib.robot import Robot
+from calib.robust import median
 
 CHANNELS = ("length", "swivel", "tilt")
 
@@ -125,7 +127,7 @@ def _centred(stat: np.ndarray, w: int, size: int) -> np.ndarray:
 def noise_floor(x: np.ndarray) -> np.ndarray:
     """Robust white-noise standard deviation per column of x (N, c) from first differences (MAD)."""
     d = np.diff(x, axis=0)
-    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    mad = median(np.abs(d - median(d, axis=0)), axis=0)
     return 1.4826 * mad / math.sqrt(2.0)
 
 
@@ -135,7 +137,7 @@ def sample_noise(x: np.ndarray) -> np.ndarray:
     if x.shape[0] < 3:
         return np.zeros(x.shape[1:])
     d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    return 1.4826 * np.median(np.abs(d2), axis=0) / math.sqrt(6.0)
+    return 1.4826 * median(np.abs(d2), axis=0) / math.sqrt(6.0)
 
 
 def quiet_noise(x: np.ndarray) -> np.ndarray:
@@ -165,7 +167,7 @@ def slow_drift(x: np.ndarray, w: int, rest: np.ndarray) -> np.ndarray:
     m = (c[w:] - c[:-w]) / w  # mean of x[i : i + w]
     change = np.abs(m[w:] - m[:-w])  # entry i: around sample i + w
     keep = rest[w : w + change.shape[0]]
-    return np.median(change[keep], axis=0) if keep.any() else np.zeros(x.shape[1:])
+    return median(change[keep], axis=0) if keep.any() else np.zeros(x.shape[1:])
 
 
 def running_max(x: np.ndarray, w: int) -> np.ndarray:
@@ -255,8 +257,6 @@ class EndsTest:
         ``options.ends_margin_s`` long for a span of ``span`` samples of ``options.span_s``. The slow wander
         is measured where the spans also move within ``noise_factor`` quiet sigmas alone, not the floors: a
         platform still swinging by a millimetre passes those, and would pass for a sway."""
-        from scipy.special import chdtri  # chi2's inverse survival function, without importing scipy.stats
-
         every = {"tension": tau} | dict(channels)
         floors = {"length": options.length_tol, "swivel": options.swivel_tol, "tilt": options.tilt_tol}
         # a sigma at least a twelfth of the channel's range floor: a reading that sits on its counts does not
@@ -271,7 +271,7 @@ class EndsTest:
         q = max(1, int(round(options.ends_s / per)))
         columns = sum(int(np.prod(x.shape[1:])) for x in every.values())
         reach = max(1.0, options.ends_reach_s / options.span_s)
-        return cls(span, q, int(round(options.ends_margin_s / per)), float(chdtri(columns, options.ends_p)),
+        return cls(span, q, int(round(options.ends_margin_s / per)), chi2_isf(options.ends_p, columns),
                    sigma, slow, reach)
 
     def scores(self, block: dict[str, np.ndarray]) -> tuple[float, float]:
@@ -478,7 +478,7 @@ def _gap_quasi(wins: list[Window], score: np.ndarray, w: int, opt: WindowOptions
     if len(wins) < 3:
         return []
     gaps = np.array([b.first - a.last for a, b in zip(wins[:-1], wins[1:], strict=True)])
-    limit = opt.gap_factor * float(np.median(gaps))
+    limit = opt.gap_factor * float(median(gaps))
     extra = []
     for (a, b), gap in zip(zip(wins[:-1], wins[1:], strict=True), gaps, strict=True):
         lo, hi = a.last + w, b.first - w
@@ -556,7 +556,7 @@ def search_windows(
     """Equilibrium windows of a run (arrays (N,) or (N, n), SI units), see the module docstring."""
     opt = options or WindowOptions()
     N = dl.shape[0]
-    dt = float(np.median(np.diff(t))) if N > 1 else 1.0
+    dt = float(median(np.diff(t))) if N > 1 else 1.0
     ch = still_channels(dl, dsigma, roll, pitch)
     w = span_samples(opt, dt)
     act = Activity.of(tau, ch, w)
