@@ -46,12 +46,10 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
         sig = pre.signals
         base = window_mean_noise(robot, sig, wins)
         ref_win = next(w for w in wins if w.first <= ref_sample <= w.last)
-        per = None
         for _ in range(REFINE):
             spans = [(ref_win.slice, res.theta[:6])] + [
                 (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
-            pf = pose_free_noise(model, sig, spans, ref, res.theta, base, start=per)  # the last pass's sigmas
-            noise, per = pf.noise, pf.sample
+            noise = pose_free_noise(model, sig, spans, ref, res.theta, base).noise
             model, theta = _with_reference_noise(robot, model, res.theta, noise.sigma, meas.windows, ref_win.size)
             problem = Problem(model, meas, noise.sigma)
             res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)

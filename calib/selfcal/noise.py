@@ -184,61 +184,7 @@ def window_mean_noise(robot: Robot, sig: dict[str, np.ndarray], windows) -> Wind
 
 
 KINEMATIC = ("length", "swivel")  # the groups whose window means lose the pose motion (see pose_free_noise)
-VCE_TOL = 0.01  # variance components have converged when no group's sigma changes by more than this (relative)
-VCE_SE = 0.25  # ... or by less than this share of its own standard error (see helmert_step)
-VCE_MAX_ROUNDS = 20  # fits at most
-
-
-@dataclass(frozen=True)
-class Components:
-    """Converged variance components: per group the sigma (``sigma``, SI), its redundancy (``redundancy``:
-    n_g - tr H_gg of the last fit), the rounds made, whether the stopping rule was met, and what the last
-    fit returned besides (``state``, the fit at ``sigma``'s previous values: within VCE_TOL of them)."""
-
-    sigma: dict[str, float]
-    redundancy: dict[str, float]
-    rounds: int
-    converged: bool
-    state: object = None
-
-
-def helmert_step(sigma: dict, ssq: dict[object, float], red: dict[object, float], floor: dict,
-                 tol: float = VCE_TOL) -> tuple[dict, bool]:
-    """One Helmert (Foerstner) variance-component step: sigma_g <- sigma_g sqrt(ssq_g / r_g), with ssq_g the
-    group's squared residuals weighted by sigma_g and r_g = n_g - tr(H_gg) its redundancy (H the hat matrix
-    of the whitened fit), floored at ``floor`` (same keys; a sigma may be an array, e.g. one per cable); a
-    group with no redundancy keeps its sigma. Returns the new sigmas and whether they have settled: no
-    sigma moves by more than ``tol`` (relative) or by more than VCE_SE of its own standard error
-    1 / sqrt(2 r_g) (what r_g degrees of freedom tell of a variance: a group the fit can hardly judge,
-    e.g. readings far more precise than the others that the poses take whole, shrinks by a few per cent a
-    round for ever, each step far inside what the data can resolve)."""
-    out, settled = dict(sigma), True
-    for g, r in red.items():
-        if r <= 1e-9:
-            continue
-        old = np.asarray(sigma[g], float)
-        new = np.maximum(old * math.sqrt(max(ssq[g], 0.0) / r), floor.get(g, 0.0))
-        move = float(np.max(np.abs(new / old - 1.0)))
-        settled &= move <= max(tol, VCE_SE / math.sqrt(2.0 * r))
-        out[g] = new if new.ndim else float(new)
-    return out, settled
-
-
-def converged_components(fit, sigma: dict, floor: dict, tol: float = VCE_TOL,
-                         max_rounds: int = VCE_MAX_ROUNDS) -> Components:
-    """Variance components iterated to convergence: ``fit(sigma)`` fits with the groups' sigmas and returns
-    (ssq, redundancy, state) per group; the rounds stop once :func:`helmert_step` finds the sigmas settled
-    (converged) or after ``max_rounds`` fits. The sigmas returned are those of the last fit (``state``).
-    One function for the per-sample pose fits (:func:`pose_free_noise`) and the joint fits of several runs
-    (calib.multirun.fit_runs)."""
-    sigma = dict(sigma)
-    for rounds in range(1, max(1, max_rounds) + 1):
-        ssq, red, state = fit(sigma)
-        new, settled = helmert_step(sigma, ssq, red, floor, tol)
-        if settled or rounds == max_rounds:
-            return Components(sigma, red, rounds, settled, state)
-        sigma = new
-    raise AssertionError("unreachable")
+VCE_ROUNDS = 4  # variance-component rounds of the per-sample pose fit (the sigmas settle in 2-3)
 
 
 @dataclass(frozen=True)
@@ -254,7 +200,7 @@ class PoseFreeNoise:
 
 def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, np.ndarray]],
                     ref: dict[str, np.ndarray], theta: np.ndarray, base: WindowNoise,
-                    rounds: int = VCE_MAX_ROUNDS, start: dict[str, float] | None = None) -> PoseFreeNoise:
+                    rounds: int = VCE_ROUNDS) -> PoseFreeNoise:
     """Noise of the length and swivel-angle window means (:data:`KINEMATIC`) without the platform's
     motion inside the windows (roll, pitch and yaw keep ``base``'s group figures: the AHRS channels only weigh
     the per-sample pose fits). The force control moves winches and platform together: every kinematic
@@ -263,9 +209,7 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     ``theta``, started from its window's pose; ``spans``: (window slice, pose (6,)) pairs, ``ref``: the
     reference window's means the rows are relative to); the per-group sigma of a sample's remainder is
     estimated by variance components (Helmert: sum of squared residuals over the sum of the redundancy
-    numbers 1 - h_ii of the whitened pose fit, :func:`converged_components`: iterated until they settle, at
-    most ``rounds`` fits, started from ``start`` (per-sample sigmas of an earlier pass) or the within-window
-    figures, floored at the readings' resolution); the remainders' lag-1
+    numbers 1 - h_ii of the whitened pose fit, re-weighted ``rounds`` times); the remainders' lag-1
     correlation in each window gives the AR(1) factor of their window mean, as in :func:`window_mean_noise`.
     A reading that sat on one count for a whole window keeps its quantisation error in the mean: the
     share of such readings adds q^2/12 times that share. Tensions keep ``base``'s figures (the force
@@ -288,28 +232,18 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
            "tilt": max(g["tilt"].sample, 1e-5), "yaw": max(g["yaw"].sample, 1e-5)}
     cols = {"length": slice(0, n), "swivel": slice(n, 2 * n), "tilt": slice(2 * n, 2 * n + 2),
             "yaw": slice(2 * n + 2, 2 * n + 3)}
-    state = {"Z": Z}
-
-    def fit(per_kin: dict[str, float]):
-        sigma = {"tension": np.ones(n), "length": np.full(n, per_kin["length"]),
-                 "swivel": np.full(n, per_kin["swivel"]),
+    e = lev = None
+    for _ in range(max(1, rounds)):
+        sigma = {"tension": np.ones(n), "length": np.full(n, per["length"]), "swivel": np.full(n, per["swivel"]),
                  "orientation": np.array([per["tilt"], per["tilt"], per["yaw"]])}
         kin = Problem(model, meas, sigma)
-        first = "e" not in state  # later rounds start from the last round's poses: a few steps
-        state["Z"], _ = solve_poses(kin, theta, state["Z"], max_iter=30 if first else 8, tol=1e-8 if first else 1e-6)
-        state["e"] = True
-        (grp, r, J, _), = kin.evaluate(theta, state["Z"]).groups
+        Z, _ = solve_poses(kin, theta, Z, max_iter=30, tol=1e-10)
+        (grp, r, J, _), = kin.evaluate(theta, Z).groups
         # redundancy numbers of the whitened per-sample pose fit: 1 - diag(J (J'J)^-1 J')
         lev = 1.0 - np.einsum("kci,kij,kcj->kc", J, np.linalg.pinv(J.transpose(0, 2, 1) @ J), J)
         e = r / grp.weight
-        w = {c: e[:, cols[c]] / per_kin[c] for c in KINEMATIC}
-        return ({c: float(np.sum(w[c] ** 2)) for c in KINEMATIC},
-                {c: float(np.sum(lev[:, cols[c]])) for c in KINEMATIC}, (e, lev))
-
-    vce = converged_components(fit, {c: (start or per)[c] for c in KINEMATIC},
-                               {c: float(np.max(floor[c])) for c in KINEMATIC}, max_rounds=rounds)
-    per |= vce.sigma
-    e, lev = vce.state
+        per |= {c: math.sqrt(float(np.sum(e[:, s] ** 2) / max(float(np.sum(lev[:, s])), 1e-12)))
+                for c, s in cols.items() if c in KINEMATIC}
     raw = {"length": sig["dl"], "swivel": sig["dsigma"]}
     groups = dict(base.groups)
     stuck = {}
