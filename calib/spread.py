@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
+from calib.chi2 import chi2_sf
 from calib.multirun import JointFit, fit_runs
 
 RCOND = 1e-8  # relative cut of a covariance's pseudo-inverse (on parameters scaled to unit joint sigma)
@@ -92,6 +92,6 @@ def spread(fit: JointFit, cols: Sequence[int] | None = None, fits: list[JointFit
     c = np.array([f.cov[np.ix_(idx, idx)] for f in fits])
     scale = np.sqrt(np.clip(np.diag(fit.cov)[idx], 0, None))
     chi2, dof = consistency(x, c, scale)
-    p = float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0
+    p = chi2_sf(chi2, dof) if dof > 0 else 1.0
     var = np.clip(np.diagonal(c, axis1=1, axis2=2), 0, None)
     return Spread([rf.name for rf in fit.runs], x, c, chi2, dof, p, between_run_sd(x, var))
