@@ -135,8 +135,8 @@ def main() -> int:
             s = sols[kind]
             print(f"{kind:<6} diagnosis recommends {selected[kind] or 'nothing'}; solved: "
                   f"[{', '.join(f'{1000 * v:.2f}' for v in s['initial_pose'][:3])}] mm, 1-sigma "
-                  f"[{', '.join(f'{1000 * v:.2f}' for v in s['initial_pose_sigma'][:3])}] mm, noise "
-                  f"{s['noise']['source']}")
+                  f"[{', '.join(f'{1000 * v:.2f}' for v in s['initial_pose_sigma'][:3])}] mm, length sigma "
+                  f"{1000 * s['noise']['length'][0]:.2f} mm")
         d = float(np.linalg.norm(np.subtract(sols["raw"]["initial_pose"][:3], sols["parsed"]["initial_pose"][:3])))
         if args.decompose:
             for line in decompose(paths, selected):

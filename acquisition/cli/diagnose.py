@@ -177,7 +177,6 @@ def _own_weights_solve(rows, run, effects: list[Effect], solve_kwargs: dict[str,
     model = EffectModel(rows.robot, [DeviceAccuracy(), *effects])
     kw = {k: v for k, v in solve_kwargs.items() if k != "noise"}
     sol = solve(rows.robot, run, model=model, noise="estimate", **kw)
-    sol.noise_source = "estimate (this model's own weights)"
     sol.effects = {k: {a: b for a, b in v.items() if math.isfinite(b)} for k, v in sol.effects.items()}
     return sol
 
