@@ -158,7 +158,15 @@ def solve_with_effects(args, run, reference: np.ndarray | None, solve_kwargs: di
     units = parameter_units(f.model.effects, rows.robot)  # the last fit's model: every effect, the devices' too
     own = None
     if rows.source == "estimate" and effects:
-        own = _own_weights_solve(rows, run, effects, solve_kwargs)
+        import warnings
+
+        from calib.selfcal import SelfCalFailure
+
+        try:
+            own = _own_weights_solve(rows, run, effects, solve_kwargs)
+        except SelfCalFailure as exc:  # the chain's fit stands: said, not hidden
+            warnings.warn(f"{args.run}: the model with {args.effects} solved with its own weights failed ({exc}); "
+                          "the solution keeps the base model's weights.", UserWarning, stacklevel=2)
     table = effects_table(sols, effects, reference, units, own)
     return (sols[-1] if own is None else own), table
 
