@@ -136,6 +136,31 @@ def test_a_group_dominated_by_model_error_weighs_what_its_rows_scatter_by():
     assert out["tension"][0] == pytest.approx(0.2)
 
 
+def test_the_reference_window_follows_its_channels_down_never_up():
+    """Issue 29: the reference window's mean is a window mean of the same readings as the rows, so where the
+    rows' variance components bring a group below its within-window sigma (swivel: factor 1/4, sigma halved)
+    its prior comes down with them; where they raise a group (tension: model error, factor 900) the
+    reference reading carries no misfit and keeps its within-window sigma; an unjudged group (length) stays."""
+    from calib.effects.priors import ReferenceNoise
+    from calib.selfcal import sensor_noise
+    from calib.selfcal.noise import reference_sigma, rescaled_sigma
+
+    within = {"tension": np.full(4, 0.2), "length": np.full(4, 1e-6), "swivel": np.full(4, 4e-6),
+              "orientation": np.array([5e-5, 5e-5, 4e-5])}
+    fac = {"tension": (900.0, 22.0), "length": (0.01, 2.0), "swivel": (0.25, 20.0), "tilt": (1.0, 9.0),
+           "yaw": (0.64, 6.0)}
+    rows = rescaled_sigma(within, fac, sensor_noise(ROBOT))
+    ref = reference_sigma(rows, within)
+    assert rows["tension"][0] == pytest.approx(6.0) and ref["tension"][0] == pytest.approx(0.2)
+    assert ref["swivel"][0] == pytest.approx(2e-6) == rows["swivel"][0]
+    assert ref["length"][0] == pytest.approx(1e-6)
+    np.testing.assert_allclose(ref["orientation"], [5e-5, 5e-5, 0.8 * 4e-5])
+    # a 20-sample reference for rows of 20 and 80 samples (harmonic mean 32): variances go as 1 / size
+    prior = ReferenceNoise.for_rows(ref, np.array([[0, 19], [100, 179]]), 20)
+    assert prior.sd["swivel"] == pytest.approx(2e-6 * math.sqrt(32 / 20))
+    assert prior.sd["yaw"] == pytest.approx(0.8 * 4e-5 * math.sqrt(32 / 20))
+
+
 def test_estimate_noise_stays_near_the_paper_solve_on_the_misfitting_real_run(irma_data, tmp_path):
     """sc_8_final, whose rigid model misfits its window means some 25 times their sigma (issue 28): weighed
     by its window scatter alone the estimate-noise solve let the AHRS and swivel channels pull the pose (on

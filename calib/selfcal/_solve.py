@@ -11,7 +11,13 @@ import numpy as np
 from calib.robot import Robot
 from calib.selfcal.guess import prepare
 from calib.selfcal.lm import levenberg_marquardt
-from calib.selfcal.noise import pose_free_noise, rescaled_sigma, variance_factors, window_mean_noise
+from calib.selfcal.noise import (
+    pose_free_noise,
+    reference_sigma,
+    rescaled_sigma,
+    variance_factors,
+    window_mean_noise,
+)
 from calib.selfcal.options import SolveOptions
 from calib.selfcal.problem import Problem
 from calib.selfcal.result import SelfCalFailure, Solution, compare_pose
@@ -56,14 +62,15 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
         # the within-window sigmas bound each group's noise of a mean from above (they include motion the
         # means average out, e.g. the force control's ripple, and the share the rows' poses absorb): where
         # the window means scatter less around the fit, variance components bring them down; up only where
-        # the model misses a group far beyond its noise (model error, noise.rescaled_sigma); the reference's
-        # noise keeps its within-window prior (the fit cannot see the reference's own error)
+        # the model misses a group far beyond its noise (model error, noise.rescaled_sigma); the reference
+        # window's mean follows its channels down, never up (noise.reference_sigma)
         within, floor = noise.sigma, sensor_noise(robot)
         for _ in range(VCE_ROUNDS_ROWS):
             shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses), floor)
             if shrunk is None:
                 break
-            model, theta = _with_reference_noise(robot, model, res.theta, within, meas.windows, ref_win.size)
+            model, theta = _with_reference_noise(robot, model, res.theta, reference_sigma(shrunk, within),
+                                                 meas.windows, ref_win.size)
             problem = Problem(model, meas, shrunk)
             res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
     t_end = time.perf_counter()

@@ -359,3 +359,16 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
         scale(c, math.sqrt(max(f, 1e-6)))
         changed = True
     return out if changed else None
+
+
+def reference_sigma(rows: dict[str, np.ndarray], within: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per channel, the sigma of a window mean the reference window's noise is sized from
+    (priors.ReferenceNoise.for_rows scales it to the reference's own size): the rows' sigma after their
+    variance components (``rows``) where those brought it below its within-window figure (``within``), that
+    figure otherwise. The reference mean is a window mean of the same readings as the rows: where the rows'
+    means scatter less than the within-window figure says (it holds motion a mean averages out), so does
+    the reference's (kept at the within-window figure, its prior was about twice the reference error on
+    simulated startups and the initial position's sigma too wide, docs/windows.md). Where the variance
+    components raise a group (the model misses its rows: model error), the reference reading does not carry
+    that misfit and keeps the within-window figure."""
+    return {c: np.minimum(np.asarray(rows[c], float), np.asarray(within[c], float)) for c in within}
