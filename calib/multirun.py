@@ -42,6 +42,7 @@ from calib.selfcal.problem import Problem
 
 GROUPS = CHANNELS  # the channel groups whose noise the variance components set
 LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
+HOLD_MAX = 8  # iterations at most that LM keeps a damping whose tenth was refused before trying it again
 RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
 # the normal matrix's eigenvalue ratio above which its inverse is taken by a solve (condition below 1e8: the
 # covariance to ~1e-8, its rank full, far from the SVD's cut at 1e-10); below it, the SVD of the Jacobian
@@ -430,6 +431,33 @@ class Arrow:
         return ds, gain
 
 
+@dataclass
+class Damping:
+    """Marquardt's damping of the LM steps (x10 after a refused trial, /10 after an accepted step) with a
+    memory: a step accepted only after a tenth of its damping was refused keeps that damping for the next
+    ``hold`` iterations (1, then 2, 4, ... up to HOLD_MAX each time it happens again) before the tenth is
+    tried again. Where the lighter step keeps failing (a weakly determined direction in which the cost is not
+    quadratic that far: on the real runs, the medium runs' heights with the cables' compliance) Marquardt's
+    rule refuses one trial in every iteration; this takes the same accepted steps while the tenth would be
+    refused, with a refused trial every 1, 2, 4, ... iterations. When the tenth would have been accepted, it is
+    tried up to HOLD_MAX iterations later."""
+
+    lam: float = 1e-5
+    hold: int = 0  # iterations left at this damping
+    wait: int = 1  # the next hold
+
+    def refused(self) -> None:
+        self.lam *= 10.0
+
+    def accepted(self, after_refusal: bool) -> None:
+        if after_refusal:
+            self.hold, self.wait = min(self.wait, HOLD_MAX), min(2 * self.wait, HOLD_MAX)
+        elif self.hold > 0:
+            self.hold -= 1
+        if self.hold == 0:
+            self.lam = max(self.lam / 10.0, 1e-12)
+
+
 def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = False, max_iter: int = 60,
             tol: float = 1e-5, covariance: bool = True) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
     """Levenberg-Marquardt on the joint problem (its normal equations by blocks, :class:`Arrow`). Returns
@@ -437,15 +465,15 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     the shared values) and the rank (without ``covariance``: zeros and 0, the SVD skipped)."""
     robot = runs[0].rows.robot
     q, _, lo, hi = _layout(shared, robot)
-    lam, iterations, converged = 1e-5, 0, False
+    damping, iterations, converged = Damping(), 0, False
     batch = one_robot(runs, shared)
     blocks, cost = _evaluate(runs, q, batch)
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         arrow = Arrow.of(runs, blocks, q, fixed_shared)
-        improved = False
+        improved, held = False, damping.hold > 0
         for trial_no in range(LAMBDA_TRIES):
-            ds, gain = arrow.step(lam + RIDGE)
-            if trial_no == 0 and gain < tol * cost:
+            ds, gain = arrow.step(damping.lam + RIDGE)
+            if trial_no == 0 and not held and gain < tol * cost:
                 break  # the lightly damped step predicts nothing left to gain
             trial = _apply(runs, ds / arrow.scale, q, arrow.cols, fixed_shared)
             _clip(trial, q, lo, hi)
@@ -453,13 +481,13 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
             if np.isfinite(c1) and c1 < cost:
                 improved = True
                 break
-            lam *= 10.0
+            damping.refused()
         if not improved:
             converged = True
             break
         rel = (cost - c1) / max(cost, 1e-300)
         runs, cost, blocks = trial, c1, trial_blocks
-        lam = max(lam / 10.0, 1e-12)
+        damping.accepted(after_refusal=trial_no > 0)
         if rel < tol:
             converged = True
             break
