@@ -141,3 +141,16 @@ def test_the_damping_memory_takes_marquardts_steps_with_fewer_refused_trials(mon
     assert refused <= 10
     first = lambda acc: next(k for k, v in enumerate(acc) if v < 3e-9)  # noqa: E731
     assert first(plain) == 43 and first(memory) <= first(plain) + hold_max == 51
+
+
+def test_the_shared_covariance_from_the_blocks_is_that_block_of_the_dense_inverse():
+    """Arrow.covariance (the inverse of the runs' Schur complement) is the shared block of the inverse of the
+    dense normal matrix on unit-norm columns, and its rank the column count."""
+    runs, q = _runs(np.random.default_rng(4))
+    blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
+    _, A, _ = stack(runs, q, blocks=blocks)
+    As = A / np.linalg.norm(A, axis=0)
+    dense = np.linalg.inv(As.T @ As)[:q, :q]
+    cov, rank = Arrow.of(runs, blocks, q, False).covariance()
+    np.testing.assert_allclose(cov, dense, rtol=1e-8)
+    assert rank == A.shape[1]
