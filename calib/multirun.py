@@ -333,9 +333,8 @@ _DIAG6 = np.arange(6)
 
 
 def _by_pose(res: Residuals, k: int, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A run's Jacobian rows gathered by pose: a pose's columns meet only that pose's entries (the first
-    ones, ``res.row`` >= 0), so per pose its entries' 6 pose columns X (k, e_max, 6), their theta columns
-    T (k, e_max, t) and residuals (k, e_max), padded with zero rows."""
+    """Per pose, its entries' (the first ones, ``res.row`` >= 0) 6 pose columns X (k, e_max, 6), theta columns
+    T (k, e_max, t) and residuals (k, e_max), zero-padded: a pose's columns meet only its own entries."""
     row = res.row
     e = int(np.count_nonzero(row >= 0))
     pose = row[:e]
@@ -343,11 +342,8 @@ def _by_pose(res: Residuals, k: int, T: np.ndarray) -> tuple[np.ndarray, np.ndar
     counts = np.bincount(pose, minlength=k)
     idx = np.full((k, max(int(counts.max(initial=0)), 1)), e)  # e: the zero row
     idx[pose[order], np.arange(e) - np.repeat(np.cumsum(counts) - counts, counts)] = order
-    X = np.zeros((e + 1, 6))
-    X[:e] = res.A[np.arange(e)[:, None], 6 * pose[:, None] + _DIAG6]
-    Tz = np.zeros((e + 1, T.shape[1]))
-    Tz[:e] = T[:e]
-    return X[idx], Tz[idx], np.r_[res.r[:e], 0.0][idx]
+    X = np.vstack([res.A[np.arange(e)[:, None], 6 * pose[:, None] + _DIAG6], np.zeros((1, 6))])
+    return X[idx], np.vstack([T[:e], np.zeros((1, T.shape[1]))])[idx], np.r_[res.r[:e], 0.0][idx]
 
 
 @dataclass
@@ -427,10 +423,8 @@ class Arrow:
         return ds, gain
 
     def covariance(self) -> tuple[np.ndarray, int] | None:
-        """The shared block of the inverse normal matrix (scaled columns) and its rank, from the Schur
-        complement on [shared, own_1, own_2, ...] (whose inverse is that block of N's inverse): no dense
-        normal matrix. None when a pose block or the complement is singular to working precision (the
-        caller's SVD then says what the data see)."""
+        """The shared block of N's inverse (scaled columns) and N's rank from the inverse of the Schur
+        complement on [shared, own_1, ...]; None when a pose block or it is singular (the caller's SVD decides)."""
         M, _, _ = self._reduced(0.0)
         for a in [*self.U, M[None]]:
             ev = np.linalg.eigvalsh(a)
@@ -474,14 +468,10 @@ class Arrow:
 
 @dataclass
 class Damping:
-    """Marquardt's damping of the LM steps (x10 after a refused trial, /10 after an accepted step) with a
-    memory: a step accepted only after a tenth of its damping was refused keeps that damping for the next
-    ``hold`` iterations (1, then 2, 4, ... up to HOLD_MAX each time it happens again) before the tenth is
-    tried again. Where the lighter step keeps failing (a weakly determined direction in which the cost is not
-    quadratic that far: on the real runs, the medium runs' heights with the cables' compliance) Marquardt's
-    rule refuses one trial in every iteration; this takes the same accepted steps while the tenth would be
-    refused, with a refused trial every 1, 2, 4, ... iterations. When the tenth would have been accepted, it is
-    tried up to HOLD_MAX iterations later."""
+    """Marquardt's LM damping (x10 after a refused trial, /10 after a success) with a memory: a damping whose
+    tenth was just refused is kept for 1, 2, 4, ... HOLD_MAX iterations before the tenth is tried again. Where
+    the lighter step keeps failing (a weak, non-quadratic direction: the real medium runs' heights with the
+    compliance) it takes Marquardt's accepted steps without one refused trial per iteration."""
 
     lam: float = 1e-5
     hold: int = 0  # iterations left at this damping
