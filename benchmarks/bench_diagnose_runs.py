@@ -88,9 +88,10 @@ def main() -> int:
         t0, marks = time.process_time(), []
         sel = diagnose(paths, args.max_effects, marks)
         cpu = time.process_time() - t0
+        load = ", ".join(f"{v:.1f}" for v in os.getloadavg())  # a shared machine's CPU figure depends on it
         print(f"three-run diagnosis: {cpu:.1f} s CPU (target <= {CPU:.0f} s) "
               f"{'ok' if cpu <= CPU else 'MISS'} (imports and rows {marks[0] - t0:.1f} s, selection "
-              f"{cpu - marks[0] + t0:.1f} s); selected {','.join(sel.selected) or 'nothing'}"
+              f"{cpu - marks[0] + t0:.1f} s; load average {load}); selected {','.join(sel.selected) or 'nothing'}"
               + ("" if sel.finding is None else f"; finding {','.join(sel.finding.names)}"))
         ok &= cpu <= CPU
         print(f"{'left out':<16} {'learned':<44} {'J plain':>8} {'J model':>8} {'ratio':>6}  rms plain -> model "

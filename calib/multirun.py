@@ -42,10 +42,12 @@ from calib.selfcal.problem import Problem
 
 GROUPS = CHANNELS  # the channel groups whose noise the variance components set
 LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
+HOLD_MAX = 8  # iterations at most that LM keeps a damping whose tenth was refused before trying it again
 RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
 # the normal matrix's eigenvalue ratio above which its inverse is taken by a solve (condition below 1e8: the
 # covariance to ~1e-8, its rank full, far from the SVD's cut at 1e-10); below it, the SVD of the Jacobian
 FULL_RANK = 1e-8
+SINGULAR = 1e-13  # a block whose eigenvalue ratio is below this is singular to working precision (the SVD decides)
 PIN = 1e-6  # a device prior that steps aside is pinned at its absent value: sd = PIN * its typical size
 # which device priors a shared effect overlaps (the same columns): they step aside while it is fitted
 OVERLAPS = {"tension_offset": ("b_",), "ahrs_mounting": ("b_roll", "b_pitch")}
@@ -330,6 +332,20 @@ def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
 _DIAG6 = np.arange(6)
 
 
+def _by_pose(res: Residuals, k: int, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pose, its entries' (the first ones, ``res.row`` >= 0) 6 pose columns X (k, e_max, 6), theta columns
+    T (k, e_max, t) and residuals (k, e_max), zero-padded: a pose's columns meet only its own entries."""
+    row = res.row
+    e = int(np.count_nonzero(row >= 0))
+    pose = row[:e]
+    order = np.argsort(pose, kind="stable")
+    counts = np.bincount(pose, minlength=k)
+    idx = np.full((k, max(int(counts.max(initial=0)), 1)), e)  # e: the zero row
+    idx[pose[order], np.arange(e) - np.repeat(np.cumsum(counts) - counts, counts)] = order
+    X = np.vstack([res.A[np.arange(e)[:, None], 6 * pose[:, None] + _DIAG6], np.zeros((1, 6))])
+    return X[idx], np.vstack([T[:e], np.zeros((1, T.shape[1]))])[idx], np.r_[res.r[:e], 0.0][idx]
+
+
 @dataclass
 class Arrow:
     """Normal equations of the joint problem by blocks, on unit-norm columns: per run, the pose blocks U
@@ -355,9 +371,10 @@ class Arrow:
         for rf, res in zip(runs, blocks, strict=True):
             k = rf.poses.shape[0]
             p_own = rf.theta.shape[0] - q
-            X = res.A[:, :6 * k].reshape(-1, k, 6).transpose(1, 2, 0)  # (k, 6, m)
             T = res.A[:, 6 * k:6 * k + p_own + qq]
-            raw.append((X @ X.transpose(0, 2, 1), X @ T, T.T @ T, X @ res.r, T.T @ res.r))
+            X, Tp, rp = _by_pose(res, k, T)
+            Xt = X.transpose(0, 2, 1)
+            raw.append((Xt @ X, Xt @ Tp, T.T @ T, (Xt @ rp[..., None])[..., 0], T.T @ res.r))
             cols.append((slice(start, start + p_own), slice(start + p_own, start + p_own + 6 * k)))
             start += p_own + 6 * k
         d2 = np.zeros(start)
@@ -389,6 +406,37 @@ class Arrow:
         """The step ds (scaled columns) solving (N + damping diag(N)) ds = -g by eliminating each run's pose
         blocks (a Schur complement on [shared, own_1, own_2, ...]), and the decrease -(2 g.ds + ds.N.ds) the
         undamped quadratic model predicts for it."""
+        M, rhs, parts = self._reduced(damping)
+        x = -np.linalg.solve(M, rhs)
+        qq = self.q
+        ds = np.zeros(self.scale.shape[0])
+        ds[:qq] = x[:qq]
+        gain = 0.0
+        for (so, sp), (idx, Y, y), U, W, V, gp, gt in zip(self.cols, parts, self.U, self.W, self.V, self.gp,
+                                                          self.gt, strict=True):
+            dt = x[idx]
+            dp = -(y + Y @ dt)
+            ds[so], ds[sp] = dt[:so.stop - so.start], dp.ravel()
+            Ud = (U @ dp[..., None])[..., 0]
+            quad = float(np.sum(dp * Ud) + 2.0 * np.sum(dp * (W @ dt)) + dt @ V @ dt)
+            gain -= 2.0 * (float(np.sum(gp * dp)) + float(gt @ dt)) + quad
+        return ds, gain
+
+    def covariance(self) -> tuple[np.ndarray, int] | None:
+        """The shared block of N's inverse (scaled columns) and N's rank from the inverse of the Schur
+        complement on [shared, own_1, ...]; None when a pose block or it is singular (the caller's SVD decides)."""
+        M, _, _ = self._reduced(0.0)
+        for a in [*self.U, M[None]]:
+            ev = np.linalg.eigvalsh(a)
+            if a.size and np.any(ev[..., 0] <= SINGULAR * np.maximum(ev[..., -1], 1e-300)):
+                return None
+        q = self.q
+        cov = np.linalg.solve(M, np.eye(M.shape[0])[:, :q])[:q] if q else np.zeros((0, 0))
+        return cov, int(self.scale.shape[0])
+
+    def _reduced(self, damping: float) -> tuple[np.ndarray, np.ndarray, list]:
+        """The damped system reduced to [shared, own_1, own_2, ...] (each run's pose blocks eliminated), its
+        right-hand side, and per run what the poses' back-substitution needs (indices in it, Y, y)."""
         qq = self.q
         own = [so.stop - so.start for so, _ in self.cols]
         at = np.cumsum([qq, *own])
@@ -415,19 +463,30 @@ class Arrow:
             dg[:qq] += dV[no:]
             parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
         M[range(at[-1]), range(at[-1])] += damping * np.maximum(dg, 1e-12)
-        x = -np.linalg.solve(M, rhs)
-        ds = np.zeros(self.scale.shape[0])
-        ds[:qq] = x[:qq]
-        gain = 0.0
-        for (so, sp), (idx, Y, y), U, W, V, gp, gt in zip(self.cols, parts, self.U, self.W, self.V, self.gp,
-                                                          self.gt, strict=True):
-            dt = x[idx]
-            dp = -(y + Y @ dt)
-            ds[so], ds[sp] = dt[:so.stop - so.start], dp.ravel()
-            Ud = (U @ dp[..., None])[..., 0]
-            quad = float(np.sum(dp * Ud) + 2.0 * np.sum(dp * (W @ dt)) + dt @ V @ dt)
-            gain -= 2.0 * (float(np.sum(gp * dp)) + float(gt @ dt)) + quad
-        return ds, gain
+        return M, rhs, parts
+
+
+@dataclass
+class Damping:
+    """Marquardt's LM damping (x10 after a refused trial, /10 after a success) with a memory: a damping whose
+    tenth was just refused is kept for 1, 2, 4, ... HOLD_MAX iterations before the tenth is tried again. Where
+    the lighter step keeps failing (a weak, non-quadratic direction: the real medium runs' heights with the
+    compliance) it takes Marquardt's accepted steps without one refused trial per iteration."""
+
+    lam: float = 1e-5
+    hold: int = 0  # iterations left at this damping
+    wait: int = 1  # the next hold
+
+    def refused(self) -> None:
+        self.lam *= 10.0
+
+    def accepted(self, after_refusal: bool) -> None:
+        if after_refusal:
+            self.hold, self.wait = min(self.wait, HOLD_MAX), min(2 * self.wait, HOLD_MAX)
+        elif self.hold > 0:
+            self.hold -= 1
+        if self.hold == 0:
+            self.lam = max(self.lam / 10.0, 1e-12)
 
 
 def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = False, max_iter: int = 60,
@@ -437,15 +496,15 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     the shared values) and the rank (without ``covariance``: zeros and 0, the SVD skipped)."""
     robot = runs[0].rows.robot
     q, _, lo, hi = _layout(shared, robot)
-    lam, iterations, converged = 1e-5, 0, False
+    damping, iterations, converged = Damping(), 0, False
     batch = one_robot(runs, shared)
     blocks, cost = _evaluate(runs, q, batch)
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         arrow = Arrow.of(runs, blocks, q, fixed_shared)
-        improved = False
+        improved, held = False, damping.hold > 0
         for trial_no in range(LAMBDA_TRIES):
-            ds, gain = arrow.step(lam + RIDGE)
-            if trial_no == 0 and gain < tol * cost:
+            ds, gain = arrow.step(damping.lam + RIDGE)
+            if trial_no == 0 and not held and gain < tol * cost:
                 break  # the lightly damped step predicts nothing left to gain
             trial = _apply(runs, ds / arrow.scale, q, arrow.cols, fixed_shared)
             _clip(trial, q, lo, hi)
@@ -453,13 +512,13 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
             if np.isfinite(c1) and c1 < cost:
                 improved = True
                 break
-            lam *= 10.0
+            damping.refused()
         if not improved:
             converged = True
             break
         rel = (cost - c1) / max(cost, 1e-300)
         runs, cost, blocks = trial, c1, trial_blocks
-        lam = max(lam / 10.0, 1e-12)
+        damping.accepted(after_refusal=trial_no > 0)
         if rel < tol:
             converged = True
             break
@@ -467,6 +526,13 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
         rf.chi2, rf.res = float(b.r @ b.r), b
     if not covariance:
         return runs, cost, converged, iterations, np.zeros((q, q)), 0
+    arrow = Arrow.of(runs, blocks, q, fixed_shared)
+    by_blocks = arrow.covariance()
+    if by_blocks is not None:  # full rank: the shared block of N's inverse from the runs' Schur complements
+        cov_s, rank = by_blocks
+        cov = cov_s / np.outer(arrow.scale[:cov_s.shape[0]], arrow.scale[:cov_s.shape[0]]) if q and not \
+            fixed_shared else np.zeros((q, q))
+        return runs, cost, converged, iterations, cov, rank
     _, A, _ = stack(runs, q, fixed_shared, blocks=blocks)
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0

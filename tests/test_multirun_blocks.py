@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib import multirun
 from calib.effects import EffectModel, make_effects
 from calib.effects.base import physical_rows
 from calib.fitting import residuals
-from calib.multirun import RIDGE, Arrow, RunFit, stack
+from calib.multirun import RIDGE, Arrow, Damping, RunFit, stack
 from calib.planning import plan_poses
 from calib.robot import load_robot
 from calib.selfcal.model import CHANNELS, MeasurementModel
@@ -106,3 +107,50 @@ def test_point_load_tensions_are_the_sum_of_one_tension_model_per_point_mass():
     np.testing.assert_allclose(tau, ref_tau, rtol=1e-10)
     np.testing.assert_allclose(dtau, ref_dtau, rtol=1e-9, atol=1e-9 * np.abs(ref_dtau).max())
     assert np.abs(tau).max() > 1.0  # newtons: the loads are felt (0.05-0.3 kg per anchor)
+
+
+def _damped(n: int, lightest) -> tuple[list[float], int]:
+    """LM's damping over n iterations when a trial is accepted only at a damping of at least lightest(k) at
+    iteration k: the accepted dampings and the refused trials."""
+    d, accepted, refused = Damping(), [], 0
+    for k in range(n):
+        tries = 0
+        while d.lam < lightest(k):
+            d.refused()
+            tries += 1
+        refused += tries
+        accepted.append(d.lam)
+        d.accepted(after_refusal=tries > 0)
+    return accepted, refused
+
+
+def test_the_damping_memory_takes_marquardts_steps_with_fewer_refused_trials(monkeypatch):
+    """While the lighter step keeps failing (the real runs' weak directions) the damping memory accepts the
+    very dampings of Marquardt's rule (x10 / 10) with a refused trial every 1, 2, 4, 8 iterations instead of
+    every iteration; when the lighter steps start to hold, it reaches them at most HOLD_MAX iterations later."""
+    def lightest(k):
+        return 3e-6 if k < 40 else 3e-10  # the quadratic model holds with light damping from iteration 40
+
+    memory, refused = _damped(60, lightest)
+    hold_max = multirun.HOLD_MAX
+    monkeypatch.setattr(multirun, "HOLD_MAX", 0)
+    plain, refused_plain = _damped(60, lightest)
+    np.testing.assert_allclose(memory[:40], plain[:40], rtol=1e-12)
+    np.testing.assert_allclose(plain[:40], 1e-5, rtol=1e-12)
+    assert refused_plain == 59 - 4  # one per iteration but the first and the four that reach 1e-9
+    assert refused <= 10
+    first = lambda acc: next(k for k, v in enumerate(acc) if v < 3e-9)  # noqa: E731
+    assert first(plain) == 43 and first(memory) <= first(plain) + hold_max == 51
+
+
+def test_the_shared_covariance_from_the_blocks_is_that_block_of_the_dense_inverse():
+    """Arrow.covariance (the inverse of the runs' Schur complement) is the shared block of the inverse of the
+    dense normal matrix on unit-norm columns, and its rank the column count."""
+    runs, q = _runs(np.random.default_rng(4))
+    blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
+    _, A, _ = stack(runs, q, blocks=blocks)
+    As = A / np.linalg.norm(A, axis=0)
+    dense = np.linalg.inv(As.T @ As)[:q, :q]
+    cov, rank = Arrow.of(runs, blocks, q, False).covariance()
+    np.testing.assert_allclose(cov, dense, rtol=1e-8)
+    assert rank == A.shape[1]
