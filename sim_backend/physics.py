@@ -19,14 +19,14 @@ Model (SI units throughout):
   ``FRICTION_SLIDE`` m since the last reversal (a play operator on the motor-side length); the
   platform's dynamics see the platform-side tension; the winch's own Coulomb friction is apart);
 * each winch: inertia J at the motor shaft (rotor + drum reflected through the gear), viscous and Coulomb
-  friction (Coulomb regularised over ``coulomb_speed`` while it slides), motor torque u (positive reels the
-  cable in), an optional holding brake (engaged at power-on until the drive is enabled). The Coulomb friction
-  has a stick phase (Karnopp): a winch slower than ``coulomb_speed`` whose net torque (motor plus cable,
-  u + k tau) the friction can hold (``|u + k tau| <= coulomb``) stops and stays stopped, as a braked one,
-  until that torque exceeds the static friction (``stiction``). Without it the regularised friction was a
-  viscous brake at low speed and a held platform never rested: it crept under any imbalance below the
-  friction (issue 29); the real robot's winches stand still during a hold (sc_8_final: lengths within
-  0.01-0.3 mm over a hold's last 3 s).
+  friction, motor torque u (positive reels the cable in), an optional holding brake (engaged at power-on
+  until the drive is enabled). The Coulomb friction has a stick phase (Karnopp): a winch that turns back or
+  is slower than ``coulomb_speed`` while its net torque (motor plus cable, u + k tau) is within the friction
+  (``|u + k tau| <= coulomb``) stops and stays stopped, as a braked one, until that torque exceeds the static
+  friction (``stiction``); sliding, the friction is ``coulomb`` against the motion. The friction used to be
+  regularised (coulomb tanh(v / coulomb_speed)), with no stick phase: a viscous brake at low speed, under which
+  a held platform never rested but crept under any imbalance below the friction (issue 29); the real robot's
+  winches stand still during a hold (sc_8_final: lengths within 0.01-0.3 mm over a hold's last 3 s).
 
 Integrator: one step per control period (optionally split into substeps) of a semi-implicit scheme:
 the slow dynamics (gravity, damping, gyroscopic terms, motor torques) are explicit (symplectic Euler),
@@ -78,7 +78,7 @@ class SimulationError(CdprError, RuntimeError):
 @dataclass(frozen=True)
 class WinchParams:
     """One winch: motor rotor and drum inertias kg m^2, drum radius m, friction at the motor shaft (viscous
-    N m s/rad, Coulomb N m regularised over ``coulomb_speed`` rad/s).
+    N m s/rad, Coulomb N m, static N m), ``coulomb_speed`` rad/s the speed under which it counts as stopped.
 
     The gear ratio follows from the drum radius and the transmission k (m of cable per rad of motor):
     ratio = drum_radius / |k|, and the inertia at the motor shaft is rotor + drum / ratio^2. With the
@@ -277,7 +277,7 @@ class CablePhysics:
         self._thd = [0.0] * n
         self._u = [0.0] * n
         self._brake = [bool(brakes)] * n
-        self._stuck = [False] * n  # winches held still by their Coulomb friction (stick phase)
+        self._stuck = [True] * n  # winches held still by their friction (stick phase): at rest at first
         tensions = [float(x) for x in np.asarray(tensions, float).reshape(n)]
         self._tau = list(tensions)
         self._tau_cell = list(tensions)
@@ -335,8 +335,8 @@ class CablePhysics:
     def set_brake(self, i: int, engaged: bool) -> None:
         """Engage (motor shaft locked) or release the holding brake of winch i."""
         self._brake[i] = bool(engaged)
-        if engaged:
-            self._thd[i] = 0.0
+        self._thd[i] = 0.0 if engaged else self._thd[i]
+        self._stuck[i] = self._stuck[i] or engaged  # released, it turns once the net torque beats the stiction
 
     def brake(self, i: int) -> bool:
         return self._brake[i]
@@ -553,9 +553,9 @@ class CablePhysics:
             ws1 -= c * ij[1]
             ws2 -= c * ij[2]
             thds[i] += c * minv[i] * k[i]
-        ws_ = self._ws
-        for i in range(n):  # a slow winch whose net torque the friction holds sticks
-            if minv[i] and abs(thds[i]) < ws_ and abs(u[i] + k[i] * tau[i]) <= fc:
+        ws_, before = self._ws, self._thd
+        for i in range(n):  # a winch that stops or turns back and whose net torque the friction holds sticks
+            if minv[i] and (abs(thds[i]) < ws_ or thds[i] * before[i] < 0.0) and abs(u[i] + k[i] * tau[i]) <= fc:
                 stuck[i] = True
                 thds[i] = 0.0
         self._v = [vs0, vs1, vs2]
@@ -614,22 +614,22 @@ class CablePhysics:
                 w2 + h * (j20 * mb0 + j21 * mb1 + j22 * mb2))
 
     def _free_motor_velocities(self, h: float) -> tuple[list[float], list[float]]:
-        """Motor velocities (n,) rad/s after h s of torque and linearly implicit friction, before the cable
-        impulses, and the inverse effective inertias (n,) 1/(kg m^2); both 0 for a braked (locked) or a stuck
-        motor."""
-        bm, fc, ws = self._bm, self._fc, self._ws
+        """Motor velocities (n,) rad/s after h s of torque, Coulomb friction against the motion (against the
+        last net torque for a motor just freed) and implicit viscous friction, before the cable impulses, and
+        the inverse effective inertias (n,) 1/(kg m^2); both 0 for a braked (locked) or a stuck motor."""
+        bm, fc = self._bm, self._fc
         thds = []
         minv = []
-        for x, u, jm, brake, stuck in zip(self._thd, self._u, self._jm, self._brake, self._stuck, strict=True):
+        for i, (x, u, jm, brake, stuck) in enumerate(zip(self._thd, self._u, self._jm, self._brake, self._stuck,
+                                                        strict=True)):
             if brake or stuck:
                 thds.append(0.0)
                 minv.append(0.0)
                 continue
-            th_ = math.tanh(x / ws)
-            fric = bm * x + fc * th_
-            dfric = bm + fc / ws * (1.0 - th_ * th_)
-            jeff = jm + h * dfric
-            thds.append(x + h * (u - fric) / jeff)
+            way = x if x != 0.0 else u + self._k[i] * self._tau[i]
+            fric = fc if way > 0.0 else -fc if way < 0.0 else 0.0
+            jeff = jm + h * bm
+            thds.append(x + h * (u - bm * x - fric) / jeff)
             minv.append(1.0 / jeff)
         return thds, minv
 
