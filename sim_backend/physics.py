@@ -83,9 +83,10 @@ class WinchParams:
     The gear ratio follows from the drum radius and the transmission k (m of cable per rad of motor):
     ratio = drum_radius / |k|, and the inertia at the motor shaft is rotor + drum / ratio^2. With the
     defaults and IRMA4U's k (4.6 mm/rad): ratio 8.7, 5.9e-5 kg m^2, i.e. 2.8 kg moving with each cable.
-    A slow winch sticks once the net torque on it is within the Coulomb friction and stays stuck until that torque
-    exceeds the static friction ``stiction`` N m (>= coulomb): 0.01 and 0.015 N m are 2.2 and 3.3 N of cable
-    tension on IRMA4U.
+    With ``stiction`` > 0 (N m, >= coulomb) the friction has a stick phase: a winch that stops sticks while the
+    net torque on it is within the Coulomb friction and stays stuck until that torque exceeds ``stiction``
+    (0.01 and 0.015 N m are 2.2 and 3.3 N of cable tension on IRMA4U); 0 keeps the regularised friction
+    (coulomb tanh(v / coulomb_speed)), which has none.
     """
 
     rotor_inertia: float = 3.3e-5
@@ -94,7 +95,7 @@ class WinchParams:
     viscous: float = 2.0e-4
     coulomb: float = 0.01
     coulomb_speed: float = 0.05
-    stiction: float = 0.015
+    stiction: float = 0.0
 
     def inertia_at_motor(self, k: float) -> float:
         """Rotor plus reflected drum inertia, kg m^2, for a transmission of k m/rad."""
@@ -265,6 +266,7 @@ class CablePhysics:
         self._jm = [w.inertia_at_motor(k) for k in self._k]
         self._bm, self._fc, self._ws = w.viscous, w.coulomb, w.coulomb_speed
         self._fs = max(w.stiction, w.coulomb)  # N m, the torque that breaks a stuck winch free
+        self._stick = w.stiction > 0.0  # the stick phase (else the regularised friction of before)
         # state
         pose = np.asarray(pose, float).reshape(6)
         rot = rotation(pose[3:], robot.orientation)[0]
@@ -277,7 +279,7 @@ class CablePhysics:
         self._thd = [0.0] * n
         self._u = [0.0] * n
         self._brake = [bool(brakes)] * n
-        self._stuck = [True] * n  # winches held still by their friction (stick phase): at rest at first
+        self._stuck = [bool(w.stiction > 0.0)] * n  # winches held still by their friction: at rest at first
         tensions = [float(x) for x in np.asarray(tensions, float).reshape(n)]
         self._tau = list(tensions)
         self._tau_cell = list(tensions)
@@ -336,7 +338,7 @@ class CablePhysics:
         """Engage (motor shaft locked) or release the holding brake of winch i."""
         self._brake[i] = bool(engaged)
         self._thd[i] = 0.0 if engaged else self._thd[i]
-        self._stuck[i] = self._stuck[i] or engaged  # released, it turns once the net torque beats the stiction
+        self._stuck[i] = self._stick and (self._stuck[i] or engaged)  # released: turns once it beats the stiction
 
     def brake(self, i: int) -> bool:
         return self._brake[i]
@@ -554,7 +556,7 @@ class CablePhysics:
             ws2 -= c * ij[2]
             thds[i] += c * minv[i] * k[i]
         ws_, before = self._ws, self._thd
-        for i in range(n):  # a winch that stops or turns back and whose net torque the friction holds sticks
+        for i in range(n if self._stick else 0):  # a winch that stops or turns back, its net torque held, sticks
             if minv[i] and (abs(thds[i]) < ws_ or thds[i] * before[i] < 0.0) and abs(u[i] + k[i] * tau[i]) <= fc:
                 stuck[i] = True
                 thds[i] = 0.0
@@ -625,6 +627,12 @@ class CablePhysics:
             if brake or stuck:
                 thds.append(0.0)
                 minv.append(0.0)
+                continue
+            if not self._stick:  # the friction of before: Coulomb regularised, linearly implicit, no stick
+                th_ = math.tanh(x / self._ws)
+                jeff = jm + h * (bm + fc / self._ws * (1.0 - th_ * th_))
+                thds.append(x + h * (u - (bm * x + fc * th_)) / jeff)
+                minv.append(1.0 / jeff)
                 continue
             way = x if x != 0.0 else u + self._k[i] * self._tau[i]
             fric = fc if way > 0.0 else -fc if way < 0.0 else 0.0

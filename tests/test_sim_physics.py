@@ -209,11 +209,14 @@ def test_substeps_theta_and_the_500_hz_step_agree_with_the_default_step():
     assert dataclasses.replace(PhysicsParams(), ea=1.0).ea == 1.0
 
 
+STICKY = WinchParams(stiction=0.015)  # the friction with its stick phase (settling_sway.yaml's)
+
+
 def _held(imbalance: float, cable: int = 0) -> tuple[CablePhysics, np.ndarray]:
     """The platform at the equilibrium of TAU0, winches released under the holding torques, one of them off by
     ``imbalance`` N of cable tension (positive reels in)."""
     pose = _equilibrium(TAU0)
-    ph = CablePhysics(ROBOT, PhysicsParams(), K, pose, TAU0, brakes=False)
+    ph = CablePhysics(ROBOT, PhysicsParams(winch=STICKY), K, pose, TAU0, brakes=False)
     ph.set_motor_torque(cable, (TAU0[cable] + imbalance) * abs(K[cable]))
     return ph, pose
 
@@ -222,7 +225,7 @@ def test_winch_friction_holds_a_small_imbalance_still_and_gives_way_to_a_large_o
     """Coulomb friction with a stick phase: 1 N of torque imbalance (the friction holds 2.2 N of tension) leaves
     the platform still for 20 s (the regularised friction alone let it creep 0.1 mm/s, 2 mm in 20 s); 6 N (over
     the 3.3 N of stiction) moves it by millimetres."""
-    fric = WinchParams()
+    fric = STICKY
     assert fric.coulomb / abs(K[0]) == pytest.approx(2.18, abs=0.01)
     assert fric.stiction / abs(K[0]) == pytest.approx(3.27, abs=0.01)
     ph, pose = _held(1.0)
