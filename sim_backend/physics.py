@@ -20,7 +20,8 @@ Model (SI units throughout):
   platform's dynamics see the platform-side tension; the winch's own Coulomb friction is apart);
 * each winch: inertia J at the motor shaft (rotor + drum reflected through the gear), viscous and Coulomb
   friction, motor torque u (positive reels the cable in), an optional holding brake (engaged at power-on
-  until the drive is enabled). The Coulomb friction has a stick phase (Karnopp): a winch that turns back or
+  until the drive is enabled). With ``stiction`` > 0 the Coulomb friction has a stick phase (Karnopp; the
+  default 0 keeps the regularised friction of before, bit for bit): a winch that turns back or
   is slower than ``coulomb_speed`` while its net torque (motor plus cable, u + k tau) is within the friction
   (``|u + k tau| <= coulomb``) stops and stays stopped, as a braked one, until that torque exceeds the static
   friction (``stiction``); sliding, the friction is ``coulomb`` against the motion. The friction used to be
