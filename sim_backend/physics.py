@@ -24,7 +24,7 @@ Model (SI units throughout):
   default 0 keeps the regularised friction of before, bit for bit): a winch that turns back or
   is slower than ``coulomb_speed`` while its net torque (motor plus cable, u + k tau) is within the friction
   (``|u + k tau| <= coulomb``) stops and stays stopped, as a braked one, until that torque exceeds the static
-  friction (``stiction``); sliding, the friction is ``coulomb`` against the motion. The friction used to be
+  friction (``stiction``); sliding, the friction is ``coulomb`` against the motion. The default friction is
   regularised (coulomb tanh(v / coulomb_speed)), with no stick phase: a viscous brake at low speed, under which
   a held platform never rested but crept under any imbalance below the friction (issue 29); the real robot's
   winches stand still during a hold (sc_8_final: lengths within 0.01-0.3 mm over a hold's last 3 s).
