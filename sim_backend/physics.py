@@ -19,8 +19,15 @@ Model (SI units throughout):
   ``FRICTION_SLIDE`` m since the last reversal (a play operator on the motor-side length); the
   platform's dynamics see the platform-side tension; the winch's own Coulomb friction is apart);
 * each winch: inertia J at the motor shaft (rotor + drum reflected through the gear), viscous and Coulomb
-  friction (Coulomb regularised over ``coulomb_speed``), motor torque u (positive reels the cable in),
-  an optional holding brake (engaged at power-on until the drive is enabled).
+  friction, motor torque u (positive reels the cable in), an optional holding brake (engaged at power-on
+  until the drive is enabled). With ``stiction`` > 0 the Coulomb friction has a stick phase (Karnopp; the
+  default 0 keeps the regularised friction of before, bit for bit): a winch that turns back or
+  is slower than ``coulomb_speed`` while its net torque (motor plus cable, u + k tau) is within the friction
+  (``|u + k tau| <= coulomb``) stops and stays stopped, as a braked one, until that torque exceeds the static
+  friction (``stiction``); sliding, the friction is ``coulomb`` against the motion. The default friction is
+  regularised (coulomb tanh(v / coulomb_speed)), with no stick phase: a viscous brake at low speed, under which
+  a held platform never rested but crept under any imbalance below the friction (issue 29); the real robot's
+  winches stand still during a hold (sc_8_final: lengths within 0.01-0.3 mm over a hold's last 3 s).
 
 Integrator: one step per control period (optionally split into substeps) of a semi-implicit scheme:
 the slow dynamics (gravity, damping, gyroscopic terms, motor torques) are explicit (symplectic Euler),
@@ -72,11 +79,15 @@ class SimulationError(CdprError, RuntimeError):
 @dataclass(frozen=True)
 class WinchParams:
     """One winch: motor rotor and drum inertias kg m^2, drum radius m, friction at the motor shaft (viscous
-    N m s/rad, Coulomb N m regularised over ``coulomb_speed`` rad/s).
+    N m s/rad, Coulomb N m, static N m), ``coulomb_speed`` rad/s the speed under which it counts as stopped.
 
     The gear ratio follows from the drum radius and the transmission k (m of cable per rad of motor):
     ratio = drum_radius / |k|, and the inertia at the motor shaft is rotor + drum / ratio^2. With the
     defaults and IRMA4U's k (4.6 mm/rad): ratio 8.7, 5.9e-5 kg m^2, i.e. 2.8 kg moving with each cable.
+    With ``stiction`` > 0 (N m, >= coulomb) the friction has a stick phase: a winch that stops sticks while the
+    net torque on it is within the Coulomb friction and stays stuck until that torque exceeds ``stiction``
+    (0.01 and 0.015 N m are 2.2 and 3.3 N of cable tension on IRMA4U); 0 keeps the regularised friction
+    (coulomb tanh(v / coulomb_speed)), which has none.
     """
 
     rotor_inertia: float = 3.3e-5
@@ -85,6 +96,7 @@ class WinchParams:
     viscous: float = 2.0e-4
     coulomb: float = 0.01
     coulomb_speed: float = 0.05
+    stiction: float = 0.0
 
     def inertia_at_motor(self, k: float) -> float:
         """Rotor plus reflected drum inertia, kg m^2, for a transmission of k m/rad."""
@@ -254,6 +266,8 @@ class CablePhysics:
         w = params.winch
         self._jm = [w.inertia_at_motor(k) for k in self._k]
         self._bm, self._fc, self._ws = w.viscous, w.coulomb, w.coulomb_speed
+        self._fs = max(w.stiction, w.coulomb)  # N m, the torque that breaks a stuck winch free
+        self._stick = w.stiction > 0.0  # the stick phase (else the regularised friction of before)
         # state
         pose = np.asarray(pose, float).reshape(6)
         rot = rotation(pose[3:], robot.orientation)[0]
@@ -266,6 +280,7 @@ class CablePhysics:
         self._thd = [0.0] * n
         self._u = [0.0] * n
         self._brake = [bool(brakes)] * n
+        self._stuck = [bool(w.stiction > 0.0)] * n  # winches held still by their friction: at rest at first
         tensions = [float(x) for x in np.asarray(tensions, float).reshape(n)]
         self._tau = list(tensions)
         self._tau_cell = list(tensions)
@@ -323,8 +338,8 @@ class CablePhysics:
     def set_brake(self, i: int, engaged: bool) -> None:
         """Engage (motor shaft locked) or release the holding brake of winch i."""
         self._brake[i] = bool(engaged)
-        if engaged:
-            self._thd[i] = 0.0
+        self._thd[i] = 0.0 if engaged else self._thd[i]
+        self._stuck[i] = self._stick and (self._stuck[i] or engaged)  # released: turns once it beats the stiction
 
     def brake(self, i: int) -> bool:
         return self._brake[i]
@@ -470,22 +485,23 @@ class CablePhysics:
 
     def _substep(self, h: float) -> None:
         """Advance the state by h s: free velocities from the explicit forces, cable tensions from the implicit
-        cable-space solve, their impulses, then the positions, the geometry and the load-cell tensions."""
+        cable-space solve (again without a stuck winch whose net torque breaks it free), their impulses, then
+        the winches that stick, the positions, the geometry and the load-cell tensions."""
         n = self.n
         m = self._m
         geo = self._geo
         k = self._k
         vs0, vs1, vs2, ws0, ws1, ws2 = self._free_body_velocities(h)
-        thds, minv = self._free_motor_velocities(h)
         (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = self._ibinv
-        # per cable: the body-frame rotation response I^-1 jw, and the right-hand side K e / S + J v*
+        # per cable: the body-frame rotation response I^-1 jw, and the right-hand side K e / S + J v* (its body
+        # part here, the winch's with each solve)
         ea = self._ea
         p = self.params
         sc = p.stiff_theta * h + p.cable_damping  # s, S = K * sc
         ijw = []
         inv_s = []
-        rhs = []
-        for i, (g, l00, th, thd) in enumerate(zip(geo, self._l00, self._th, thds, strict=True)):
+        rhs_body = []
+        for i, (g, l00, th) in enumerate(zip(geo, self._l00, self._th, strict=True)):
             (t0, t1, t2), (jw0, jw1, jw2) = g[1], g[3]
             l0 = l00 + k[i] * th
             kc = ea / l0
@@ -500,24 +516,32 @@ class CablePhysics:
                 stretch += slope * tau0
                 kc = kc / (1.0 + kc * slope)
             s = kc * sc
-            ed = t0 * vs0 + t1 * vs1 + t2 * vs2 + jw0 * ws0 + jw1 * ws1 + jw2 * ws2 - k[i] * thd
-            rhs.append(kc * stretch / s + ed)
+            rhs_body.append((kc * stretch / s, t0 * vs0 + t1 * vs1 + t2 * vs2 + jw0 * ws0 + jw1 * ws1 + jw2 * ws2))
             inv_s.append(1.0 / s)
             ijw.append((j00 * jw0 + j01 * jw1 + j02 * jw2, j10 * jw0 + j11 * jw1 + j12 * jw2,
                         j20 * jw0 + j21 * jw1 + j22 * jw2))
-        # (S^-1 + h D) with D = J M^-1 J^T + K Jm^-1 K, the cable-space inverse inertia (symmetric)
-        a = [[0.0] * n for _ in range(n)]
+        # (S^-1 + h D) with D = J M^-1 J^T + K Jm^-1 K, the cable-space inverse inertia (symmetric): the body
+        # part here, the winches' diagonal with each solve
+        vals = [[0.0] * n for _ in range(n)]
         for i in range(n):
             (t0, t1, t2), (jw0, jw1, jw2) = geo[i][1], geo[i][3]
-            row = a[i]
+            row = vals[i]
             for j in range(i, n):
                 (u0, u1, u2), (q0, q1, q2) = geo[j][1], ijw[j]
-                val = (t0 * u0 + t1 * u1 + t2 * u2) / m + (jw0 * q0 + jw1 * q1 + jw2 * q2)
-                if j == i:
-                    row[i] = h * (val + k[i] * k[i] * minv[i]) + inv_s[i]
-                else:
-                    row[j] = a[j][i] = h * val
-        tau = _active_set_solve(a, rhs)
+                row[j] = vals[j][i] = (t0 * u0 + t1 * u1 + t2 * u2) / m + (jw0 * q0 + jw1 * q1 + jw2 * q2)
+        stuck, fc, fs, u = self._stuck, self._fc, self._fs, self._u
+        while True:
+            thds, minv = self._free_motor_velocities(h)
+            rhs = [a_ + (b_ - k[i] * thds[i]) for i, (a_, b_) in enumerate(rhs_body)]
+            a = [[h * v for v in row] for row in vals]
+            for i in range(n):
+                a[i][i] = h * (vals[i][i] + k[i] * k[i] * minv[i]) + inv_s[i]
+            tau = _active_set_solve(a, rhs)
+            freed = [i for i in range(n) if stuck[i] and abs(u[i] + k[i] * tau[i]) > fs]
+            if not freed:
+                break
+            for i in freed:  # the friction cannot hold it: it slides from this substep on
+                stuck[i] = False
         # velocity update with the cable impulses
         for i, ti in enumerate(tau):
             if ti == 0.0:
@@ -532,6 +556,11 @@ class CablePhysics:
             ws1 -= c * ij[1]
             ws2 -= c * ij[2]
             thds[i] += c * minv[i] * k[i]
+        ws_, before = self._ws, self._thd
+        for i in range(n if self._stick else 0):  # a winch that stops or turns back, its net torque held, sticks
+            if minv[i] and (abs(thds[i]) < ws_ or thds[i] * before[i] < 0.0) and abs(u[i] + k[i] * tau[i]) <= fc:
+                stuck[i] = True
+                thds[i] = 0.0
         self._v = [vs0, vs1, vs2]
         self._wb = [ws0, ws1, ws2]
         self._thd = thds
@@ -588,21 +617,28 @@ class CablePhysics:
                 w2 + h * (j20 * mb0 + j21 * mb1 + j22 * mb2))
 
     def _free_motor_velocities(self, h: float) -> tuple[list[float], list[float]]:
-        """Motor velocities (n,) rad/s after h s of torque and linearly implicit friction, before the cable
-        impulses, and the inverse effective inertias (n,) 1/(kg m^2); both 0 for a braked (locked) motor."""
-        bm, fc, ws = self._bm, self._fc, self._ws
+        """Motor velocities (n,) rad/s after h s of torque, Coulomb friction against the motion (against the
+        last net torque for a motor just freed) and implicit viscous friction, before the cable impulses, and
+        the inverse effective inertias (n,) 1/(kg m^2); both 0 for a braked (locked) or a stuck motor."""
+        bm, fc = self._bm, self._fc
         thds = []
         minv = []
-        for x, u, jm, brake in zip(self._thd, self._u, self._jm, self._brake, strict=True):
-            if brake:
+        for i, (x, u, jm, brake, stuck) in enumerate(zip(self._thd, self._u, self._jm, self._brake, self._stuck,
+                                                        strict=True)):
+            if brake or stuck:
                 thds.append(0.0)
                 minv.append(0.0)
                 continue
-            th_ = math.tanh(x / ws)
-            fric = bm * x + fc * th_
-            dfric = bm + fc / ws * (1.0 - th_ * th_)
-            jeff = jm + h * dfric
-            thds.append(x + h * (u - fric) / jeff)
+            if not self._stick:  # the friction of before: Coulomb regularised, linearly implicit, no stick
+                th_ = math.tanh(x / self._ws)
+                jeff = jm + h * (bm + fc / self._ws * (1.0 - th_ * th_))
+                thds.append(x + h * (u - (bm * x + fc * th_)) / jeff)
+                minv.append(1.0 / jeff)
+                continue
+            way = x if x != 0.0 else u + self._k[i] * self._tau[i]
+            fric = fc if way > 0.0 else -fc if way < 0.0 else 0.0
+            jeff = jm + h * bm
+            thds.append(x + h * (u - bm * x - fric) / jeff)
             minv.append(1.0 / jeff)
         return thds, minv
 

@@ -207,3 +207,49 @@ def test_substeps_theta_and_the_500_hz_step_agree_with_the_default_step():
         assert np.abs(other[:3] - finals[0][:3]).max() < 5e-4
         assert np.abs(other[3:] - finals[0][3:]).max() < 1e-3
     assert dataclasses.replace(PhysicsParams(), ea=1.0).ea == 1.0
+
+
+STICKY = WinchParams(stiction=0.015)  # the friction with its stick phase (settling_sway.yaml's)
+
+
+def _held(imbalance: float, cable: int = 0) -> tuple[CablePhysics, np.ndarray]:
+    """The platform at the equilibrium of TAU0, winches released under the holding torques, one of them off by
+    ``imbalance`` N of cable tension (positive reels in)."""
+    pose = _equilibrium(TAU0)
+    ph = CablePhysics(ROBOT, PhysicsParams(winch=STICKY), K, pose, TAU0, brakes=False)
+    ph.set_motor_torque(cable, (TAU0[cable] + imbalance) * abs(K[cable]))
+    return ph, pose
+
+
+def test_winch_friction_holds_a_small_imbalance_still_and_gives_way_to_a_large_one():
+    """Coulomb friction with a stick phase: 1 N of torque imbalance (the friction holds 2.2 N of tension) leaves
+    the platform still for 20 s (the regularised friction alone let it creep 0.1 mm/s, 2 mm in 20 s); 6 N (over
+    the 3.3 N of stiction) moves it by millimetres."""
+    fric = STICKY
+    assert fric.coulomb / abs(K[0]) == pytest.approx(2.18, abs=0.01)
+    assert fric.stiction / abs(K[0]) == pytest.approx(3.27, abs=0.01)
+    ph, pose = _held(1.0)
+    for _ in range(int(20 / DT)):
+        ph.step(DT)
+    assert np.abs(ph.pose()[:3] - pose[:3]).max() < 1e-6
+    assert np.abs(ph.motor_velocity()).max() == 0.0
+    ph, pose = _held(6.0)
+    for _ in range(int(5 / DT)):
+        ph.step(DT)
+    assert np.abs(ph.pose()[:3] - pose[:3]).max() > 2e-3
+
+
+def test_a_held_platform_kicked_decays_monotonically_to_rest():
+    """Free decay under the holding torques, nominal friction and damping: the mechanical energy never rises
+    (beyond 1e-6 J of rounding) and the platform ends at rest: every winch stuck, platform speed 0 after 20 s."""
+    ph, _ = _held(0.0)
+    _kick_free(ph, [0.05, 0.0, 0.02], [0.0, 0.05, 0.0])
+    energies = []
+    for _ in range(int(20 / DT)):
+        ph.step(DT)
+        energies.append(ph.energy())
+    rises = np.diff(energies)
+    assert rises.max() < 1e-6
+    assert energies[0] - energies[-1] > 0.01
+    assert np.abs(ph.motor_velocity()).max() == 0.0
+    assert np.abs(ph._v).max() < 1e-5
