@@ -342,6 +342,43 @@ def test_inside_the_loop_runtime_the_objects_kept_never_cost_a_full_collection()
     assert gc.get_threshold() == thresholds and gc.get_freeze_count() == 0
 
 
+REFUSED_RT = """
+import logging, os, resource
+import numpy.ma
+from acquisition.clock import loop_runtime
+resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))  # no real-time priority for an unprivileged process
+if os.getuid() == 0:
+    os.setgid(65534); os.setuid(65534)  # root may always: be nobody (everything imported before)
+with loop_runtime(rt_priority=40) as rt:
+    print(rt, os.sched_getscheduler(0) == os.SCHED_OTHER)
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="SCHED_FIFO is Linux's")
+def test_real_time_priority_is_opt_in_and_falls_back_with_one_sentence():
+    """The loop's SCHED_FIFO (acquisition/clock.py, StartupConfig.rt_priority): granted, the loop's thread runs
+    under it inside loop_runtime only; refused (an unprivileged process without an rtprio limit), the loop runs
+    at normal priority and one warning sentence says why and how to grant it."""
+    from acquisition.clock import loop_runtime
+    from acquisition.startup import StartupConfig
+
+    with pytest.raises(ValueError, match="within 1..99"):
+        StartupConfig(rt_priority=0)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", REFUSED_RT], cwd="/", env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert done.stdout.split() == ["False", "True"], done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "real-time priority 40 (SCHED_FIFO) was refused" in lines[0]
+    assert "ulimit -r 40" in lines[0]
+    before = os.sched_getscheduler(0)
+    with loop_runtime(rt_priority=40) as rt:
+        inside = os.sched_getscheduler(0)
+    if not rt:
+        pytest.skip("this process may not use SCHED_FIFO (no rtprio limit): the refusal is checked above")
+    assert inside & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO and os.sched_getscheduler(0) == before
+
+
 def test_a_run_log_write_that_fails_on_the_log_worker_is_raised(tmp_path):
     from acquisition.estimates import LogWorker
 
