@@ -161,8 +161,9 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
     interpreter's, numpy's, scipy's, canopen's... tens of thousands of long-lived objects are never walked
     again; a full collection of them took 40-100 ms in one tick at 200 Hz), and no automatic collection of the
     oldest generation while the loop runs (its threshold :data:`LOOP_GC_OLDEST`): the objects the loop keeps
-    (the logged rows, the truth record, the windows) reach it by the ten thousand in a run, and each automatic
-    full collection of them took 5-10 ms inside one tick (bench_live.py's table). The young generations are
+    (the logged rows, the truth record, the windows) accumulate there, and in a long run an automatic full
+    collection of them would fall inside one tick (an 8-pose startup keeps too few to start one even at
+    CPython's default threshold: bench_live.py's probe; docs/live.md). The young generations are
     collected as before, so garbage the loop makes and drops is freed within a few hundred allocations; a
     cycle that lives long enough to be promoted waits for the first full collection after the loop.
 

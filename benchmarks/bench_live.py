@@ -1,17 +1,17 @@
 """The live view's cost to the control loop: a simulated 8-pose startup paced in real time (not collected by pytest).
 
-    python benchmarks/bench_live.py [--rate 200] [--grid 2] [--hold 2] [--repeat 1] [--unpaced]
+    python benchmarks/bench_live.py [--rate 200] [--grid 2] [--hold 2] [--repeat 1] [--unpaced] [--rt-priority N]
 
 Runs the real startup routine (StartupRoutine on the simulated prototype, RealClock in lockstep: what
 ``cdpr startup --backend sim --realtime`` runs) without the live view, then with it (``--live``:
 acquisition/live.py) and a real Foxglove WebSocket client, in a process of its own, subscribed to every
 channel; each run in a fresh interpreter, so that both pay the same first-call costs (``--repeat N``: N pairs,
-the order alternating). Measured at each tick: the lateness of the loop's wake-up (wall time past the tick's
-deadline; an overrun is a tick more than half a period late, acquisition/clock.py) and the work of the tick
-before it (wall and thread CPU time from one ``advance`` to the next, with the routine's phase and setpoint):
-the latest ticks are listed with what the loop was doing; a tick's wall time less its CPU time is what the loop's
-thread waited for (the devices, the interpreter's lock, the operating system). The client counts the scene
-updates it receives per second. Targets (issue 32): with the live view, zero overruns, a worst lateness no
+the order alternating; ``--rt-priority N``: the loop's thread and the plant's process under SCHED_FIFO).
+Measured at each tick (:class:`TickProbe`): the lateness of the loop's wake-up (wall time past the tick's
+deadline; an overrun is a tick more than half a period late, acquisition/clock.py) and what the loop's thread
+did and waited for since the tick before (wall and CPU time, runqueue wait, collections, imports, page
+faults, the process's other threads, the plant process); the 20 worst late episodes are listed with their
+cause (:func:`causes`, docs/live.md). The client counts the scene updates it receives per second. Targets (issue 32): with the live view, zero overruns, a worst lateness no
 larger than without it + 10 %, and at least 10 scene updates per second at the client. Exits 1 on a miss.
 
 ``--unpaced``: the deterministic proxy (no target): the same startups in lockstep without sleeping, which
