@@ -11,11 +11,12 @@ Measured at each tick (:class:`TickProbe`): the lateness of the loop's wake-up (
 deadline; an overrun is a tick more than half a period late, acquisition/clock.py) and what the loop's thread
 did and waited for since the tick before (wall and CPU time, runqueue wait, collections, imports, page
 faults, the process's other threads, the plant process); the 20 worst late episodes are listed with their
-cause (:func:`causes`, docs/live.md). The client counts the scene updates it receives per second. Targets (issue 32): with the live view, zero overruns, a worst lateness no
-larger than without it + 10 %, and at least 10 scene updates per second at the client. Exits 1 on a miss.
+cause (:func:`causes`, docs/live.md). The client counts the scene updates it receives per second. Targets
+(issue 32): with the live view, zero overruns, a worst lateness no larger than without it + 10 %, and at
+least 10 scene updates per second at the client. Exits 1 on a miss.
 
 ``--unpaced``: the deterministic proxy (no target): the same startups in lockstep without sleeping, which
-shows the per-tick work (p99 and worst, the worst ticks and their phase) without the neighbours' lateness.
+shows the per-tick work (p99 and worst, the ticks of most work with the same breakdown).
 The machine's load average is printed with every figure: the lateness of a loop on a shared machine is that
 of its neighbours.
 """
