@@ -383,7 +383,8 @@ def main() -> int:
             runs[live].append(child(args, live))
     p = 1e3 / args.rate
     print(f"simulated {args.grid ** 3}-pose startup {'unpaced (proxy)' if args.unpaced else 'paced in real time'} "
-          f"at {args.rate:g} Hz (period {p:.2f} ms), each run in a fresh process, {os.cpu_count()} cores")
+          f"at {args.rate:g} Hz (period {p:.2f} ms), each run in a fresh process, {os.cpu_count()} cores, "
+          + (f"the loop and the plant under SCHED_FIFO {args.rt_priority}" if args.rt_priority else "normal priority"))
     for live in (False, True):
         for r in runs[live]:
             report("with --live" if live else "without", r)
