@@ -25,6 +25,8 @@ the parsed import times 1.0265, 1.0209, 1.0137, 1.0206 per cable. All other chan
 The parser's lengths fit the robot's geometry better: at the authors' 8 picked samples, a pose fitted to
 the 4 swivels and 4 lengths (AHRS roll and pitch fixed; weights 1 deg, 0.01 m) leaves chi2 = 5.4 with the
 parser's lengths and 52 with the controller's, so the raw import carries a 1.4-2.6 % length-scale error.
+Nothing here corrects it: the raw import's diagnosis finds it (length_scale), and what it does to the two
+routes' solves is measured in docs/effects.md ("Two imports of one run") and benchmarks/bench_raw_parsed.py.
 """
 
 from __future__ import annotations

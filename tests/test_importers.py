@@ -108,6 +108,30 @@ def test_raw_and_parsed_lengths_differ_by_the_transmission_ratio(parsed_run, log
     assert np.max(np.abs(log_run.dl - parsed_run.dl)) > 0.03  # the difference is real: tens of mm
 
 
+def test_the_two_imports_solved_with_the_same_effects_land_together(parsed_run, log_run, capsys):
+    """Issue 28, done-when 2: the two files differ only by the per-winch transmission ratio, which length_scale
+    takes whole. `cdpr solve --noise estimate --effects tension_offset,length_scale` weighs each channel by what
+    that model leaves of it: the two initial positions agree to 0.03 mm (8.2 mm apart with the rigid model's
+    weights, where the raw lengths' unmodelled scale had set their sigma to 8 mm, the parsed 1.2 mm), and the
+    fitted scales carry the ratio of the two files: (1 + k_raw) / (1 + k_parsed) = 1.0265, 1.0209, 1.0137,
+    1.0206."""
+    import json
+
+    from acquisition.cli import main as cdpr
+
+    sols = {}
+    for name, run in (("parsed", parsed_run), ("log", log_run)):
+        capsys.readouterr()
+        assert cdpr(["solve", str(run.path), "--noise", "estimate", "--effects", "tension_offset,length_scale",
+                     "--json"]) == 0
+        sols[name] = json.loads(capsys.readouterr().out)
+    p, r = sols["parsed"], sols["log"]
+    assert np.linalg.norm(np.subtract(r["initial_pose"][:3], p["initial_pose"][:3])) < 0.2e-3
+    assert r["noise"]["length"] == pytest.approx(p["noise"]["length"], rel=0.05)  # 1.05 mm both
+    k = {n: np.array([s["effects"]["length_scale"][f"k_{i}"] for i in range(1, 5)]) for n, s in sols.items()}
+    np.testing.assert_allclose((1 + k["log"]) / (1 + k["parsed"]), [1.02645, 1.02092, 1.01367, 1.02055], atol=2e-4)
+
+
 def test_the_parsers_lengths_fit_the_geometry_better(parsed_run, log_run, authors):
     """Pose (x, y, z, yaw) fitted to 4 swivels + 4 lengths at the 8 picked samples, roll/pitch from the AHRS."""
     robot = load_robot("irma4u")
