@@ -11,6 +11,8 @@ from __future__ import annotations
 import abc
 import gc
 import importlib
+import logging
+import os
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -130,28 +132,71 @@ class RealClock(Clock):
         return 0.0 if self._t0 is None else self._monotonic() - self._t0
 
 
-@contextmanager
-def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL) -> Iterator[None]:
-    """The interpreter set up for a control loop, restored on exit.
+# the cyclic collector's thresholds while a control loop runs: the young generations as CPython's defaults (a
+# collection of generation 0 or 1 walks at most a few thousand young objects: well under a millisecond), the
+# oldest never collected automatically
+LOOP_GC_OLDEST = 2**31 - 1
 
-    Collects once and freezes what exists (``gc.freeze``): the cyclic collector then never walks the
-    interpreter's, numpy's, scipy's, canopen's... tens of thousands of long-lived objects inside the loop (a
-    full collection of them took 40-100 ms in one tick at 200 Hz; the young objects the loop makes are
-    collected as before). The thread switch interval is ``switch_interval`` s, so that the loop's thread,
-    waking from its sleep or from a device wait, waits at most about that long for another thread (a live
-    view's publisher, a run-log writer) to give up the interpreter. The modules of :data:`LOOP_IMPORTS` are
-    imported first (and frozen with the rest). Nested use is harmless."""
+
+def set_realtime(priority: int, pid: int = 0) -> str | None:
+    """Ask the OS to run thread ``pid`` (0: the calling thread) under ``SCHED_FIFO`` at ``priority`` (1-99), with
+    ``SCHED_RESET_ON_FORK`` (no process forked from it inherits it); None when granted, else the one sentence
+    saying why not (Linux only; needs root, CAP_SYS_NICE or an rtprio limit, ``ulimit -r``)."""
+    if not hasattr(os, "SCHED_FIFO"):
+        return f"real-time priority {priority} is not available on {sys.platform}; the loop runs at normal priority."
+    try:
+        os.sched_setscheduler(pid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(int(priority)))
+    except OSError as exc:  # EPERM without the right, EINVAL out of range
+        return (f"real-time priority {priority} (SCHED_FIFO) was refused ({exc.strerror}); the loop runs at normal "
+                f"priority (grant it with an rtprio limit, e.g. ulimit -r {priority}).")
+    return None
+
+
+@contextmanager
+def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int | None = None) -> Iterator[bool]:
+    """The interpreter set up for a control loop, restored on exit; yields whether the loop's thread runs under
+    real-time priority.
+
+    The garbage collector's policy for the loop: collect once and freeze what exists (``gc.freeze``: the
+    interpreter's, numpy's, scipy's, canopen's... tens of thousands of long-lived objects are never walked
+    again; a full collection of them took 40-100 ms in one tick at 200 Hz), and no automatic collection of the
+    oldest generation while the loop runs (its threshold :data:`LOOP_GC_OLDEST`): the objects the loop keeps
+    (the logged rows, the truth record, the windows) accumulate there, and in a long run an automatic full
+    collection of them would fall inside one tick (an 8-pose startup keeps too few to start one even at
+    CPython's default threshold: bench_live.py's probe; docs/live.md). The young generations are
+    collected as before, so garbage the loop makes and drops is freed within a few hundred allocations; a
+    cycle that lives long enough to be promoted waits for the first full collection after the loop.
+
+    The thread switch interval is ``switch_interval`` s, so that the loop's thread, waking from its sleep or
+    from a device wait, waits at most about that long for another thread (a run-log writer) to give up the
+    interpreter. The modules of :data:`LOOP_IMPORTS` are imported first (and frozen with the rest). Nested
+    use is harmless (only the outermost sets up and restores).
+
+    ``rt_priority`` (opt-in, for a loop paced by a real clock): the calling thread runs under ``SCHED_FIFO`` at
+    that priority (:func:`set_realtime`), so that no process of normal priority keeps it waiting for a CPU;
+    where the OS refuses, a warning says so in one sentence and the loop runs as without it."""
     for name in LOOP_IMPORTS:
         importlib.import_module(name)
-    frozen = gc.get_freeze_count() == 0
+    outer = gc.get_freeze_count() == 0
     switch = sys.getswitchinterval()
-    if frozen:
+    thresholds = gc.get_threshold()
+    if outer:
         gc.collect()
         gc.freeze()
+        gc.set_threshold(thresholds[0], thresholds[1], LOOP_GC_OLDEST)
     sys.setswitchinterval(min(switch, switch_interval))
+    policy = os.sched_getscheduler(0) if rt_priority is not None and hasattr(os, "sched_getscheduler") else None
+    param = os.sched_getparam(0) if policy is not None else None
+    refused = None if rt_priority is None else set_realtime(rt_priority)
+    if refused is not None:
+        logging.getLogger(__name__).warning(refused)
+    realtime = rt_priority is not None and refused is None
     try:
-        yield
+        yield realtime
     finally:
         sys.setswitchinterval(switch)
-        if frozen:
+        if realtime:
+            os.sched_setscheduler(0, policy, param)
+        if outer:
+            gc.set_threshold(*thresholds)
             gc.unfreeze()

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.clock import RealClock, SimClock
+from acquisition.clock import RealClock, SimClock, set_realtime
 from acquisition.connect import ahrs_rate_for, connect, feedback_every
 from acquisition.equilibrium import DetectorConfig
 from acquisition.outputs import check_output, claim_output
@@ -77,6 +77,7 @@ class StartupRequest:
     sim_plant: str = "auto"
     rate: float = CONTROL_RATE
     realtime: bool = False
+    rt_priority: int | None = None
     offsets: str | None = None
     max_rate: float = MAX_TENSION_RATE
     hold: float = HOLD_TIME
@@ -193,7 +194,7 @@ def startup_config(req: StartupRequest, robot) -> StartupConfig:
                              f"--settle-timeout {req.settle_timeout} must be positive.")
     try:
         return StartupConfig(method=req.method, rate=req.rate, max_tension_rate=req.max_rate, hold_time=req.hold,
-                             kinematic_speed=req.speed,
+                             kinematic_speed=req.speed, rt_priority=req.rt_priority,
                              detector=DetectorConfig.for_robot(robot, timeout=req.settle_timeout))
     except ValueError as exc:
         raise StartupRefused(f"invalid option: {exc}") from exc
@@ -232,6 +233,11 @@ class _Acquisition:
             # the simulated MTi sends at the log rate: its angles serve only the log (ahrs_rate_for)
             with SimBackend(robot, sim_config, req.seed, period, ahrs_rate=ahrs_rate_for(cfg.log_period),
                             plant_process=SIM_PLANT[req.sim_plant]) as sim:
+                if req.realtime and cfg.rt_priority is not None and sim.plant_pid is not None:
+                    # the plant stands for hardware: it gets the loop's priority too, else it waits for a CPU
+                    refused = set_realtime(cfg.rt_priority, sim.plant_pid)
+                    if refused is not None:
+                        self.note(f"the simulated plant: {refused}")
                 result = self._routine(sim.devices, clock, True, period, supervisor, "sim")
                 summary = self._solve_and_report(result)
                 if req.truth and summary.solution:

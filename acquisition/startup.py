@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.clock import Clock, loop_runtime
+from acquisition.clock import Clock, SimClock, loop_runtime
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from acquisition.estimates import EstimateWorker, LogWorker
@@ -73,6 +73,9 @@ class StartupConfig:
     device_timeout: float = 1.0  # s (wall) to wait for a tick's readings in lockstep
     expected_settle: float = EXPECTED_SETTLE  # s, for the time-left estimate
     rehold: int = 2  # sequential plans: extra holds at a pose whose window the run's search finds only quasi
+    # opt-in: SCHED_FIFO priority (1-99) of the loop's thread on a real clock (acquisition.clock.loop_runtime);
+    # None: normal priority. Refused by the OS: a warning, and the loop runs at normal priority
+    rt_priority: int | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -83,6 +86,8 @@ class StartupConfig:
         if abs(every - round(every)) > 1e-6 or round(every) < 1:
             raise ValueError(f"log period {self.log_period} s must be a whole number of control periods "
                              f"(1/{self.rate:g} s).")
+        if self.rt_priority is not None and not 1 <= self.rt_priority <= 99:
+            raise ValueError(f"real-time priority must be within 1..99, got {self.rt_priority!r}.")
 
 
 @dataclass
@@ -361,8 +366,10 @@ class StartupRoutine:
 
     def run(self) -> StartupResult:
         """The whole procedure; raises :class:`StartupStopped` after a safe stop. The interpreter is set up for
-        the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap)."""
-        with loop_runtime():
+        the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap; the
+        configuration's real-time priority on a real clock)."""
+        paced = not isinstance(self.clock, SimClock)
+        with loop_runtime(rt_priority=self.cfg.rt_priority if paced else None):
             try:
                 return self._procedure()
             finally:

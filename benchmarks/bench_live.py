@@ -1,21 +1,22 @@
 """The live view's cost to the control loop: a simulated 8-pose startup paced in real time (not collected by pytest).
 
-    python benchmarks/bench_live.py [--rate 200] [--grid 2] [--hold 2] [--repeat 1] [--unpaced]
+    python benchmarks/bench_live.py [--rate 200] [--grid 2] [--hold 2] [--repeat 1] [--unpaced] [--rt-priority N]
 
 Runs the real startup routine (StartupRoutine on the simulated prototype, RealClock in lockstep: what
 ``cdpr startup --backend sim --realtime`` runs) without the live view, then with it (``--live``:
 acquisition/live.py) and a real Foxglove WebSocket client, in a process of its own, subscribed to every
 channel; each run in a fresh interpreter, so that both pay the same first-call costs (``--repeat N``: N pairs,
-the order alternating). Measured at each tick: the lateness of the loop's wake-up (wall time past the tick's
-deadline; an overrun is a tick more than half a period late, acquisition/clock.py) and the work of the tick
-before it (wall and thread CPU time from one ``advance`` to the next, with the routine's phase and setpoint):
-the latest ticks are listed with what the loop was doing; a tick's wall time less its CPU time is what the loop's
-thread waited for (the devices, the interpreter's lock, the operating system). The client counts the scene
-updates it receives per second. Targets (issue 32): with the live view, zero overruns, a worst lateness no
-larger than without it + 10 %, and at least 10 scene updates per second at the client. Exits 1 on a miss.
+the order alternating; ``--rt-priority N``: the loop's thread and the plant's process under SCHED_FIFO).
+Measured at each tick (:class:`TickProbe`): the lateness of the loop's wake-up (wall time past the tick's
+deadline; an overrun is a tick more than half a period late, acquisition/clock.py) and what the loop's thread
+did and waited for since the tick before (wall and CPU time, runqueue wait, collections, imports, page
+faults, the process's other threads, the plant process); the 20 worst late episodes are listed with their
+cause (:func:`causes`, docs/live.md). The client counts the scene updates it receives per second. Targets
+(issue 32): with the live view, zero overruns, a worst lateness no larger than without it + 10 %, and at
+least 10 scene updates per second at the client. Exits 1 on a miss.
 
 ``--unpaced``: the deterministic proxy (no target): the same startups in lockstep without sleeping, which
-shows the per-tick work (p99 and worst, the worst ticks and their phase) without the neighbours' lateness.
+shows the per-tick work (p99 and worst, the ticks of most work with the same breakdown).
 The machine's load average is printed with every figure: the lateness of a loop on a shared machine is that
 of its neighbours.
 """
@@ -23,8 +24,10 @@ of its neighbours.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -33,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.clock import RealClock
+from acquisition.clock import RealClock, set_realtime
 from acquisition.connect import ahrs_rate_for, connect
 from acquisition.live import LiveView
 from acquisition.plans import Plan
@@ -75,35 +78,196 @@ def _no_sleep(_: float) -> None:
     """The unpaced proxy's sleep."""
 
 
+def _schedstat(fd: int | None) -> tuple[float, float]:
+    """(CPU s, runqueue wait s) of the thread or process whose /proc schedstat ``fd`` is (zeros without)."""
+    if fd is None:
+        return 0.0, 0.0
+    try:
+        cpu, wait, _ = os.pread(fd, 96, 0).split()
+    except (OSError, ValueError):
+        return 0.0, 0.0
+    return int(cpu) * 1e-9, int(wait) * 1e-9
+
+
+def _open_schedstat(path: str) -> int | None:
+    try:
+        return os.open(path, os.O_RDONLY)
+    except OSError:  # not Linux, or no schedstats
+        return None
+
+
+# per-tick columns of the probe (times in s): the lateness of the tick's wake-up, then what happened between
+# the previous tick's hand-out and this tick's request ("work") and during the wait for its deadline ("sleep")
+COLUMNS = ("late", "overflow", "work_wall", "work_cpu", "work_rq", "sleep_rq", "gc", "gc_gen", "modules",
+           "minflt", "majflt", "nvcsw", "nivcsw", "others_cpu", "plant_cpu", "plant_rq", "plant_wait", "where")
+C = {name: i for i, name in enumerate(COLUMNS)}
+
+
+class TickProbe:
+    """What the loop's thread did and waited for in every tick, in preallocated rows (no object per tick):
+    its wall and thread CPU time, the time it was runnable but not running (``/proc/thread-self/schedstat``:
+    the OS gave the CPU to another thread or process), Python's collections (``gc.callbacks``: time and the
+    oldest generation), modules imported, page faults and context switches (``getrusage``), the CPU of the
+    process's other threads (the interpreter lock's other holders: the run-log writer...), the plant child's
+    CPU and runqueue wait and how long the SYNC handler waited for it."""
+
+    def __init__(self) -> None:
+        self.rows = np.zeros((1 << 15, len(COLUMNS)))
+        self.n = 0
+        self.places: dict[tuple[str, int], int] = {}
+        self.sim = None
+        self._fd = _open_schedstat("/proc/thread-self/schedstat")
+        self._child = None
+        self._gc_time, self._gc_gen, self._gc_t0 = 0.0, -1, 0.0
+        self.collections = [0, 0, 0]  # by generation, during the probe
+        gc.callbacks.append(self._on_gc)
+        self._mark: tuple | None = None
+
+    def _on_gc(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._gc_t0 = time.perf_counter()
+        else:
+            self._gc_time += time.perf_counter() - self._gc_t0
+            self._gc_gen = max(self._gc_gen, info["generation"])
+            self.collections[info["generation"]] += 1
+
+    def attach(self, sim: SimBackend) -> None:
+        """Watch the simulated plant's child process too (its CPU and runqueue wait, the wait for it)."""
+        self.sim = sim
+        pid = sim.plant_pid
+        self._child = None if pid is None else _open_schedstat(f"/proc/{pid}/schedstat")
+
+    def close(self) -> None:
+        if self._on_gc in gc.callbacks:
+            gc.callbacks.remove(self._on_gc)
+        for fd in (self._fd, self._child):
+            if fd is not None:
+                os.close(fd)
+
+    def read(self) -> tuple:
+        """The counters now."""
+        ru = resource.getrusage(resource.RUSAGE_THREAD)
+        cpu_child, rq_child = _schedstat(self._child)
+        return (time.perf_counter(), time.thread_time(), time.process_time(), _schedstat(self._fd)[1],
+                self._gc_time, len(sys.modules), ru.ru_minflt, ru.ru_majflt, ru.ru_nvcsw, ru.ru_nivcsw, cpu_child,
+                rq_child, 0.0 if self.sim is None else self.sim.plant_waited())
+
+    def tick(self, before: tuple, after: tuple, deadline: float, where: tuple[str, int]) -> None:
+        """One tick: ``before`` read when the loop asked for it, ``after`` when it was handed out (perf_counter
+        time base; ``deadline`` on it)."""
+        m = self._mark
+        self._mark = after
+        if m is None:
+            return
+        if self.n == len(self.rows):
+            self.rows = np.vstack([self.rows, np.zeros_like(self.rows)])
+        r = self.rows[self.n]
+        self.n += 1
+        r[C["late"]] = after[0] - deadline
+        r[C["overflow"]] = before[0] - deadline
+        r[C["work_wall"]] = before[0] - m[0]
+        r[C["work_cpu"]] = before[1] - m[1]
+        r[C["others_cpu"]] = (before[2] - m[2]) - (before[1] - m[1])
+        r[C["work_rq"]] = before[3] - m[3]
+        r[C["sleep_rq"]] = after[3] - before[3]
+        r[C["gc"]] = after[4] - m[4]
+        r[C["gc_gen"]] = self._gc_gen
+        self._gc_gen = -1
+        for name, i in (("modules", 5), ("minflt", 6), ("majflt", 7), ("nvcsw", 8), ("nivcsw", 9),
+                        ("plant_cpu", 10), ("plant_rq", 11), ("plant_wait", 12)):
+            r[C[name]] = after[i] - m[i]
+        r[C["where"]] = self.places.setdefault(where, len(self.places))
+
+    def table(self) -> np.ndarray:
+        return self.rows[:self.n].copy()
+
+
 class MeasuredClock(RealClock):
-    """RealClock (lockstep) that keeps, for every tick, the lateness (s) of its wake-up past its deadline and
-    the work (wall s, thread CPU s) the loop did since the previous tick was handed out, with the routine's
-    phase and setpoint at that time. ``paced=False``: nothing sleeps (the unpaced proxy)."""
+    """RealClock (lockstep) that probes every tick (:class:`TickProbe`), with the routine's phase and setpoint
+    at the time. ``paced=False``: nothing sleeps (the unpaced proxy)."""
 
     def __init__(self, period: float, paced: bool = True):
-        super().__init__(period, lockstep=True, sleep=time.sleep if paced else _no_sleep)
+        super().__init__(period, lockstep=True, monotonic=time.perf_counter,
+                         sleep=time.sleep if paced else _no_sleep)
         self.routine: StartupRoutine | None = None
-        self.late: list[float] = []
-        self.work: list[tuple[float, float]] = []  # (wall, cpu) s of the work before each tick after the first
-        self.where: list[tuple[str, int]] = []
-        self._mark: tuple[float, float] | None = None
+        self.probe = TickProbe()
 
     def advance(self):
-        w, c = time.perf_counter(), time.thread_time()
-        if self._mark is not None:
-            self.work.append((w - self._mark[0], c - self._mark[1]))
-            r = self.routine
-            self.where.append((r._phase, r._setpoint) if r is not None else ("connect", -1))
+        probe = self.probe
+        before = probe.read()
         tk = super().advance()
-        self.late.append(self._monotonic() - (self._t0 + tk.index * self.period))
-        self._mark = (time.perf_counter(), time.thread_time())
+        after = probe.read()
+        r = self.routine
+        probe.tick(before, after, self._t0 + tk.index * self.period,
+                   (r._phase, r._setpoint) if r is not None else ("connect", -1))
         return tk
 
 
-def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: Path) -> dict:
-    """One startup in this process; its figures (ms) and, with the live view, what the client received."""
+def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: int = 20) -> list[dict]:
+    """The ``count`` worst late episodes (paced: consecutive ticks more than half a period late, by their peak
+    lateness) or the ``count`` ticks of most work (unpaced), each with the sums of what its ticks did and
+    waited for and the largest of those named as the cause (ms)."""
+    names = {v: k for k, v in places.items()}
+    typical_cpu = float(np.median(rows[:, C["work_cpu"]]))
+    spans = []
+    if paced:
+        late = rows[:, C["late"]] > 0.5 * period
+        k = 0
+        while k < len(rows):
+            if late[k]:
+                e = k
+                while e + 1 < len(rows) and late[e + 1]:
+                    e += 1
+                spans.append((k, e))
+                k = e + 1
+            else:
+                k += 1
+        spans.sort(key=lambda se: -rows[se[0]:se[1] + 1, C["late"]].max())
+    else:
+        spans = [(int(k), int(k)) for k in np.argsort(-rows[:, C["work_wall"]])]
+    out = []
+    for s, e in spans[:count]:
+        seg = rows[s:e + 1]
+        peak = s + int(np.argmax(seg[:, C["late"]])) if paced else s
+        seg = rows[s:peak + 1]
+        tot = {name: float(seg[:, C[name]].sum()) for name in COLUMNS}
+        parts = {
+            "garbage collection": tot["gc"],
+            "loop CPU beyond typical": tot["work_cpu"] - tot["gc"] - len(seg) * typical_cpu,
+            "OS: runnable, not running (work)": tot["work_rq"],
+            "OS: late wake-up from sleep": tot["sleep_rq"],
+            "waited for the plant process": tot["plant_wait"],
+            "other threads of the process (GIL)": tot["others_cpu"],
+            "blocked: serial lines or a lock": tot["work_wall"] - tot["work_cpu"] - tot["work_rq"]
+            - tot["plant_wait"] - max(tot["others_cpu"], 0.0),
+        }
+        cause = max(parts, key=parts.get)
+        detail = f"{cause} {1e3 * parts[cause]:.1f} ms"
+        if cause == "garbage collection":
+            detail += f" (generation {int(seg[:, C['gc_gen']].max())})"
+        if cause == "waited for the plant process":
+            detail += f" (its CPU {1e3 * tot['plant_cpu']:.1f} ms, its runqueue wait {1e3 * tot['plant_rq']:.1f} ms)"
+        if cause == "blocked: serial lines or a lock" and tot["plant_rq"] > 1e-3:
+            detail += f" (the plant process, which writes them, waited {1e3 * tot['plant_rq']:.1f} ms for a CPU)"
+        if tot["modules"] > 0:
+            detail += f"; {int(tot['modules'])} module(s) imported"
+        if tot["majflt"] > 0:
+            detail += f"; {int(tot['majflt'])} major page fault(s)"
+        phase, sp = names[int(rows[peak, C["where"]])]
+        out.append({"tick": int(peak) + 1, "late_ticks": e - s + 1, "late_ms": 1e3 * float(rows[peak, C["late"]]),
+                    "phase": phase, "setpoint": sp, "wall_ms": 1e3 * tot["work_wall"],
+                    "cpu_ms": 1e3 * tot["work_cpu"], "gc_ms": 1e3 * tot["gc"],
+                    "rq_ms": 1e3 * (tot["work_rq"] + tot["sleep_rq"]), "plant_wait_ms": 1e3 * tot["plant_wait"],
+                    "others_ms": 1e3 * tot["others_cpu"], "minflt": int(tot["minflt"]),
+                    "nivcsw": int(tot["nivcsw"]), "cause": cause, "detail": detail})
+    return out
+
+
+def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: Path, rt: int | None = None) -> dict:
+    """One startup in this process; its figures (ms) and, with the live view, what the client received. ``rt``:
+    the loop's thread and the simulated plant's process under SCHED_FIFO at that priority."""
     robot = load_robot("irma4u")
-    cfg = StartupConfig(rate=rate, hold_time=hold)
+    cfg = StartupConfig(rate=rate, hold_time=hold, rt_priority=rt)
     plan = Plan.for_robot(robot, grid, "equilibrium")
     period = 1.0 / rate
     clock = MeasuredClock(period, paced)
@@ -115,6 +279,10 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
         assert client.stdout.readline().strip() == "subscribed"
     load0, t0 = os.getloadavg()[0], time.perf_counter()
     with SimBackend(robot, None, 0, period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
+        clock.probe.attach(sim)
+        refused = None if rt is None or sim.plant_pid is None else set_realtime(rt, sim.plant_pid)
+        if refused is not None:
+            print(f"the simulated plant: {refused}", file=sys.stderr)
         rig = connect(sim.devices, robot, clock, lockstep=True, period=period)
         try:
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, on_tick=view.hook)
@@ -123,16 +291,17 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
         finally:
             view.close()
             rig.close()
-    late = np.array(clock.late[1:]) * 1e3  # tick k's lateness is the work of tick k - 1's
-    work = np.array(clock.work) * 1e3
-    worst = [{"tick": int(k + 1), "late_ms": round(float(late[k]), 3), "phase": clock.where[k][0],
-              "setpoint": clock.where[k][1], "work_ms": round(float(work[k, 0]), 3),
-              "cpu_ms": round(float(work[k, 1]), 3)} for k in np.argsort(-(late if paced else work[:, 1]))[:5]]
-    res = {"ticks": len(late), "wall_s": time.perf_counter() - t0, "load": [load0, os.getloadavg()[0]],
+            clock.probe.close()
+    rows = clock.probe.table()
+    late, work = rows[:, C["late"]] * 1e3, rows[:, [C["work_wall"], C["work_cpu"]]] * 1e3
+    waited = work[:, 0] - work[:, 1]
+    res = {"ticks": len(rows), "rt": rt, "wall_s": time.perf_counter() - t0, "load": [load0, os.getloadavg()[0]],
            "overruns": clock.overruns.count if paced else None, "late": late.tolist() if paced else None,
            "work_p99": np.percentile(work, 99, axis=0).tolist(), "work_max": work.max(axis=0).tolist(),
-           "waited": [float(np.percentile(work[:, 0] - work[:, 1], 99)), float((work[:, 0] - work[:, 1]).max())],
-           "worst": worst}
+           "waited": [float(np.percentile(waited, 99)), float(waited.max())],
+           "collections": clock.probe.collections,
+           "gc_ms": [float(1e3 * rows[:, C["gc"]].sum()), float(1e3 * rows[:, C["gc"]].max())],
+           "worst": causes(rows, period, clock.probe.places, paced)}
     if client is not None:
         got = json.loads(client.communicate(timeout=60)[0].strip().splitlines()[-1])
         res["client"] = dict(got, dropped=view.tap.dropped, handed=view.tap.handed)
@@ -142,7 +311,8 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
 def child(args: argparse.Namespace, live: bool) -> dict:
     """:func:`startup` in a fresh interpreter (both runs pay the same imports and first calls)."""
     cmd = [sys.executable, __file__, "--one", "live" if live else "plain", "--rate", str(args.rate), "--grid",
-           str(args.grid), "--hold", str(args.hold)] + (["--unpaced"] if args.unpaced else [])
+           str(args.grid), "--hold", str(args.hold)] + (["--unpaced"] if args.unpaced else []) + (
+        ["--rt-priority", str(args.rt_priority)] if args.rt_priority else [])
     done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -168,10 +338,26 @@ def report(name: str, r: dict) -> None:
     print(line + f"tick work p99 {wp[0]:.3f} ms (cpu {wp[1]:.3f}) worst {wm[0]:.3f} ms (cpu {wm[1]:.3f}); "
           f"waited (wall - cpu) p99 {r['waited'][0]:.3f} ms worst {r['waited'][1]:.3f} ms; "
           f"load average {r['load'][0]:.2f} -> {r['load'][1]:.2f}")
-    for w in r["worst"][:3]:  # paced: the latest ticks; unpaced: the most CPU
-        late = f"late {w['late_ms']:8.3f} ms " if r["late"] is not None else ""
-        print(f"      tick {w['tick']:6d} {late}after {w['phase']} (setpoint {w['setpoint']}): "
-              f"work {w['work_ms']:.3f} ms, cpu {w['cpu_ms']:.3f} ms")
+    c = r["collections"]
+    print(f"      collections during the run: generation 0/1/2 {c[0]}/{c[1]}/{c[2]}, {r['gc_ms'][0]:.1f} ms in all, "
+          f"the longest tick's {r['gc_ms'][1]:.1f} ms")
+    if not r["worst"]:
+        return
+    paced = r["late"] is not None
+    print(f"      {'the worst late episodes (peak tick)' if paced else 'the ticks of most work'}: ms summed over the "
+          f"episode's ticks; rq: runnable but not running; plant: waited for the plant process; others: CPU of the "
+          f"process's other threads")
+    print(f"      {'tick':>6} {'late':>8} {'n':>3} {'wall':>7} {'cpu':>6} {'gc':>6} {'rq':>7} {'plant':>6} "
+          f"{'others':>6} {'minflt':>6} {'preempt':>7}  phase (setpoint): cause")
+    for w in r["worst"][:r.get("show", 20)]:
+        late = f"{w['late_ms']:8.2f}" if paced else f"{'-':>8}"
+        print(f"      {w['tick']:6d} {late} {w['late_ticks']:3d} {w['wall_ms']:7.2f} {w['cpu_ms']:6.2f} "
+              f"{w['gc_ms']:6.2f} {w['rq_ms']:7.2f} {w['plant_wait_ms']:6.2f} {w['others_ms']:6.2f} "
+              f"{w['minflt']:6d} {w['nivcsw']:7d}  {w['phase']} ({w['setpoint']}): {w['detail']}")
+    tally: dict[str, int] = {}
+    for w in r["worst"]:
+        tally[w["cause"]] = tally.get(w["cause"], 0) + 1
+    print("      causes of these: " + "; ".join(f"{k} {v}" for k, v in sorted(tally.items(), key=lambda kv: -kv[1])))
 
 
 def main() -> int:
@@ -181,11 +367,14 @@ def main() -> int:
     ap.add_argument("--hold", type=float, default=2.0, help="s of each equilibrium window")
     ap.add_argument("--repeat", type=int, default=1, help="pairs of runs, the order alternating (default 1)")
     ap.add_argument("--unpaced", action="store_true", help="the deterministic proxy: lockstep, nothing sleeps")
+    ap.add_argument("--rt-priority", type=int, default=None,
+                    help="run the loop's thread and the simulated plant under SCHED_FIFO at this priority (1-99)")
     ap.add_argument("--one", choices=("plain", "live"), help=argparse.SUPPRESS)  # one run, its JSON on stdout
     args = ap.parse_args()
     if args.one:
         with tempfile.TemporaryDirectory() as tmp:
-            res = startup(args.rate, args.grid, args.hold, args.one == "live", not args.unpaced, Path(tmp) / "run")
+            res = startup(args.rate, args.grid, args.hold, args.one == "live", not args.unpaced, Path(tmp) / "run",
+                          args.rt_priority)
         print(json.dumps(res))
         return 0
     runs: dict[bool, list[dict]] = {False: [], True: []}
@@ -194,7 +383,8 @@ def main() -> int:
             runs[live].append(child(args, live))
     p = 1e3 / args.rate
     print(f"simulated {args.grid ** 3}-pose startup {'unpaced (proxy)' if args.unpaced else 'paced in real time'} "
-          f"at {args.rate:g} Hz (period {p:.2f} ms), each run in a fresh process, {os.cpu_count()} cores")
+          f"at {args.rate:g} Hz (period {p:.2f} ms), each run in a fresh process, {os.cpu_count()} cores, "
+          + (f"the loop and the plant under SCHED_FIFO {args.rt_priority}" if args.rt_priority else "normal priority"))
     for live in (False, True):
         for r in runs[live]:
             report("with --live" if live else "without", r)

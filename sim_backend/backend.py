@@ -341,6 +341,15 @@ class SimBackend:
             self._record()
             return self.sync_count
 
+    @property
+    def plant_pid(self) -> int | None:
+        """Process ID of the plant's child process (None when the plant runs in this process)."""
+        return getattr(self._link, "pid", None)
+
+    def plant_waited(self) -> float:
+        """Seconds the SYNC handler has waited so far for the plant's child process to answer (0 in process)."""
+        return float(getattr(self._link, "waited", 0.0))
+
     def _record(self) -> None:
         self._history.append((self.sync_count, self.physics.state))
 

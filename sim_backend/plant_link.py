@@ -271,6 +271,7 @@ class ChildPlantLink:
         self._closed = False
         self._waiting = False  # a command is out and its answer not yet collected
         self._exit: int | None = None  # the child's wait status once reaped
+        self.waited = 0.0  # s the parent spent waiting for the child's answers (beyond a first look)
         parent = os.getpid()
         keep = sorted({0, 1, 2, *core.fds()})
         self.pid = os.fork()
@@ -309,12 +310,16 @@ class ChildPlantLink:
         self._waiting = False
         sem = self._to_parent
         if not sem.acquire(False):
-            end = time.perf_counter() + PARENT_POLL
-            while not sem.acquire(False):
-                if time.perf_counter() > end:
-                    if not self._block(sem):
-                        return
-                    break
+            start = time.perf_counter()
+            end = start + PARENT_POLL
+            try:
+                while not sem.acquire(False):
+                    if time.perf_counter() > end:
+                        if not self._block(sem):
+                            return
+                        break
+            finally:
+                self.waited += time.perf_counter() - start
         block = self._state.unpack_from(self._page, _STATE_AT)  # status, then the state
         if block[0] != _OK:
             (size,) = struct.unpack_from("<q", self._page, _ERROR_AT)

@@ -238,8 +238,9 @@ def test_the_shipped_layout_shows_only_channels_and_fields_the_view_publishes():
 
 def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_thread(tmp_path):
     """Issue 32, the loop's bounded ticks: while the routine runs, the heap that existed before it is frozen
-    (no collection walks it inside a tick) and the switch interval is 0.5 ms; the run log is created, fsynced
-    and closed by the log worker's thread, all of it on disk when run() returns; the interpreter is restored."""
+    (no collection walks it inside a tick), the oldest generation is never collected (the young ones are, the
+    objects the loop keeps accumulate) and the switch interval is 0.5 ms; the run log is created, fsynced and
+    closed by the log worker's thread, all of it on disk when run() returns; the interpreter is restored."""
     import gc
     import math
     import threading
@@ -268,8 +269,14 @@ def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_threa
             writers.append(threading.current_thread().name)
             super().sync()
 
+    collections: list[int] = []  # generations collected between the loop's first and last tick
+
+    def note(phase, info):
+        if phase == "start" and seen:
+            collections.append(info["generation"])
+
     gc.collect()
-    switch, alive = sys.getswitchinterval(), len(gc.get_objects())
+    switch, alive, thresholds = sys.getswitchinterval(), len(gc.get_objects()), gc.get_threshold()
     clock = SimClock(1.0 / cfg.rate)
     with SimBackend(robot, None, 3, clock.period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
         rig = connect(sim.devices, robot, clock, lockstep=True, period=clock.period)
@@ -280,18 +287,96 @@ def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_threa
             try:
                 routine = StartupRoutine(robot, rig, clock, plan, tmp_path / "run", cfg, on_tick=lambda s: seen.append(
                     (gc.get_freeze_count() if s.tick % 200 == 0 else math.inf, sys.getswitchinterval())))
+                gc.callbacks.append(note)
                 routine.run()
             finally:
+                gc.callbacks.remove(note)
                 startup.RunWriter = original
         finally:
             rig.close()
     assert len(seen) > 1000 and min(f for f, _ in seen) >= 0.9 * alive  # what lived before the run stays frozen
     assert {s for _, s in seen} == {LOOP_SWITCH_INTERVAL}
-    assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == switch
+    # some 2600 ticks: the young generations are collected (tens of times), the oldest never
+    assert collections.count(0) > 10 and 2 not in collections, collections
+    assert gc.get_freeze_count() == 0 and sys.getswitchinterval() == switch and gc.get_threshold() == thresholds
     assert len(writers) >= 3 and loop not in writers  # created, synced at each window and at the end
     run = read_run(tmp_path / "run")
     assert len(run.t) == routine.writer.count > 0
     assert list(run.phase).count("hold") == 5  # the pose's 0.5 s window at 10 Hz
+
+
+def test_inside_the_loop_runtime_the_objects_kept_never_cost_a_full_collection():
+    """The loop's collector policy (acquisition/clock.py): objects kept by the hundred thousand (a long run's
+    rows) trigger automatic collections of the oldest generation outside loop_runtime, none inside it, where
+    the young generations are still collected; the thresholds are restored on exit."""
+    import gc
+
+    from acquisition.clock import loop_runtime
+
+    def generations_collected(inside: bool) -> list[int]:
+        seen: list[int] = []
+
+        def note(phase, info):
+            if phase == "start":
+                seen.append(info["generation"])
+
+        kept = []
+        gc.collect()
+        gc.callbacks.append(note)
+        try:
+            if inside:
+                with loop_runtime():
+                    seen.clear()  # not loop_runtime's own collection before it freezes
+                    kept.extend([k] for k in range(400_000))
+            else:
+                kept.extend([k] for k in range(400_000))
+        finally:
+            gc.callbacks.remove(note)
+        return seen
+
+    thresholds = gc.get_threshold()
+    outside = generations_collected(False)
+    inside = generations_collected(True)
+    assert outside.count(2) >= 1 and inside.count(2) == 0
+    assert inside.count(0) > 100  # 400000 allocations at 700 per young collection
+    assert gc.get_threshold() == thresholds and gc.get_freeze_count() == 0
+
+
+REFUSED_RT = """
+import logging, os, resource
+import numpy.ma
+from acquisition.clock import loop_runtime
+resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))  # no real-time priority for an unprivileged process
+if os.getuid() == 0:
+    os.setgid(65534); os.setuid(65534)  # root may always: be nobody (everything imported before)
+with loop_runtime(rt_priority=40) as rt:
+    print(rt, os.sched_getscheduler(0) == os.SCHED_OTHER)
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="SCHED_FIFO is Linux's")
+def test_real_time_priority_is_opt_in_and_falls_back_with_one_sentence():
+    """The loop's SCHED_FIFO (acquisition/clock.py, StartupConfig.rt_priority): granted, the loop's thread runs
+    under it inside loop_runtime only; refused (an unprivileged process without an rtprio limit), the loop runs
+    at normal priority and one warning sentence says why and how to grant it."""
+    from acquisition.clock import loop_runtime
+    from acquisition.startup import StartupConfig
+
+    with pytest.raises(ValueError, match="within 1..99"):
+        StartupConfig(rt_priority=0)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", REFUSED_RT], cwd="/", env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert done.stdout.split() == ["False", "True"], done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "real-time priority 40 (SCHED_FIFO) was refused" in lines[0]
+    assert "ulimit -r 40" in lines[0]
+    before = os.sched_getscheduler(0)
+    with loop_runtime(rt_priority=40) as rt:
+        inside = os.sched_getscheduler(0)
+    if not rt:
+        pytest.skip("this process may not use SCHED_FIFO (no rtprio limit): the refusal is checked above")
+    assert inside & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO and os.sched_getscheduler(0) == before
 
 
 def test_a_run_log_write_that_fails_on_the_log_worker_is_raised(tmp_path):

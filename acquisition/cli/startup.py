@@ -1,7 +1,7 @@
 """`cdpr startup`: the operator's startup routine on the simulated prototype or on the robot.
 
     cdpr startup --backend sim [--grid N] [--method equilibrium|kinematic] [--out RUN] [--sim-config FILE]
-                 [--truth FILE] [--seed S] [--rate HZ] [--realtime] [--json] [--force]
+                 [--truth FILE] [--seed S] [--rate HZ] [--realtime] [--rt-priority N] [--json] [--force]
     cdpr startup --backend hw --config DEVICES.yaml [...]
 
 Pose planning, force-controlled acquisition into the run folder, solve, report (text on stdout or JSON with
@@ -60,6 +60,9 @@ def register(sub) -> None:
                         "(child), this process (inline), or child when the machine has two cores (auto, default)")
     p.add_argument("--rate", type=float, default=CONTROL_RATE, help="control rate, Hz, 200..500 (default 200)")
     p.add_argument("--realtime", action="store_true", help="pace the simulated prototype in real time")
+    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
+                   help="run the control loop's thread (and a paced simulated plant) under SCHED_FIFO at priority N "
+                        "(1-99; Linux, needs an rtprio limit or CAP_SYS_NICE; refused: a warning, normal priority)")
     p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file (updated in place: "
                    "its previous content is kept in RUN/run.yaml as previous_offsets)")
     p.add_argument("--max-rate", type=float, default=MAX_TENSION_RATE,
@@ -93,7 +96,8 @@ def request_of(args) -> StartupRequest:
         backend=args.backend, out=Path(args.out) if args.out else None, robot=args.robot, config=args.config,
         plan=PlanRequest.of(args.plan, args.grid, args.poses, tolerance, args.step), method=args.method,
         noise=getattr(args, "noise", None), sim_config=args.sim_config, truth=args.truth, seed=args.seed,
-        sim_plant=args.sim_plant, rate=args.rate, realtime=args.realtime, offsets=args.offsets,
+        sim_plant=args.sim_plant, rate=args.rate, realtime=args.realtime,
+        rt_priority=args.rt_priority, offsets=args.offsets,
         max_rate=args.max_rate, hold=args.hold, speed=args.speed, settle_timeout=args.settle_timeout,
         pauses=tuple(args.pause), bus_log=args.bus_log, live=args.live, html=not args.no_html, model=model,
         model_solve=None if model is None else _model_solve(model), force=args.force, debug=args.debug)
