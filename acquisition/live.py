@@ -50,6 +50,9 @@ PUBLISHER_NICE = 10  # the publisher process's niceness above the loop's
 START_TIMEOUT = 60.0  # s to wait for the publisher process to listen
 NEWS = 4  # windows, events and estimates per record at most (a record is one write of at most PIPE_BUF bytes)
 GHOST_ROWS = 16  # planned poses per record at most
+# s the publisher keeps serving after the run's last word while a viewer is subscribed: the SDK sends from its
+# own runtime and its server's stop drops what is still queued (a loaded machine lost the final "stopped")
+CLOSE_LINGER = 0.5
 
 
 @dataclass(frozen=True)
@@ -101,12 +104,14 @@ class _Subscriptions:
 
     def __init__(self) -> None:
         self.first = threading.Event()
+        self.active = 0  # subscriptions held now (client, channel pairs)
 
     def on_subscribe(self, client, channel) -> None:
+        self.active += 1
         self.first.set()
 
     def on_unsubscribe(self, client, channel) -> None:
-        pass
+        self.active = max(self.active - 1, 0)
 
 
 class LiveServer:
@@ -138,7 +143,11 @@ class LiveServer:
         """Wait until a client has subscribed to a channel (at most ``timeout`` s); True if one has."""
         return self._subscriptions.first.wait(timeout)
 
-    def close(self) -> None:
+    def close(self, linger: float = 0.0) -> None:
+        """Stop serving; with a viewer still subscribed, first let ``linger`` s pass so that what was published
+        last reaches it (the server's stop drops the messages still queued)."""
+        if linger > 0 and self._subscriptions.active > 0:
+            time.sleep(linger)
         for ch in self._channels.values():
             ch.close()
         self.server.stop()
@@ -147,7 +156,7 @@ class LiveServer:
         return self
 
     def __exit__(self, *exc) -> None:
-        self.close()
+        self.close(linger=CLOSE_LINGER)
 
 
 class LiveTap:
@@ -350,7 +359,7 @@ def _serve(records, control, address: LiveAddress, robot: Robot, slack: float, o
             pub.publish(record)
         pub.finish()
     finally:
-        server.close()
+        server.close(linger=CLOSE_LINGER)
         try:
             control.send(("done", pub.published, pub.scenes, pub.errors))
         except OSError:  # the loop's process is gone
