@@ -20,14 +20,12 @@ Model (SI units throughout):
   platform's dynamics see the platform-side tension; the winch's own Coulomb friction is apart);
 * each winch: inertia J at the motor shaft (rotor + drum reflected through the gear), viscous and Coulomb
   friction, motor torque u (positive reels the cable in), an optional holding brake (engaged at power-on
-  until the drive is enabled). With ``stiction`` > 0 the Coulomb friction has a stick phase (Karnopp; the
-  default 0 keeps the regularised friction of before, bit for bit): a winch that turns back or
-  is slower than ``coulomb_speed`` while its net torque (motor plus cable, u + k tau) is within the friction
-  (``|u + k tau| <= coulomb``) stops and stays stopped, as a braked one, until that torque exceeds the static
-  friction (``stiction``); sliding, the friction is ``coulomb`` against the motion. The default friction is
-  regularised (coulomb tanh(v / coulomb_speed)), with no stick phase: a viscous brake at low speed, under which
-  a held platform never rested but crept under any imbalance below the friction (issue 29); the real robot's
-  winches stand still during a hold (sc_8_final: lengths within 0.01-0.3 mm over a hold's last 3 s).
+  until the drive is enabled). With ``stiction`` > 0 the Coulomb friction has a stick phase (Karnopp): a winch
+  that turns back or is slower than ``coulomb_speed`` while its net torque u + k tau is within ``coulomb``
+  stops, as a braked one, until that torque exceeds ``stiction``; sliding, ``coulomb`` acts against the motion.
+  The default 0 keeps the regularised friction (coulomb tanh(v / coulomb_speed)) bit for bit: a viscous brake
+  at low speed, under which a held platform crept and never rested (issue 29), where the real robot's winches
+  stand still in a hold (sc_8_final: lengths within 0.01-0.3 mm over a hold's last 3 s).
 
 Integrator: one step per control period (optionally split into substeps) of a semi-implicit scheme:
 the slow dynamics (gravity, damping, gyroscopic terms, motor torques) are explicit (symplectic Euler),
@@ -84,10 +82,8 @@ class WinchParams:
     The gear ratio follows from the drum radius and the transmission k (m of cable per rad of motor):
     ratio = drum_radius / |k|, and the inertia at the motor shaft is rotor + drum / ratio^2. With the
     defaults and IRMA4U's k (4.6 mm/rad): ratio 8.7, 5.9e-5 kg m^2, i.e. 2.8 kg moving with each cable.
-    With ``stiction`` > 0 (N m, >= coulomb) the friction has a stick phase: a winch that stops sticks while the
-    net torque on it is within the Coulomb friction and stays stuck until that torque exceeds ``stiction``
-    (0.01 and 0.015 N m are 2.2 and 3.3 N of cable tension on IRMA4U); 0 keeps the regularised friction
-    (coulomb tanh(v / coulomb_speed)), which has none.
+    ``stiction`` > 0 (N m, >= coulomb; 0.015 N m is 3.3 N of cable tension on IRMA4U): the stick phase of the
+    module doc; 0 keeps the regularised friction (coulomb tanh(v / coulomb_speed)).
     """
 
     rotor_inertia: float = 3.3e-5
