@@ -227,10 +227,12 @@ class StartupRoutine:
         """Hold ``tau`` until the detector says the platform rests; False on its timeout (s)."""
         self._phase, self._setpoint = phase, setpoint
         if self._detector is None:  # one detector for the whole routine: it learns the sensors' noise
-            # on a real clock its thresholds' refresh (up to 15 ms) runs on the log worker, lockstep in line
+            # on a real clock (the robot, or a simulated prototype paced in real time) its thresholds' refresh
+            # (3-15 ms) runs on the log worker, as the robot's; on the simulated clock in line (deterministic)
+            paced = not isinstance(self.clock, SimClock)
             self._detector = EquilibriumDetector(self.cfg.log_period,
                                                  self.cfg.detector or DetectorConfig.for_robot(self.robot),
-                                                 background=None if self.clock.lockstep else self._io.submit)
+                                                 background=self._io.submit if paced else None)
         det = self._detector
         det.start(self.clock.now(), timeout)
         while True:
