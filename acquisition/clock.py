@@ -46,6 +46,12 @@ class Clock(abc.ABC):
     def lockstep(self) -> bool:
         """True when every tick's readings must be awaited (deterministic simulation)."""
 
+    @property
+    def paced(self) -> bool:
+        """True when ticks follow wall time (the robot, or a simulated prototype paced in real time): work that
+        may take longer than a period goes off the loop's thread there; the simulated clock runs it in line."""
+        return not isinstance(self, SimClock)
+
     @abc.abstractmethod
     def advance(self) -> Tick:
         """Wait for the next tick and return it."""

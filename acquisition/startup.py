@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.clock import Clock, SimClock, loop_runtime
+from acquisition.clock import Clock, loop_runtime
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from acquisition.estimates import EstimateWorker, LogWorker
@@ -229,10 +229,9 @@ class StartupRoutine:
         if self._detector is None:  # one detector for the whole routine: it learns the sensors' noise
             # on a real clock (the robot, or a simulated prototype paced in real time) its thresholds' refresh
             # (3-15 ms) runs on the log worker, as the robot's; on the simulated clock in line (deterministic)
-            paced = not isinstance(self.clock, SimClock)
             self._detector = EquilibriumDetector(self.cfg.log_period,
                                                  self.cfg.detector or DetectorConfig.for_robot(self.robot),
-                                                 background=self._io.submit if paced else None)
+                                                 background=self._io.submit if self.clock.paced else None)
         det = self._detector
         det.start(self.clock.now(), timeout)
         while True:
@@ -370,8 +369,7 @@ class StartupRoutine:
         """The whole procedure; raises :class:`StartupStopped` after a safe stop. The interpreter is set up for
         the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap; the
         configuration's real-time priority on a real clock)."""
-        paced = not isinstance(self.clock, SimClock)
-        with loop_runtime(rt_priority=self.cfg.rt_priority if paced else None):
+        with loop_runtime(rt_priority=self.cfg.rt_priority if self.clock.paced else None):
             try:
                 return self._procedure()
             finally:
