@@ -15,9 +15,10 @@ selection), each with its distance to zeta_0_real (docs/effects.md, "Two imports
    (`cdpr solve RUN --noise estimate --effects ...`): the distance between the two initial positions.
 3. Each route's three runs diagnosed together, sc_8_final solved with the route's own model.
 4. ``--decompose``: experiments only (not the product), what the distance is made of: the same solves with
-   the base model's weights (the diagnosis's refits), the two imports with the same effects, and the
+   the base model's weights (the diagnosis's refits), the two imports with the same effects, the
    evidence one run holds for the parsed file's own length scale (Wald test of k against the diagnosis's
-   family-wise threshold).
+   family-wise threshold), and both routes' three runs fitted with the same effects (their distance, and
+   their learned scales against the files' per-cable ratio).
 
     OMP_NUM_THREADS=1 python benchmarks/bench_raw_parsed.py [--data DIR] [--decompose]
 
@@ -42,6 +43,7 @@ TARGETS = "sc_control_target_8_final.mat"
 FILES = {"parsed": "sc_8_final_parsed.mat", "raw": "sc_8_final.log"}
 SUFFIX = {"parsed": "_parsed.mat", "raw": ".log"}
 OTHER_RUNS = {"sc_8_medium_a": "sc_control_target_8.mat", "sc_27_medium_a": "sc_control_target_27.mat"}
+PARSER_M_PER_REV = 0.0280645  # the authors' parser's one length per motor revolution (acquisition/importers.py)
 MAX_EFFECTS = 4  # the three-run diagnosis of the real runs (docs/effects.md, "Tilt or friction, and the cap")
 CHANNELS = ("tau", "tau_ref", "dl", "dsigma", "roll", "pitch", "dyaw")
 
@@ -144,6 +146,35 @@ def route_models(runs: dict[str, list[Path]], out: Path) -> dict[str, tuple[list
     return out_models
 
 
+SAME_SETS = (["cable_elasticity", "tension_offset", "length_scale"], ["tension_offset", "length_scale"])
+
+
+def same_set_lines(runs: dict[str, list[Path]], out: Path) -> list[str]:
+    """Experiments: both routes' three runs fitted with one set of effects (`cdpr diagnose R1 R2 R3 --effects
+    SET --max-effects 0 --model-out M`), sc_8_final solved with `--model M`: the distance between the routes
+    and how far the learned scales' ratio (1 + k_raw)/(1 + k_parsed) is from the files' per-cable ratio (the
+    raw lengths' per-winch m/rev over the parser's common one, docs/effects.md)."""
+    from acquisition.runlog import read_run
+    from calib.robot_model import read_model
+
+    robot = read_run(runs["raw"][0]).robot
+    ratio = np.abs(np.asarray(robot.sensors.length_per_motor_rev, float)) / PARSER_M_PER_REV
+    lines = ["the routes' three runs fitted with the same effects, sc_8_final solved with that model:"]
+    for effects in SAME_SETS:
+        sols, k = {}, {}
+        for kind, paths in runs.items():
+            mfile = out / f"same_{kind}_{len(effects)}.yaml"
+            cli(["diagnose", *map(str, paths), "--effects", ",".join(effects), "--max-effects", "0",
+                 "--model-out", str(mfile)])
+            scale = next(e for e in read_model(mfile).effects if e.name == "length_scale")
+            k[kind] = np.array([scale.values[f"k_{i + 1}"] for i in range(len(ratio))])
+            sols[kind] = cli_solve(paths[0], [], mfile)
+        off = (1 + k["raw"]) / (1 + k["parsed"]) - ratio
+        lines.append(f"  {1000 * apart(sols['raw'], sols['parsed']):7.2f} mm  {','.join(effects)}; (1 + k_raw)/(1 + "
+                     f"k_parsed) - files' ratio: {', '.join(f'{100 * v:+.2f}' for v in off)} %")
+    return lines
+
+
 def scale_evidence(path: Path) -> str:
     """What one run says of its own length scale, with tension_offset in the model (the parsed verdict):
     k and its 1-sigma with the model's own weights, the Wald chi2 of k = 0 against the single-run
@@ -226,9 +257,10 @@ def main() -> int:
                   f"[{', '.join(f'{1000 * v:.2f}' for v in s['initial_pose_sigma'][:3])}] mm, length sigma "
                   f"{1000 * s['noise']['length'][0]:.2f} mm")
         d = apart(sols["raw"], sols["parsed"])
-        models = route_models({k: [paths[k], *others[k]] for k in FILES}, Path(tmp))
+        three = {k: [paths[k], *others[k]] for k in FILES}
+        models = route_models(three, Path(tmp))
         if args.decompose:
-            for line in decompose(paths, selected):
+            for line in decompose(paths, selected) + same_set_lines(three, Path(tmp)):
                 print(line)
     for line in model_lines(models, z_real):
         print(line)
