@@ -172,6 +172,17 @@ class JointFit:
     history: list[dict[str, Any]] = field(default_factory=list)  # per weighting round: run -> weights, pose
     stop: Stop | None = None  # why the last round's LM stopped (converged or not, the criterion)
 
+    def convergence_words(self) -> str:
+        """One sentence on the fit's convergence; a fit that did not converge is a WARNING (its values are where
+        the iterations stopped, not the least-squares solution)."""
+        c = self.convergence()
+        if c["converged"]:
+            return (f"converged ({c['criterion']}: {c['remaining_chi2']:.2g} chi2 left to gain; "
+                    f"{c['iterations']} iterations)")
+        what = "the iteration cap" if c["criterion"] == "cap" else "no damping lowering the chi2"
+        return (f"WARNING: not converged (stopped by {what} after {c['iterations']} iterations, the Gauss-Newton step "
+                f"still predicting {c['remaining_chi2']:.2g} chi2 to gain): its values are where it stopped")
+
     def convergence(self) -> dict[str, Any]:
         """Whether the fit reported converged, by which criterion, its LM iterations (all rounds) and the chi2
         decrease the Gauss-Newton step still predicted (docs/effects.md, "Converged fits")."""
@@ -374,6 +385,7 @@ class Arrow:
     # columns T (unscaled) and the per-pose order of the entries (:func:`_by_pose`)
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = field(default_factory=list, repr=False)
     pinned: np.ndarray | None = None  # (q,) bool: shared columns held (a bound the step would cross)
+    _last: tuple | None = field(default=None, repr=False)  # the reduced matrix of the last damping
 
     @classmethod
     def of(cls, runs: list[RunFit], blocks: list[Residuals], q: int, fixed_shared: bool) -> Arrow:
@@ -451,7 +463,7 @@ class Arrow:
     def covariance(self) -> tuple[np.ndarray, int] | None:
         """The shared block of N's inverse (scaled columns) and N's rank from the inverse of the Schur
         complement on [shared, own_1, ...]; None when a pose block or it is singular (the caller's SVD decides)."""
-        M, _, _ = self._reduced(0.0)
+        M, _, _ = self._reduced(0.0, pins=False)
         for a in [*self.U, M[None]]:
             ev = np.linalg.eigvalsh(a)
             if a.size and np.any(ev[..., 0] <= SINGULAR * np.maximum(ev[..., -1], 1e-300)):
@@ -460,44 +472,61 @@ class Arrow:
         cov = np.linalg.solve(M, np.eye(M.shape[0])[:, :q])[:q] if q else np.zeros((0, 0))
         return cov, int(self.scale.shape[0])
 
-    def _reduced(self, damping: float, gps: list | None = None, gts: list | None = None
+    def _reduced(self, damping: float, gps: list | None = None, gts: list | None = None, pins: bool = True
                  ) -> tuple[np.ndarray, np.ndarray, list]:
         """The damped system reduced to [shared, own_1, own_2, ...] (each run's pose blocks eliminated), its
         right-hand side (of the gradient gps, gts; None: the residuals'), and per run what the poses'
-        back-substitution needs (indices in it, Y, y)."""
+        back-substitution needs (indices in it, Y, y). ``pins``: the held shared columns (``pinned``) get no
+        step. The reduced matrix of the last damping is kept (the geodesic acceleration's second solve)."""
         gps = self.gp if gps is None else gps
         gts = self.gt if gts is None else gts
+        M, facs, at = self._factor(damping, pins)
+        qq = self.q
+        rhs = np.zeros(at[-1])
+        parts = []
+        for j, (W, gp, gt, (Ui, Y)) in enumerate(zip(self.W, gps, gts, facs, strict=True)):
+            y = (Ui @ gp[..., None])[..., 0]
+            rr = gt - W.reshape(-1, W.shape[2]).T @ y.ravel()
+            o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]  # the run's own block, then the shared one
+            rhs[o] += rr[:no]
+            rhs[:qq] += rr[no:]
+            parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
+        if pins and self.pinned is not None:
+            rhs[np.flatnonzero(self.pinned)] = 0.0
+        return M, rhs, parts
+
+    def _factor(self, damping: float, pins: bool) -> tuple[np.ndarray, list, np.ndarray]:
+        """The reduced matrix at this damping, per run the inverse damped pose blocks and Y = U_d^-1 W, and
+        the reduced columns' offsets (cached for the last damping)."""
+        key = (damping, pins and self.pinned is not None and bool(self.pinned.any()))
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
         qq = self.q
         own = [so.stop - so.start for so, _ in self.cols]
         at = np.cumsum([qq, *own])
-        M, rhs = np.zeros((at[-1], at[-1])), np.zeros(at[-1])
-        dg = np.zeros(at[-1])
-        parts = []
-        for j, (U, W, V, gp, gt, (dU, dV)) in enumerate(zip(self.U, self.W, self.V, gps, gts, self._fixed,
-                                                                strict=True)):
+        M, dg, facs = np.zeros((at[-1], at[-1])), np.zeros(at[-1]), []
+        for j, (U, W, V, (dU, dV)) in enumerate(zip(self.U, self.W, self.V, self._fixed, strict=True)):
             Ud = U.copy()
             Ud[:, _DIAG6, _DIAG6] += damping * dU
-            sol = np.linalg.solve(Ud, np.concatenate([W, gp[..., None]], axis=2))
-            Y, y = sol[..., :-1], sol[..., -1]
+            Ui = np.linalg.inv(Ud)
+            Y = Ui @ W
             t = W.shape[2]
-            Wf = W.reshape(-1, t)
-            S, rr = V - Wf.T @ Y.reshape(-1, t), gt - Wf.T @ y.ravel()
-            o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]  # the run's own block, then the shared one
+            S = V - W.reshape(-1, t).T @ Y.reshape(-1, t)
+            o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]
             M[o, o] += S[:no, :no]
             M[o, :qq] += S[:no, no:]
             M[:qq, o] += S[no:, :no]
             M[:qq, :qq] += S[no:, no:]
-            rhs[o] += rr[:no]
-            rhs[:qq] += rr[no:]
             dg[o] += dV[:no]
             dg[:qq] += dV[no:]
-            parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
+            facs.append((Ui, Y))
         M[range(at[-1]), range(at[-1])] += damping * np.maximum(dg, 1e-12)
-        if self.pinned is not None and self.pinned.any():  # held columns: no step, the others without them
+        if key[1]:  # held columns: no step, the others without them
             i = np.flatnonzero(self.pinned)
-            M[i, :], M[:, i], rhs[i] = 0.0, 0.0, 0.0
+            M[i, :], M[:, i] = 0.0, 0.0
             M[i, i] = 1.0
-        return M, rhs, parts
+        self._last = (key, (M, facs, at))
+        return M, facs, at
 
 
 @dataclass
@@ -577,13 +606,13 @@ def geodesic_step(runs: list[RunFit], blocks: list[Residuals], arrow: Arrow, dam
     return v + 0.5 * acc
 
 
-def _at_bounds(runs: list[RunFit], arrow: Arrow, q: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
-    """The shared values at a bound that the Gauss-Newton step would cross (held: an active set, so that the
-    other values' step and the convergence test are those of the problem on the bound)."""
-    if not arrow.q:
+def _at_bounds(runs: list[RunFit], ds: np.ndarray, q: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """The shared values at a bound that the Gauss-Newton step ds (scaled columns, shared first) would cross
+    (held: an active set, so that the other values' step and the convergence test are those of the problem on
+    the bound); None when no shared column is free or none is held."""
+    if not q or runs[0].theta.shape[0] < q:
         return None
     th = runs[0].theta[runs[0].theta.shape[0] - q:]
-    ds, _ = arrow.step(RIDGE)
     out = ((th >= hi) & (ds[:q] > 0)) | ((th <= lo) & (ds[:q] < 0))
     return out if out.any() else None
 
@@ -616,8 +645,10 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     it = 0
     while True:
         arrow = Arrow.of(runs, blocks, q, fixed_shared)
-        arrow.pinned = _at_bounds(runs, arrow, q, lo, hi)
-        _, remaining = arrow.step(RIDGE)
+        gn, remaining = arrow.step(RIDGE)
+        arrow.pinned = _at_bounds(runs, gn, arrow.q, lo, hi)
+        if arrow.pinned is not None:
+            _, remaining = arrow.step(RIDGE)
         if remaining <= max(FTOL * cost, CHI2_TOL):
             stop = Stop(True, "decrease", it, remaining)
             break
