@@ -11,8 +11,10 @@ Unknowns of a joint fit over runs r = 1..R:
 
 Each run keeps its own :class:`calib.selfcal.problem.Problem` (its rows and weights); the theta of run r is
 [zeta_0, its own effect values, the shared values], so the joint Jacobian is the runs' dense Jacobians
-(:func:`calib.fitting.residuals`) side by side on the shared columns. It is solved by a dense
-Levenberg-Marquardt on unit-norm columns (a ridge keeps the directions no run sees where they started).
+(:func:`calib.fitting.residuals`) side by side on the shared columns. It is solved by Levenberg-Marquardt
+with geodesic acceleration on unit-norm columns, the normal equations by blocks (each pose's 6 x 6 block
+eliminated, :class:`Arrow`; a ridge keeps the directions no run sees where they started), until a stated
+criterion holds or the cap is reached (:class:`Stop`; every JointFit says which).
 
 **Weights that fit the data** (:func:`fit_runs` with ``components``): the sigma of each run's channel group
 (tension, length, swivel, orientation) is rescaled by its variance component, sum r^2 / (n (1 - h)), with
