@@ -43,7 +43,7 @@ from calib.selfcal.model import CHANNELS
 from calib.selfcal.problem import Problem
 
 GROUPS = CHANNELS  # the channel groups whose noise the variance components set
-LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
+LAMBDA_MAX = 1e10  # an LM iteration gives up when no damping up to this (relative to diag N) lowers the chi2
 HOLD_MAX = 8  # iterations at most that LM keeps a damping whose tenth was refused before trying it again
 RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
 # the normal matrix's eigenvalue ratio above which its inverse is taken by a solve (condition below 1e8: the
@@ -559,7 +559,7 @@ class Stop:
     """Why a joint Levenberg-Marquardt fit stopped. ``reason``: 'decrease' (the Gauss-Newton step predicts at
     most FTOL of the chi2, or CHI2_TOL, left to gain), 'gradient' (every scaled column is within GTOL of
     orthogonal to the residuals) -- both converged; 'cap' (max_iter accepted steps) or 'stalled' (no damping
-    of LAMBDA_TRIES lowers the chi2 while the Gauss-Newton step still predicts a gain) -- not converged.
+    up to LAMBDA_MAX lowers the chi2 while the Gauss-Newton step still predicts a gain) -- not converged.
     ``remaining``: the chi2 decrease the Gauss-Newton step predicted at the last iterate."""
 
     converged: bool
@@ -639,7 +639,7 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
     normal equations by blocks, :class:`Arrow`, unit-norm columns). Returns the runs, chi2, why it stopped
     (:class:`Stop`), the scaled inverse normal matrix's shared block (covariance of the shared values) and the
     rank (without ``covariance``: zeros and 0, the SVD skipped)."""
-    robot = runs[0].rows.robot
+    robot = runs[0].problem.model.robot
     q, _, lo, hi = _layout(shared, robot)
     damping = Damping()
     batch = one_robot(runs, shared)
@@ -660,8 +660,8 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
         if it >= max_iter:
             stop = Stop(False, "cap", it, remaining)
             break
-        improved = False
-        for trial_no in range(LAMBDA_TRIES):  # noqa: B007 (read after the loop)
+        improved, trial_no = False, 0
+        while damping.lam <= LAMBDA_MAX:  # Marquardt: x10 after each refused trial
             ds = geodesic_step(runs, blocks, arrow, damping.lam + RIDGE, q, fixed_shared, batch)
             trial = _apply(runs, ds / arrow.scale, q, arrow.cols, fixed_shared)
             _clip(trial, q, lo, hi)
@@ -670,6 +670,7 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
                 improved = True
                 break
             damping.refused()
+            trial_no += 1
         if not improved:
             stop = Stop(False, "stalled", it, remaining)
             break
