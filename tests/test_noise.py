@@ -112,6 +112,39 @@ def test_variance_factors_measure_the_rows_scatter_and_only_shrink_the_sigmas():
             assert shrunk is None
 
 
+def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
+    """Issue 29: 27 simulated equilibria whose cable-1 swivel readings carry twice the noise of the others
+    (variance 4x), weighed with one sigma for all four: the per-cable Helmert factors find cable 1's near 4x
+    the others' (their redundancies sum to the group's), and rescaled_sigma splits the group's sigma among
+    the cables by sqrt(f_i / f), at the group's level; one cable with too few degrees of freedom
+    (VCE_MIN_REDUNDANCY) leaves the group pooled."""
+    from calib.selfcal.lm import levenberg_marquardt
+    from calib.selfcal.model import MeasurementModel
+    from calib.selfcal.noise import PER_CABLE, VCE_MIN_REDUNDANCY, rescaled_sigma, variance_factors
+    from calib.selfcal.problem import Problem
+    from sim_backend.config import sim_config_from_dict
+    from sim_backend.equilibrium_rows import simulated_rows
+
+    rows = simulated_rows(ROBOT, sim_config_from_dict({}), seed=4, grid=3, device_biases=False)
+    sw = float(np.asarray(rows.sigma["swivel"], float)[0])
+    rows.meas.dsigma[:, 0] += np.random.default_rng(7).normal(0.0, math.sqrt(3.0) * sw, rows.meas.k)
+    sigma = {c: np.asarray(v, float) for c, v in rows.sigma.items()}
+    problem = Problem(MeasurementModel(ROBOT), rows.meas, sigma)
+    res = levenberg_marquardt(problem, rows.zeta0.copy(), rows.poses.copy())
+    fac = variance_factors(problem, res.theta, res.poses, PER_CABLE)
+    per = np.array([fac[f"swivel.{i}"] for i in range(4)])
+    assert sum(per[:, 1]) == pytest.approx(fac["swivel"][1], rel=1e-9)
+    assert np.all(per[:, 1] > VCE_MIN_REDUNDANCY)
+    assert 2.0 < per[0, 0] / np.mean(per[1:, 0]) < 8.0, per
+    out = rescaled_sigma(sigma, fac)
+    split = np.sqrt(per[:, 0] / fac["swivel"][0]) * (math.sqrt(fac["swivel"][0]) if fac["swivel"][0] < 0.98 else 1)
+    np.testing.assert_allclose(out["swivel"], sw * split, rtol=1e-9)
+    assert out["swivel"][0] > 1.4 * np.max(out["swivel"][1:])
+    thin = dict(fac, **{"swivel.3": (per[3, 0], 0.5 * VCE_MIN_REDUNDANCY)})
+    pooled = rescaled_sigma(sigma, thin)
+    assert pooled is None or np.ptp(pooled["swivel"]) == 0.0
+
+
 def test_a_group_dominated_by_model_error_weighs_what_its_rows_scatter_by():
     """Issue 28: a group whose rows scatter around the fit by far more than its window-mean sigma (Helmert
     factor above MISFIT_FACTOR) is model error: its sigma becomes its rows' scatter; a group the fit cannot
@@ -124,7 +157,7 @@ def test_a_group_dominated_by_model_error_weighs_what_its_rows_scatter_by():
              "orientation": np.array([5e-5, 5e-5, 4e-5])}
     floor = sensor_noise(ROBOT)
     fac = {"tension": (900.0, 22.0), "length": (4.0, 9.0), "swivel": (0.25, 20.0), "tilt": (3000.0, 0.3),
-           "yaw": (4000.0, 2.5)}
+           "yaw": (4000.0, 1.5)}
     out = rescaled_sigma(sigma, fac, floor)
     assert out["tension"][0] == pytest.approx(0.2 * 30.0)
     assert out["length"][0] == pytest.approx(1e-4)  # 4 < MISFIT_FACTOR: stays, the misfit shows in chi2
@@ -147,7 +180,7 @@ def test_the_reference_window_follows_its_channels_down_never_up():
 
     within = {"tension": np.full(4, 0.2), "length": np.full(4, 1e-6), "swivel": np.full(4, 4e-6),
               "orientation": np.array([5e-5, 5e-5, 4e-5])}
-    fac = {"tension": (900.0, 22.0), "length": (0.01, 2.0), "swivel": (0.25, 20.0), "tilt": (1.0, 9.0),
+    fac = {"tension": (900.0, 22.0), "length": (0.01, 1.5), "swivel": (0.25, 20.0), "tilt": (1.0, 9.0),
            "yaw": (0.64, 6.0)}
     rows = rescaled_sigma(within, fac, sensor_noise(ROBOT))
     ref = reference_sigma(rows, within)
