@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.chi2 import chi2_sf
 from calib.robot import Robot
 
 QUANTISED = 0.5  # fewer non-zero second differences than this share: a quantised reading, not noise
@@ -272,7 +273,12 @@ VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")
 # a Helmert factor of r degrees of freedom sets, 1/factor, has a finite expectation (r / (r - 2) times the
 # true weight) only for r > 2; with fewer the group keeps its within-window sigma
 VCE_MIN_REDUNDANCY = 2.0
+# model error is a stronger verdict than noise: a group is found dominated by it (scaled up to its rows' scatter,
+# the unjudged groups floored at the sensors' specifications) only on at least this many degrees of freedom
+# (issue 28: with fewer, a real run's small AHRS and length groups were scaled by one noisy factor each)
+MISFIT_MIN_REDUNDANCY = 5.0
 PER_CABLE = ("swivel",)  # groups whose cables get components of their own where each cable's rows carry them
+NOISE_LEVEL = 0.01  # a group's rows scatter as noise while its factor x redundancy is inside this two-sided chi2 band
 VCE_SETTLED = 0.98  # a factor above this is 1: nothing left to shrink
 # a factor above this: the group's rows scatter around the fit by more than ~3 times the noise of a window mean
 # (far beyond what a mis-estimated noise does: the within-window estimate is within ~1.6x of the scatter of
@@ -359,9 +365,9 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
             out[c] = out[c] * s
 
     groups = {c: v for c, v in factors.items() if "." not in c}
-    misfit = any(red >= VCE_MIN_REDUNDANCY and f > MISFIT_FACTOR for f, red in groups.values())
+    misfit = any(red >= MISFIT_MIN_REDUNDANCY and f > MISFIT_FACTOR for f, red in groups.values())
     for c, (f, red) in groups.items():
-        if red < VCE_MIN_REDUNDANCY:
+        if red < VCE_MIN_REDUNDANCY or (f > MISFIT_FACTOR and red < MISFIT_MIN_REDUNDANCY):
             if misfit and floor is not None:
                 ch, sl = ("orientation", slice(0, 2)) if c == "tilt" else ("orientation", slice(2, 3)) \
                     if c == "yaw" else (c, slice(None))
@@ -376,8 +382,10 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
         if f > MISFIT_FACTOR:
             continue  # model error: the group's rows together, as they scatter
         cable = [factors.get(f"{c}.{i}") for i in range(out[c].size)] if c not in ("tilt", "yaw") else [None]
-        if all(v is not None and v[1] >= VCE_MIN_REDUNDANCY for v in cable):
-            # the cables' own components split the group's level among them (f_i / f each)
+        p = chi2_sf(f * red, red)
+        if 2.0 * min(p, 1.0 - p) >= NOISE_LEVEL and all(v is not None and v[1] >= VCE_MIN_REDUNDANCY for v in cable):
+            # the cables' own components split the group's level among them (f_i / f each), where the group
+            # scatters as its noise does: beyond that it holds model error, which the split would only share out
             split = np.sqrt(np.maximum([v[0] for v in cable], 1e-6) / max(f, 1e-6))
             if np.max(np.abs(split - 1.0)) > 1.0 - VCE_SETTLED:
                 out[c] = out[c] * split
