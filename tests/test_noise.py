@@ -117,7 +117,7 @@ def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
     (variance 4x), weighed with one sigma for all four: the per-cable Helmert factors find cable 1's near 4x
     the others' (their redundancies sum to the group's), and rescaled_sigma splits the group's sigma among
     the cables by sqrt(f_i / f), at the group's level; one cable with too few degrees of freedom
-    (VCE_MIN_REDUNDANCY) leaves the group pooled."""
+    (VCE_MIN_REDUNDANCY), or a group scattering beyond its noise's chi2 band, leaves the group pooled."""
     from calib.selfcal.lm import levenberg_marquardt
     from calib.selfcal.model import MeasurementModel
     from calib.selfcal.noise import PER_CABLE, VCE_MIN_REDUNDANCY, rescaled_sigma, variance_factors
@@ -143,12 +143,17 @@ def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
     thin = dict(fac, **{"swivel.3": (per[3, 0], 0.5 * VCE_MIN_REDUNDANCY)})
     pooled = rescaled_sigma(sigma, thin)
     assert pooled is None or np.ptp(pooled["swivel"]) == 0.0
+    # rows scattering 5x their variance on these degrees of freedom: model error, which a split would share out
+    beyond = dict(fac, swivel=(5.0, fac["swivel"][1]))
+    pooled = rescaled_sigma(sigma, beyond)
+    assert pooled is None or np.ptp(pooled["swivel"]) == 0.0
 
 
 def test_a_group_dominated_by_model_error_weighs_what_its_rows_scatter_by():
     """Issue 28: a group whose rows scatter around the fit by far more than its window-mean sigma (Helmert
     factor above MISFIT_FACTOR) is model error: its sigma becomes its rows' scatter; a group the fit cannot
-    judge (fewer than VCE_MIN_REDUNDANCY degrees of freedom) is then floored at the sensors' specifications;
+    judge (fewer than VCE_MIN_REDUNDANCY degrees of freedom, or a misfit on fewer than MISFIT_MIN_REDUNDANCY:
+    yaw, 2.5) is then floored at the sensors' specifications;
     factors between 1 and MISFIT_FACTOR change nothing, and without a dominated group nothing is floored."""
     from calib.selfcal import sensor_noise
     from calib.selfcal.noise import MISFIT_FACTOR, rescaled_sigma
@@ -157,7 +162,7 @@ def test_a_group_dominated_by_model_error_weighs_what_its_rows_scatter_by():
              "orientation": np.array([5e-5, 5e-5, 4e-5])}
     floor = sensor_noise(ROBOT)
     fac = {"tension": (900.0, 22.0), "length": (4.0, 9.0), "swivel": (0.25, 20.0), "tilt": (3000.0, 0.3),
-           "yaw": (4000.0, 1.5)}
+           "yaw": (4000.0, 2.5)}
     out = rescaled_sigma(sigma, fac, floor)
     assert out["tension"][0] == pytest.approx(0.2 * 30.0)
     assert out["length"][0] == pytest.approx(1e-4)  # 4 < MISFIT_FACTOR: stays, the misfit shows in chi2
@@ -167,6 +172,9 @@ def test_a_group_dominated_by_model_error_weighs_what_its_rows_scatter_by():
     out = rescaled_sigma(sigma, calm, floor)
     np.testing.assert_allclose(out["orientation"], sigma["orientation"])
     assert out["tension"][0] == pytest.approx(0.2)
+    # noise, not misfit, on 3 degrees of freedom (more than 2): the group comes down to its rows' scatter
+    out = rescaled_sigma(sigma, dict(calm, length=(0.25, 3.0)), floor)
+    assert out["length"][0] == pytest.approx(0.5e-4)
 
 
 def test_the_reference_window_follows_its_channels_down_never_up():
