@@ -221,3 +221,19 @@ def test_estimate_noise_stays_near_the_paper_solve_on_the_misfitting_real_run(ir
     d_est = np.linalg.norm(est.initial_pose[:3] - zeta_0_real)
     assert d_est <= d_paper + 0.002, (d_est, d_paper)
     assert np.linalg.norm(est.initial_pose[:3] - paper.initial_pose[:3]) < 0.02
+
+
+def test_the_reference_prior_follows_each_cables_sigma():
+    """Issue 29: rows weighed with one swivel sigma per cable give the reference window one prior per cable
+    (scaled to its size, variances as 1 / size), kept as a list, and the same priors come back from it
+    (calib.runrows rebuilds them from `cdpr solve --json`'s reference_noise); equal sigmas stay one number."""
+    from calib.effects.priors import ReferenceNoise
+
+    sigma = {"tension": np.full(4, 0.1), "length": np.full(4, 4e-7), "swivel": np.array([1e-6, 2e-6, 2e-6, 4e-6]),
+             "orientation": np.array([1e-4, 1e-4, 2e-4])}
+    prior = ReferenceNoise.for_rows(sigma, np.array([[0, 39], [50, 89]]), 10)  # 40-sample rows, a 10-sample ref
+    np.testing.assert_allclose(prior.sd["swivel"], [2e-6, 4e-6, 4e-6, 8e-6])
+    assert prior.sd["length"] == pytest.approx(8e-7)
+    again = ReferenceNoise(**prior.sd)
+    sd = [s.prior for s in again.params(ROBOT)]
+    np.testing.assert_allclose(sd, [8e-7] * 4 + [2e-6, 4e-6, 4e-6, 8e-6] + [4e-4])
