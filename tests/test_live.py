@@ -468,3 +468,42 @@ def test_a_stalled_publisher_process_costs_the_loop_nothing_but_dropped_ticks(tm
     assert 0 < view.published and view.scenes <= tap.handed and not view.errors
     assert f"{tap.dropped} of {tap.dropped + tap.handed} ticks dropped" in said.getvalue()
     assert proc.exitcode == 0  # it ended on the end record, not killed
+
+
+def _readings(serial_lines: str, ticks: int = 240) -> tuple[str, np.ndarray]:
+    """The drivers' port name and (ticks, n + 3) load cells, roll, pitch, yaw the loop reads in lockstep from a
+    simulated prototype whose serial lines are ``serial_lines`` (its winches held at a torque ramp)."""
+    from acquisition.clock import SimClock
+    from acquisition.connect import connect
+    from sim_backend.backend import SimBackend
+
+    robot = load_robot("irma4u")
+    clock = SimClock(0.005)
+    rows = []
+    with SimBackend(robot, None, 3, 0.005, serial_lines=serial_lines) as sim:
+        rig = connect(sim.devices, robot, clock, lockstep=True, period=0.005)
+        try:
+            for _ in range(ticks):
+                tk = clock.advance()
+                snap = rig.tick(tk.index, tk.t, 2.0)
+                rows.append([*snap.tau, snap.roll, snap.pitch, snap.yaw])
+                rig.command(np.full(robot.n, 0.2 + 1e-3 * tk.index))
+        finally:
+            rig.close()
+        port = sim.devices.loadcells.port
+    return port, np.array(rows)
+
+
+def test_the_simulated_serial_lines_are_socket_pairs_that_carry_the_ptys_bytes():
+    """The simulated prototype's load-cell and AHRS lines are Unix socket pairs (their write wakes the reader:
+    no kernel worker thread between the plant's process and the loop, docs/live.md) that the drivers open as
+    pyserial ``cdprsim://`` ports; the loop reads from them what it reads from ptys, reading for reading."""
+    from sim_backend.pty import socket_line_fd
+
+    port, by_socket = _readings("socket")
+    pty_port, by_pty = _readings("pty")
+    assert port.startswith("cdprsim://loadcells-") and pty_port.startswith("/dev/pts/")
+    assert by_socket.shape == (240, 7) and np.isfinite(by_socket).all() and np.ptp(by_socket[:, 0]) > 0
+    np.testing.assert_array_equal(by_socket, by_pty)
+    with pytest.raises(KeyError):
+        socket_line_fd(port)  # the backend closed its end of the line
