@@ -507,3 +507,43 @@ def test_the_simulated_serial_lines_are_socket_pairs_that_carry_the_ptys_bytes()
     np.testing.assert_array_equal(by_socket, by_pty)
     with pytest.raises(KeyError):
         socket_line_fd(port)  # the backend closed its end of the line
+
+
+def test_the_hybrid_wait_sleeps_to_its_margin_then_polls_and_the_loop_runs_with_no_timer_slack():
+    """RealClock(spin=...): the sleep ends ``spin`` s before the deadline and the clock is polled to it; without
+    spin the sleep is the whole wait (acquisition/clock.py). Inside loop_runtime the thread's timer slack is
+    1 ns (Linux's default for a normal thread: 50 us), restored after."""
+    import ctypes
+
+    from acquisition.clock import RealClock, loop_runtime
+
+    now, slept, polls = [10.0], [], []
+
+    def sleep(d):
+        slept.append(d)
+        now[0] += d
+
+    def monotonic():
+        polls.append(now[0])
+        now[0] += 1e-4  # each look at the clock costs 0.1 ms of the fake wall time
+        return now[0]
+
+    rc = RealClock(0.005, monotonic=monotonic, sleep=sleep, spin=0.001)
+    rc.advance()
+    now[0] += 0.001  # the loop computes for 1 ms
+    first = len(polls)
+    rc.advance()
+    # time zero 10.0001 (the first look); the second tick's deadline 10.0051 is asked for at 10.0013
+    assert slept == [pytest.approx(10.0051 - 10.0013 - 0.001)]
+    # one look, then about ten polls (0.1 ms each, rounding) from the sleep's end to the deadline and no further
+    assert 11 <= len(polls) - first <= 12 and 10.0051 - 1e-9 <= now[0] <= 10.0052 + 1e-9
+    assert rc.overruns.count == 0
+    with pytest.raises(ValueError, match="spin"):
+        RealClock(0.005, spin=0.005)
+    if not sys.platform.startswith("linux"):
+        return
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+    before = prctl(30, 0, 0, 0, 0)  # PR_GET_TIMERSLACK
+    with loop_runtime():
+        inside = prctl(30, 0, 0, 0, 0)
+    assert (inside, prctl(30, 0, 0, 0, 0)) == (1, before) and before > 1
