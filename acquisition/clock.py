@@ -163,17 +163,31 @@ LOOP_GC_OLDEST = 2**31 - 1
 
 
 def set_realtime(priority: int, pid: int = 0) -> str | None:
-    """Ask the OS to run thread ``pid`` (0: the calling thread) under ``SCHED_FIFO`` at ``priority`` (1-99), with
-    ``SCHED_RESET_ON_FORK`` (no process forked from it inherits it); None when granted, else the one sentence
-    saying why not (Linux only; needs root, CAP_SYS_NICE or an rtprio limit, ``ulimit -r``)."""
+    """Ask the OS to run under ``SCHED_FIFO`` at ``priority`` (1-99), with ``SCHED_RESET_ON_FORK`` (no process
+    forked from it inherits it): the calling thread (``pid`` 0), or every thread of process ``pid`` (a thread one
+    of them starts later inherits it); None when granted, else the one sentence saying why not (Linux only;
+    needs root, CAP_SYS_NICE or an rtprio limit, ``ulimit -r``). Every thread of a Python process that shares
+    the interpreter lock with a real-time thread should be real-time too: a thread of normal priority that holds
+    the lock when a process of normal priority preempts it keeps the real-time one waiting (bench_live.py)."""
     if not hasattr(os, "SCHED_FIFO"):
         return f"real-time priority {priority} is not available on {sys.platform}; the loop runs at normal priority."
     try:
-        os.sched_setscheduler(pid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(int(priority)))
+        for tid in [0] if pid == 0 else _threads(pid):
+            os.sched_setscheduler(tid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(int(priority)))
     except OSError as exc:  # EPERM without the right, EINVAL out of range
         return (f"real-time priority {priority} (SCHED_FIFO) was refused ({exc.strerror}); the loop runs at normal "
                 f"priority (grant it with an rtprio limit, e.g. ulimit -r {priority}).")
     return None
+
+
+def _threads(pid: int) -> list[int]:
+    """The thread IDs of process ``pid`` (Linux's /proc; the process itself elsewhere), read twice so that a
+    thread started meanwhile is in."""
+    try:
+        first = os.listdir(f"/proc/{pid}/task")
+        return sorted({int(t) for t in first + os.listdir(f"/proc/{pid}/task")})
+    except OSError:
+        return [pid]
 
 
 def _prctl() -> Callable[..., int] | None:

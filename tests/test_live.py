@@ -547,3 +547,25 @@ def test_the_hybrid_wait_sleeps_to_its_margin_then_polls_and_the_loop_runs_with_
     with loop_runtime():
         inside = prctl(30, 0, 0, 0, 0)
     assert (inside, prctl(30, 0, 0, 0, 0)) == (1, before) and before > 1
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="SCHED_FIFO is Linux's")
+def test_real_time_priority_given_to_a_process_reaches_every_thread_of_it():
+    """set_realtime(priority, pid) puts every thread of process pid under SCHED_FIFO (the simulated plant's
+    process: its main thread and its serial devices' threads share its interpreter lock), not only its first."""
+    from acquisition.clock import set_realtime
+
+    code = ("import threading, time; threading.Thread(target=time.sleep, args=(30,), daemon=True).start(); "
+            "print('ready', flush=True); time.sleep(30)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        tids = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task")]
+        assert len(tids) == 2
+        if set_realtime(7, proc.pid) is not None:
+            pytest.skip("this process may not use SCHED_FIFO (no rtprio limit)")
+        assert [os.sched_getscheduler(t) & ~os.SCHED_RESET_ON_FORK for t in tids] == [os.SCHED_FIFO] * 2
+        assert [os.sched_getparam(t).sched_priority for t in tids] == [7, 7]
+    finally:
+        proc.kill()
+        proc.wait()
