@@ -93,15 +93,16 @@ def _schedstat(fd: int | None) -> tuple[float, float]:
     return int(cpu) * 1e-9, int(wait) * 1e-9
 
 
-def _steal(fd: int | None) -> float:
-    """s of CPU time the virtual machine's host has taken from its CPUs so far (/proc/stat's steal, all CPUs;
-    counted in clock ticks of 10 ms), 0 without."""
+def _stolen(fd: int | None) -> tuple[float, float]:
+    """s of CPU time so far, all CPUs (/proc/stat, in clock ticks of 10 ms): what the virtual machine's host took
+    from its CPUs (steal), and what interrupts and their deferred work took (irq + softirq); zeros without."""
     if fd is None:
-        return 0.0
+        return 0.0, 0.0
     try:
-        return int(os.pread(fd, 256, 0).split(b"\n", 1)[0].split()[8]) / _CLK_TCK
+        f = os.pread(fd, 256, 0).split(b"\n", 1)[0].split()
+        return int(f[8]) / _CLK_TCK, (int(f[6]) + int(f[7])) / _CLK_TCK
     except (OSError, ValueError, IndexError):
-        return 0.0
+        return 0.0, 0.0
 
 
 _CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
@@ -117,7 +118,8 @@ def _open_schedstat(path: str) -> int | None:
 # per-tick columns of the probe (times in s): the lateness of the tick's wake-up, then what happened between
 # the previous tick's hand-out and this tick's request ("work") and during the wait for its deadline ("sleep")
 COLUMNS = ("late", "overflow", "work_wall", "work_cpu", "work_rq", "sleep_rq", "gc", "gc_gen", "modules",
-           "minflt", "majflt", "nvcsw", "nivcsw", "others_cpu", "plant_cpu", "plant_rq", "plant_wait", "steal", "where")
+           "minflt", "majflt", "nvcsw", "nivcsw", "others_cpu", "plant_cpu", "plant_rq", "plant_wait", "steal", "irq",
+           "where")
 C = {name: i for i, name in enumerate(COLUMNS)}
 
 
@@ -169,7 +171,7 @@ class TickProbe:
         cpu_child, rq_child = _schedstat(self._child)
         return (time.perf_counter(), time.thread_time(), time.process_time(), _schedstat(self._fd)[1],
                 self._gc_time, len(sys.modules), ru.ru_minflt, ru.ru_majflt, ru.ru_nvcsw, ru.ru_nivcsw, cpu_child,
-                rq_child, 0.0 if self.sim is None else self.sim.plant_waited(), _steal(self._stat))
+                rq_child, 0.0 if self.sim is None else self.sim.plant_waited(), *_stolen(self._stat))
 
     def tick(self, before: tuple, after: tuple, deadline: float, where: tuple[str, int]) -> None:
         """One tick: ``before`` read when the loop asked for it, ``after`` when it was handed out (perf_counter
@@ -193,7 +195,8 @@ class TickProbe:
         r[C["gc_gen"]] = self._gc_gen
         self._gc_gen = -1
         for name, i in (("modules", 5), ("minflt", 6), ("majflt", 7), ("nvcsw", 8), ("nivcsw", 9),
-                        ("plant_cpu", 10), ("plant_rq", 11), ("plant_wait", 12), ("steal", 13)):
+                        ("plant_cpu", 10), ("plant_rq", 11), ("plant_wait", 12), ("steal", 13),
+                        ("irq", 14)):
             r[C[name]] = after[i] - m[i]
         r[C["where"]] = self.places.setdefault(where, len(self.places))
 
@@ -258,6 +261,7 @@ def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: in
             "waited for the plant process": tot["plant_wait"],
             "other threads of the process (GIL)": tot["others_cpu"],
             "the VM's host: CPU stolen": tot["steal"],
+            "interrupts (irq + softirq, all CPUs)": tot["irq"],
             "blocked: serial lines or a lock": tot["work_wall"] - tot["work_cpu"] - tot["work_rq"]
             - tot["plant_wait"] - max(tot["others_cpu"], 0.0),
         }
@@ -278,7 +282,8 @@ def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: in
                     "phase": phase, "setpoint": sp, "wall_ms": 1e3 * tot["work_wall"],
                     "cpu_ms": 1e3 * tot["work_cpu"], "gc_ms": 1e3 * tot["gc"],
                     "rq_ms": 1e3 * (tot["work_rq"] + tot["sleep_rq"]), "plant_wait_ms": 1e3 * tot["plant_wait"],
-                    "others_ms": 1e3 * tot["others_cpu"], "steal_ms": 1e3 * tot["steal"], "minflt": int(tot["minflt"]),
+                    "others_ms": 1e3 * tot["others_cpu"], "steal_ms": 1e3 * tot["steal"],
+                    "irq_ms": 1e3 * tot["irq"], "minflt": int(tot["minflt"]),
                     "nivcsw": int(tot["nivcsw"]), "cause": cause, "detail": detail})
     return out
 
@@ -373,14 +378,15 @@ def report(name: str, r: dict) -> None:
     paced = r["late"] is not None
     print(f"      {'the worst late episodes (peak tick)' if paced else 'the ticks of most work'}: ms summed over the "
           f"episode's ticks; rq: runnable but not running; plant: waited for the plant process; others: CPU of the "
-          f"process's other threads; steal: CPU time the VM's host took from the machine's CPUs (10 ms steps)")
+          f"process's other threads; steal: CPU time the VM's host took from the machine's CPUs, irq: interrupts' "
+          f"(both in 10 ms steps)")
     print(f"      {'tick':>6} {'late':>8} {'n':>3} {'wall':>7} {'cpu':>6} {'gc':>6} {'rq':>7} {'plant':>6} "
-          f"{'others':>6} {'steal':>6} {'minflt':>6} {'preempt':>7}  phase (setpoint): cause")
+          f"{'others':>6} {'steal':>6} {'irq':>5} {'minflt':>6} {'preempt':>7}  phase (setpoint): cause")
     for w in r["worst"][:r.get("show", 20)]:
         late = f"{w['late_ms']:8.2f}" if paced else f"{'-':>8}"
         print(f"      {w['tick']:6d} {late} {w['late_ticks']:3d} {w['wall_ms']:7.2f} {w['cpu_ms']:6.2f} "
               f"{w['gc_ms']:6.2f} {w['rq_ms']:7.2f} {w['plant_wait_ms']:6.2f} {w['others_ms']:6.2f} "
-              f"{w.get('steal_ms', 0.0):6.1f} "
+              f"{w.get('steal_ms', 0.0):6.1f} {w.get('irq_ms', 0.0):5.0f} "
               f"{w['minflt']:6d} {w['nivcsw']:7d}  {w['phase']} ({w['setpoint']}): {w['detail']}")
     tally: dict[str, int] = {}
     for w in r["worst"]:
