@@ -9,6 +9,7 @@ device set sends SYNC at each tick.
 from __future__ import annotations
 
 import abc
+import ctypes
 import gc
 import importlib
 import logging
@@ -23,6 +24,11 @@ LOOP_SWITCH_INTERVAL = 0.0005  # s, sys.setswitchinterval while a control loop r
 # modules a library imports on first use that the loop would otherwise import inside a tick: numpy.ma, which
 # numpy imports at the first np.median (its NaN check), 10-25 ms in the tick that ends the pretension's rest
 LOOP_IMPORTS = ("numpy.ma",)
+# ns, the loop thread's timer slack while it runs (Linux's default for a thread of normal priority: 50 000 ns, by
+# which the kernel may defer a sleep's end to merge wake-ups; a SCHED_FIFO thread has none): the sleep to each
+# tick ends when asked (p50 lateness 0.05 ms instead of 0.1 ms at normal priority, docs/live.md)
+LOOP_TIMER_SLACK = 1
+_PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30  # prctl(2) options (linux/prctl.h)
 
 
 @dataclass(frozen=True)
@@ -95,7 +101,11 @@ class RealClock(Clock):
     """Wall time: ``advance`` sleeps until start + (index + 1) period; late ticks are counted, not skipped.
 
     ``lockstep=True`` paces a simulated prototype in real time while still waiting for each tick's readings
-    (``cdpr startup --backend sim --realtime``).
+    (``cdpr startup --backend sim --realtime``). ``spin`` (s, default 0: off) is the hybrid wait of real-time
+    loops in user space: sleep until ``spin`` before the deadline, then poll the clock until it passes, which
+    trades the OS's wake-up error (measured here under SCHED_FIFO: p99 0.09 ms, worst 0.2-1.8 ms) for the CPU of
+    the poll (1 ms at 200 Hz: a fifth of a core). An overrun is half a period late, so the loop does not need it
+    (docs/live.md: measured with and without); at normal priority the poll is preempted and makes it worse.
     """
 
     def __init__(
@@ -104,11 +114,15 @@ class RealClock(Clock):
         lockstep: bool = False,
         monotonic: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
+        spin: float = 0.0,
     ):
         super().__init__(period)
+        if not 0.0 <= spin < period:
+            raise ValueError(f"clock spin must be within [0, period = {period!r}) s, got {spin!r} s.")
         self._lockstep = lockstep
         self._monotonic = monotonic
         self._sleep = sleep
+        self.spin = float(spin)
         self._t0: float | None = None
         self.overruns = Overruns()
 
@@ -126,7 +140,11 @@ class RealClock(Clock):
         deadline = self._t0 + (self._index + 1) * self.period
         now = self._monotonic()
         if now < deadline:
-            self._sleep(deadline - now)
+            if deadline - now > self.spin:
+                self._sleep(deadline - now - self.spin)
+            if self.spin > 0.0:
+                while self._monotonic() < deadline:
+                    pass
         elif self._index >= 0 and now - deadline > 0.5 * self.period:  # not the first tick
             lateness = now - deadline
             self.overruns.count += 1
@@ -145,17 +163,53 @@ LOOP_GC_OLDEST = 2**31 - 1
 
 
 def set_realtime(priority: int, pid: int = 0) -> str | None:
-    """Ask the OS to run thread ``pid`` (0: the calling thread) under ``SCHED_FIFO`` at ``priority`` (1-99), with
-    ``SCHED_RESET_ON_FORK`` (no process forked from it inherits it); None when granted, else the one sentence
-    saying why not (Linux only; needs root, CAP_SYS_NICE or an rtprio limit, ``ulimit -r``)."""
+    """Ask the OS to run under ``SCHED_FIFO`` at ``priority`` (1-99), with ``SCHED_RESET_ON_FORK`` (no process
+    forked from it inherits it): the calling thread (``pid`` 0), or every thread of process ``pid`` (a thread one
+    of them starts later inherits it); None when granted, else the one sentence saying why not (Linux only;
+    needs root, CAP_SYS_NICE or an rtprio limit, ``ulimit -r``). Every thread of a Python process that shares
+    the interpreter lock with a real-time thread should be real-time too: a thread of normal priority that holds
+    the lock when a process of normal priority preempts it keeps the real-time one waiting (bench_live.py)."""
     if not hasattr(os, "SCHED_FIFO"):
         return f"real-time priority {priority} is not available on {sys.platform}; the loop runs at normal priority."
     try:
-        os.sched_setscheduler(pid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(int(priority)))
+        for tid in [0] if pid == 0 else _threads(pid):
+            os.sched_setscheduler(tid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(int(priority)))
     except OSError as exc:  # EPERM without the right, EINVAL out of range
         return (f"real-time priority {priority} (SCHED_FIFO) was refused ({exc.strerror}); the loop runs at normal "
                 f"priority (grant it with an rtprio limit, e.g. ulimit -r {priority}).")
     return None
+
+
+def _threads(pid: int) -> list[int]:
+    """The thread IDs of process ``pid`` (Linux's /proc; the process itself elsewhere), read twice so that a
+    thread started meanwhile is in."""
+    try:
+        first = os.listdir(f"/proc/{pid}/task")
+        return sorted({int(t) for t in first + os.listdir(f"/proc/{pid}/task")})
+    except OSError:
+        return [pid]
+
+
+def _prctl() -> Callable[..., int] | None:
+    """libc's prctl (Linux), None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+def set_timer_slack(ns: int) -> int | None:
+    """Set the calling thread's timer slack to ``ns`` (Linux's ``PR_SET_TIMERSLACK``; 0 restores the thread's
+    default); returns the slack it had (ns), or None where there is none to set."""
+    prctl = _prctl()
+    if prctl is None:
+        return None
+    old = prctl(_PR_GET_TIMERSLACK, 0, 0, 0, 0)
+    if old < 0 or prctl(_PR_SET_TIMERSLACK, int(ns), 0, 0, 0) != 0:
+        return None
+    return int(old)
 
 
 @contextmanager
@@ -180,7 +234,8 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
 
     ``rt_priority`` (opt-in, for a loop paced by a real clock): the calling thread runs under ``SCHED_FIFO`` at
     that priority (:func:`set_realtime`), so that no process of normal priority keeps it waiting for a CPU;
-    where the OS refuses, a warning says so in one sentence and the loop runs as without it."""
+    where the OS refuses, a warning says so in one sentence and the loop runs as without it. The calling thread's
+    timer slack is :data:`LOOP_TIMER_SLACK` meanwhile (:func:`set_timer_slack`)."""
     for name in LOOP_IMPORTS:
         importlib.import_module(name)
     outer = gc.get_freeze_count() == 0
@@ -197,9 +252,12 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
     if refused is not None:
         logging.getLogger(__name__).warning(refused)
     realtime = rt_priority is not None and refused is None
+    slack = set_timer_slack(LOOP_TIMER_SLACK)
     try:
         yield realtime
     finally:
+        if slack is not None:
+            set_timer_slack(slack)
         sys.setswitchinterval(switch)
         if realtime:
             os.sched_setscheduler(0, policy, param)

@@ -349,7 +349,8 @@ def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
     def trial(t):
         return {"effects": list(t.names), "n_params": t.n_params, "fit_score": t.fit_score, "score": t.score,
                 "plausible": t.plausible, "implausible": [str(v) for v in t.implausible],
-                "folds": t.folds, "values": t.fit.shared_params(), "sigma": t.fit.shared_sigmas()}
+                "folds": t.folds, "values": t.fit.shared_params(), "sigma": t.fit.shared_sigmas(),
+                "convergence": t.fit.convergence()}
 
     runs = []
     for rf0, rf in zip(sel.base.fit.runs, sel.final.fit.runs, strict=True):
@@ -392,6 +393,12 @@ def format_selection(sel, paths: Sequence[str], model_out: Path | None = None) -
            selection_verdict(sel), ""]
     for name in sel.selected:
         out.append(f"  {name}: {_fmt_values(sel.final.fit, name)}")
+    out.append(f"  the joint fit of {_names(sel.final)}: {sel.final.fit.convergence_words()}")
+    loose = [t for st in sel.steps for t in st["options"] if not t.fit.converged]
+    if loose:
+        out.append("  WARNING: options judged on joint fits that did not converge (their scores are where the "
+                   "fit stopped): " + "; ".join(f"{_names(t)} ({t.fit.stop.reason}, "
+                                                 f"{t.fit.stop.remaining:.2g} chi2 left)" for t in loose))
     out += ["", "options judged (score: held-out -2 log-likelihood with each channel group's own variance, "
             "lower is better; J per left-out run: sum (rms/w)^2, w = 1 N, 0.5 mm, 0.1 deg, 0.2 deg)"]
     out.append(f"  {'effects':<52} {'params':>6} {'score':>9} {'gain':>8}  folds J / plausible")

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.clock import Clock, loop_runtime
+from acquisition.clock import Clock, loop_runtime, set_realtime
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from acquisition.estimates import EstimateWorker, LogWorker
@@ -368,8 +368,10 @@ class StartupRoutine:
     def run(self) -> StartupResult:
         """The whole procedure; raises :class:`StartupStopped` after a safe stop. The interpreter is set up for
         the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap; the
-        configuration's real-time priority on a real clock)."""
-        with loop_runtime(rt_priority=self.cfg.rt_priority if self.clock.paced else None):
+        configuration's real-time priority on a real clock, and then the log worker's thread one below it)."""
+        with loop_runtime(rt_priority=self.cfg.rt_priority if self.clock.paced else None) as realtime:
+            if realtime:  # the log worker shares the loop's interpreter lock: never preempted holding it
+                self._io.submit(set_realtime, max(1, self.cfg.rt_priority - 1)).result()
             try:
                 return self._procedure()
             finally:

@@ -1,12 +1,16 @@
 """The live view's cost to the control loop: a simulated 8-pose startup paced in real time (not collected by pytest).
 
     python benchmarks/bench_live.py [--rate 200] [--grid 2] [--hold 2] [--repeat 1] [--unpaced] [--rt-priority N]
+                                    [--spin MS] [--serial-lines socket|pty]
 
 Runs the real startup routine (StartupRoutine on the simulated prototype, RealClock in lockstep: what
 ``cdpr startup --backend sim --realtime`` runs) without the live view, then with it (``--live``:
 acquisition/live.py) and a real Foxglove WebSocket client, in a process of its own, subscribed to every
 channel; each run in a fresh interpreter, so that both pay the same first-call costs (``--repeat N``: N pairs,
-the order alternating; ``--rt-priority N``: the loop's thread and the plant's process under SCHED_FIFO).
+the order alternating; ``--rt-priority N``: the loop's thread and the plant's process under SCHED_FIFO;
+``--spin MS``: the clock's hybrid wait, sleep to MS before each deadline then poll; ``--serial-lines pty``: the
+simulated prototype's serial lines as ptys instead of socket pairs, sim_backend/pty.py). The loop thread's CPU
+over the run is printed as a share of one core (what a spin costs).
 Measured at each tick (:class:`TickProbe`): the lateness of the loop's wake-up (wall time past the tick's
 deadline; an overrun is a tick more than half a period late, acquisition/clock.py) and what the loop's thread
 did and waited for since the tick before (wall and CPU time, runqueue wait, collections, imports, page
@@ -89,6 +93,21 @@ def _schedstat(fd: int | None) -> tuple[float, float]:
     return int(cpu) * 1e-9, int(wait) * 1e-9
 
 
+def _stolen(fd: int | None) -> tuple[float, float]:
+    """s of CPU time so far, all CPUs (/proc/stat, in clock ticks of 10 ms): what the virtual machine's host took
+    from its CPUs (steal), and what interrupts and their deferred work took (irq + softirq); zeros without."""
+    if fd is None:
+        return 0.0, 0.0
+    try:
+        f = os.pread(fd, 256, 0).split(b"\n", 1)[0].split()
+        return int(f[8]) / _CLK_TCK, (int(f[6]) + int(f[7])) / _CLK_TCK
+    except (OSError, ValueError, IndexError):
+        return 0.0, 0.0
+
+
+_CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
 def _open_schedstat(path: str) -> int | None:
     try:
         return os.open(path, os.O_RDONLY)
@@ -99,7 +118,8 @@ def _open_schedstat(path: str) -> int | None:
 # per-tick columns of the probe (times in s): the lateness of the tick's wake-up, then what happened between
 # the previous tick's hand-out and this tick's request ("work") and during the wait for its deadline ("sleep")
 COLUMNS = ("late", "overflow", "work_wall", "work_cpu", "work_rq", "sleep_rq", "gc", "gc_gen", "modules",
-           "minflt", "majflt", "nvcsw", "nivcsw", "others_cpu", "plant_cpu", "plant_rq", "plant_wait", "where")
+           "minflt", "majflt", "nvcsw", "nivcsw", "others_cpu", "plant_cpu", "plant_rq", "plant_wait", "steal", "irq",
+           "where")
 C = {name: i for i, name in enumerate(COLUMNS)}
 
 
@@ -117,6 +137,7 @@ class TickProbe:
         self.places: dict[tuple[str, int], int] = {}
         self.sim = None
         self._fd = _open_schedstat("/proc/thread-self/schedstat")
+        self._stat = _open_schedstat("/proc/stat")
         self._child = None
         self._gc_time, self._gc_gen, self._gc_t0 = 0.0, -1, 0.0
         self.collections = [0, 0, 0]  # by generation, during the probe
@@ -140,7 +161,7 @@ class TickProbe:
     def close(self) -> None:
         if self._on_gc in gc.callbacks:
             gc.callbacks.remove(self._on_gc)
-        for fd in (self._fd, self._child):
+        for fd in (self._fd, self._child, self._stat):
             if fd is not None:
                 os.close(fd)
 
@@ -150,7 +171,7 @@ class TickProbe:
         cpu_child, rq_child = _schedstat(self._child)
         return (time.perf_counter(), time.thread_time(), time.process_time(), _schedstat(self._fd)[1],
                 self._gc_time, len(sys.modules), ru.ru_minflt, ru.ru_majflt, ru.ru_nvcsw, ru.ru_nivcsw, cpu_child,
-                rq_child, 0.0 if self.sim is None else self.sim.plant_waited())
+                rq_child, 0.0 if self.sim is None else self.sim.plant_waited(), *_stolen(self._stat))
 
     def tick(self, before: tuple, after: tuple, deadline: float, where: tuple[str, int]) -> None:
         """One tick: ``before`` read when the loop asked for it, ``after`` when it was handed out (perf_counter
@@ -174,7 +195,8 @@ class TickProbe:
         r[C["gc_gen"]] = self._gc_gen
         self._gc_gen = -1
         for name, i in (("modules", 5), ("minflt", 6), ("majflt", 7), ("nvcsw", 8), ("nivcsw", 9),
-                        ("plant_cpu", 10), ("plant_rq", 11), ("plant_wait", 12)):
+                        ("plant_cpu", 10), ("plant_rq", 11), ("plant_wait", 12), ("steal", 13),
+                        ("irq", 14)):
             r[C[name]] = after[i] - m[i]
         r[C["where"]] = self.places.setdefault(where, len(self.places))
 
@@ -186,9 +208,9 @@ class MeasuredClock(RealClock):
     """RealClock (lockstep) that probes every tick (:class:`TickProbe`), with the routine's phase and setpoint
     at the time. ``paced=False``: nothing sleeps (the unpaced proxy)."""
 
-    def __init__(self, period: float, paced: bool = True):
+    def __init__(self, period: float, paced: bool = True, spin: float = 0.0):
         super().__init__(period, lockstep=True, monotonic=time.perf_counter,
-                         sleep=time.sleep if paced else _no_sleep)
+                         sleep=time.sleep if paced else _no_sleep, spin=spin if paced else 0.0)
         self.routine: StartupRoutine | None = None
         self.probe = TickProbe()
 
@@ -238,6 +260,8 @@ def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: in
             "OS: late wake-up from sleep": tot["sleep_rq"],
             "waited for the plant process": tot["plant_wait"],
             "other threads of the process (GIL)": tot["others_cpu"],
+            "the VM's host: CPU stolen": tot["steal"],
+            "interrupts (irq + softirq, all CPUs)": tot["irq"],
             "blocked: serial lines or a lock": tot["work_wall"] - tot["work_cpu"] - tot["work_rq"]
             - tot["plant_wait"] - max(tot["others_cpu"], 0.0),
         }
@@ -258,19 +282,22 @@ def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: in
                     "phase": phase, "setpoint": sp, "wall_ms": 1e3 * tot["work_wall"],
                     "cpu_ms": 1e3 * tot["work_cpu"], "gc_ms": 1e3 * tot["gc"],
                     "rq_ms": 1e3 * (tot["work_rq"] + tot["sleep_rq"]), "plant_wait_ms": 1e3 * tot["plant_wait"],
-                    "others_ms": 1e3 * tot["others_cpu"], "minflt": int(tot["minflt"]),
+                    "others_ms": 1e3 * tot["others_cpu"], "steal_ms": 1e3 * tot["steal"],
+                    "irq_ms": 1e3 * tot["irq"], "minflt": int(tot["minflt"]),
                     "nivcsw": int(tot["nivcsw"]), "cause": cause, "detail": detail})
     return out
 
 
-def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: Path, rt: int | None = None) -> dict:
+def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: Path, rt: int | None = None,
+            spin: float = 0.0, lines: str = "socket") -> dict:
     """One startup in this process; its figures (ms) and, with the live view, what the client received. ``rt``:
-    the loop's thread and the simulated plant's process under SCHED_FIFO at that priority."""
+    the loop's thread and the simulated plant's process under SCHED_FIFO at that priority; ``spin``: the clock's
+    hybrid wait (s); ``lines``: the simulated serial lines (``socket`` or ``pty``)."""
     robot = load_robot("irma4u")
     cfg = StartupConfig(rate=rate, hold_time=hold, rt_priority=rt)
     plan = Plan.for_robot(robot, grid, "equilibrium")
     period = 1.0 / rate
-    clock = MeasuredClock(period, paced)
+    clock = MeasuredClock(period, paced, spin)
     view, client = LiveView.off(), None
     if live:
         view = LiveView.start("127.0.0.1:0", robot, rate, SafetyLimits.for_robot(robot), stream=sys.stderr)
@@ -278,7 +305,7 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
                                   text=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
         assert client.stdout.readline().strip() == "subscribed"
     load0, t0 = os.getloadavg()[0], time.perf_counter()
-    with SimBackend(robot, None, 0, period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
+    with SimBackend(robot, None, 0, period, ahrs_rate=ahrs_rate_for(cfg.log_period), serial_lines=lines) as sim:
         clock.probe.attach(sim)
         refused = None if rt is None or sim.plant_pid is None else set_realtime(rt, sim.plant_pid)
         if refused is not None:
@@ -287,7 +314,9 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
         try:
             routine = StartupRoutine(robot, rig, clock, plan, out, cfg, on_tick=view.hook)
             clock.routine = routine
+            cpu0, wall0 = time.thread_time(), time.perf_counter()
             view.started(routine).run()
+            loop_cpu = (time.thread_time() - cpu0) / (time.perf_counter() - wall0)
         finally:
             view.close()
             rig.close()
@@ -295,7 +324,8 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
     rows = clock.probe.table()
     late, work = rows[:, C["late"]] * 1e3, rows[:, [C["work_wall"], C["work_cpu"]]] * 1e3
     waited = work[:, 0] - work[:, 1]
-    res = {"ticks": len(rows), "rt": rt, "wall_s": time.perf_counter() - t0, "load": [load0, os.getloadavg()[0]],
+    res = {"ticks": len(rows), "rt": rt, "loop_cpu": loop_cpu,
+           "wall_s": time.perf_counter() - t0, "load": [load0, os.getloadavg()[0]],
            "overruns": clock.overruns.count if paced else None, "late": late.tolist() if paced else None,
            "work_p99": np.percentile(work, 99, axis=0).tolist(), "work_max": work.max(axis=0).tolist(),
            "waited": [float(np.percentile(waited, 99)), float(waited.max())],
@@ -312,7 +342,8 @@ def child(args: argparse.Namespace, live: bool) -> dict:
     """:func:`startup` in a fresh interpreter (both runs pay the same imports and first calls)."""
     cmd = [sys.executable, __file__, "--one", "live" if live else "plain", "--rate", str(args.rate), "--grid",
            str(args.grid), "--hold", str(args.hold)] + (["--unpaced"] if args.unpaced else []) + (
-        ["--rt-priority", str(args.rt_priority)] if args.rt_priority else [])
+        ["--rt-priority", str(args.rt_priority)] if args.rt_priority else []) + [
+        "--spin", str(args.spin), "--serial-lines", args.serial_lines]
     done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -337,6 +368,7 @@ def report(name: str, r: dict) -> None:
                  f"{np.percentile(late, 99):.3f} ms worst {late.max():.3f} ms; ")
     print(line + f"tick work p99 {wp[0]:.3f} ms (cpu {wp[1]:.3f}) worst {wm[0]:.3f} ms (cpu {wm[1]:.3f}); "
           f"waited (wall - cpu) p99 {r['waited'][0]:.3f} ms worst {r['waited'][1]:.3f} ms; "
+          f"loop thread CPU {100 * r['loop_cpu']:.1f} % of a core; "
           f"load average {r['load'][0]:.2f} -> {r['load'][1]:.2f}")
     c = r["collections"]
     print(f"      collections during the run: generation 0/1/2 {c[0]}/{c[1]}/{c[2]}, {r['gc_ms'][0]:.1f} ms in all, "
@@ -346,13 +378,15 @@ def report(name: str, r: dict) -> None:
     paced = r["late"] is not None
     print(f"      {'the worst late episodes (peak tick)' if paced else 'the ticks of most work'}: ms summed over the "
           f"episode's ticks; rq: runnable but not running; plant: waited for the plant process; others: CPU of the "
-          f"process's other threads")
+          f"process's other threads; steal: CPU time the VM's host took from the machine's CPUs, irq: interrupts' "
+          f"(both in 10 ms steps)")
     print(f"      {'tick':>6} {'late':>8} {'n':>3} {'wall':>7} {'cpu':>6} {'gc':>6} {'rq':>7} {'plant':>6} "
-          f"{'others':>6} {'minflt':>6} {'preempt':>7}  phase (setpoint): cause")
+          f"{'others':>6} {'steal':>6} {'irq':>5} {'minflt':>6} {'preempt':>7}  phase (setpoint): cause")
     for w in r["worst"][:r.get("show", 20)]:
         late = f"{w['late_ms']:8.2f}" if paced else f"{'-':>8}"
         print(f"      {w['tick']:6d} {late} {w['late_ticks']:3d} {w['wall_ms']:7.2f} {w['cpu_ms']:6.2f} "
               f"{w['gc_ms']:6.2f} {w['rq_ms']:7.2f} {w['plant_wait_ms']:6.2f} {w['others_ms']:6.2f} "
+              f"{w.get('steal_ms', 0.0):6.1f} {w.get('irq_ms', 0.0):5.0f} "
               f"{w['minflt']:6d} {w['nivcsw']:7d}  {w['phase']} ({w['setpoint']}): {w['detail']}")
     tally: dict[str, int] = {}
     for w in r["worst"]:
@@ -369,12 +403,16 @@ def main() -> int:
     ap.add_argument("--unpaced", action="store_true", help="the deterministic proxy: lockstep, nothing sleeps")
     ap.add_argument("--rt-priority", type=int, default=None,
                     help="run the loop's thread and the simulated plant under SCHED_FIFO at this priority (1-99)")
+    ap.add_argument("--spin", type=float, default=0.0,
+                    help="the clock's hybrid wait: sleep to this many ms before each deadline, then poll (default 0)")
+    ap.add_argument("--serial-lines", choices=("socket", "pty"), default="socket",
+                    help="the simulated serial lines (default socket pairs; pty: as before 2026-11-27)")
     ap.add_argument("--one", choices=("plain", "live"), help=argparse.SUPPRESS)  # one run, its JSON on stdout
     args = ap.parse_args()
     if args.one:
         with tempfile.TemporaryDirectory() as tmp:
             res = startup(args.rate, args.grid, args.hold, args.one == "live", not args.unpaced, Path(tmp) / "run",
-                          args.rt_priority)
+                          args.rt_priority, args.spin * 1e-3, args.serial_lines)
         print(json.dumps(res))
         return 0
     runs: dict[bool, list[dict]] = {False: [], True: []}
@@ -384,7 +422,9 @@ def main() -> int:
     p = 1e3 / args.rate
     print(f"simulated {args.grid ** 3}-pose startup {'unpaced (proxy)' if args.unpaced else 'paced in real time'} "
           f"at {args.rate:g} Hz (period {p:.2f} ms), each run in a fresh process, {os.cpu_count()} cores, "
-          + (f"the loop and the plant under SCHED_FIFO {args.rt_priority}" if args.rt_priority else "normal priority"))
+          + (f"the loop and the plant under SCHED_FIFO {args.rt_priority}" if args.rt_priority else "normal priority")
+          + f", serial lines: {args.serial_lines}"
+          + (f", hybrid wait: poll the last {args.spin:g} ms" if args.spin else ""))
     for live in (False, True):
         for r in runs[live]:
             report("with --live" if live else "without", r)

@@ -1,16 +1,18 @@
-"""How late a byte written to a pty reaches its reader, against a pipe (not collected by pytest).
+"""How late a byte written to a simulated serial line reaches its reader: socket pair, pty, pipe (not collected by
+pytest).
 
     python benchmarks/bench_serial_latency.py [--seconds 15] [--rt-priority 40]
 
 The paced simulated prototype (bench_live.py) waits at each tick for the load-cell line and the AHRS sample
-that the plant's process writes to their ptys (sim_backend/pty.py). A pty hands what is written on its master
-to the reader of its slave through the kernel's tty buffer work, run by a kernel worker thread of normal
-priority; a pipe wakes its reader from the write itself. This benchmark measures both at the control rate
-(a writer process every 5 ms, the reader timing each line from write to readable), both ends under SCHED_FIFO
-when the OS grants it (else at normal priority, said once), so that what is left is the transport's own
+that the plant's process writes to their serial lines (sim_backend/pty.py): Unix socket pairs since
+2026-11-27, ptys before (``SimBackend(serial_lines="pty")``). A pty hands what is written on its master to the
+reader of its slave through the kernel's tty buffer work, run by a kernel worker thread of normal priority; a
+socket pair or a pipe wakes its reader from the write itself. This benchmark measures the three at the control
+rate (a writer process every 5 ms, the reader timing each line from write to readable), both ends under
+SCHED_FIFO when the OS grants it (else at normal priority), so that what is left is the transport's own
 latency under the machine's load. Target: 99 % of the lines within half a control period (2.5 ms) and none
-over a period (5 ms), for each transport. Exits 1 when the pty misses it (the cause bench_live's table names
-"blocked: serial lines").
+over a period (5 ms). Exits 1 when the socket pair (the simulator's line) misses it; the pipe is the
+reference and the pty is shown for comparison (the cause bench_live's table named "blocked: serial lines").
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import argparse
 import os
 import pty
 import select
+import socket
 import sys
 import time
 import tty
@@ -39,11 +42,15 @@ def _realtime(priority: int | None) -> bool:
 
 
 def latencies(kind: str, count: int, priority: int | None) -> tuple[np.ndarray, bool]:
-    """(count,) s from each write to its line being readable, over a pty or a pipe; whether under SCHED_FIFO."""
+    """(count,) s from each write to its line being readable, over a pty, a socket pair or a pipe; whether under
+    SCHED_FIFO."""
     if kind == "pty":
         master, slave = pty.openpty()
         tty.setraw(slave)
         write_fd, read_fd = master, slave
+    elif kind == "socket":
+        a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        write_fd, read_fd = a.detach(), b.detach()
     else:
         read_fd, write_fd = os.pipe()
     pid = os.fork()
@@ -76,16 +83,16 @@ def main() -> int:
     args = ap.parse_args()
     count = int(args.seconds / PERIOD)
     ok = True
-    for kind in ("pipe", "pty"):
+    for kind in ("pipe", "socket", "pty"):
         lat, rt = latencies(kind, count, args.rt_priority or None)
         ms = lat * 1e3
         within = float(np.mean(ms <= 0.5e3 * PERIOD))
         good = within >= 0.99 and ms.max() <= 1e3 * PERIOD
-        print(f"{kind:4s}: {count} lines at {1 / PERIOD:g} Hz, {'SCHED_FIFO' if rt else 'normal priority'}, load "
+        print(f"{kind:6s}: {count} lines at {1 / PERIOD:g} Hz, {'SCHED_FIFO' if rt else 'normal priority'}, load "
               f"average {os.getloadavg()[0]:.2f}: p50 {np.median(ms):.3f} ms p99 {np.percentile(ms, 99):.3f} ms "
               f"worst {ms.max():.3f} ms; within 2.5 ms {100 * within:.1f} % (target >= 99 %, none over 5 ms)  "
               f"{'ok' if good else 'MISS'}")
-        ok &= good or kind == "pipe"  # the pipe is the reference; the pty is what the simulator uses
+        ok &= good or kind != "socket"  # the socket pair is the simulator's line; the others are references
     return 0 if ok else 1
 
 

@@ -38,11 +38,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 
 from calib.effects import BUILTIN, Effect
 from calib.effects.priors import DeviceAccuracy, ReferenceNoise
@@ -225,6 +225,7 @@ def diagnose(
     res0 = residuals(fit0.problem, fit0.theta, fit0.poses, jacobian=False)
     channels, cables, rows = _channel_tables(res0, robot.n, meas, reference_sample)
     ranking = _rank_round(fit0, pred0, cands, alpha, alpha_each, refits)
+    with_detectable_size(ranking, {e.name: e for e in cands}, robot, alpha_each)
     first = {c.effect: c for c in ranking}
     steps = [_step(fit0, pred0, reference_pose)]
     selected: list[str] = []
@@ -270,6 +271,41 @@ def diagnose(
                      steps, None, alpha, res0, current, reference_sample, finding)
     diag.outcome = verdict_of(diag, more)
     return diag
+
+
+DETECT_POWER = 0.8  # the probability with which the score test finds an effect of the detectable size
+
+
+def detectable_factor(score: float, dof: int, alpha_each: float, power: float = DETECT_POWER) -> float:
+    """How many times its expected change an effect of the same shape must be for the score test to find it
+    with probability ``power`` at level ``alpha_each``: Baarda's minimal detectable bias along that
+    direction, sqrt(lambda0 / score), lambda0 the noncentrality with P(chi2(dof, lambda0) > the test's
+    critical value) = power. The expected change is one Gauss-Newton step, whose noncentrality is the
+    score, and the noncentrality grows as the square of the effect's size. inf without a score."""
+    if score <= 0 or dof <= 0:
+        return math.inf
+    crit = stats.chi2.isf(alpha_each, dof)
+    lam = optimize.brentq(lambda v: stats.ncx2.sf(crit, dof, v) - power, 1e-9, 1e6)
+    return math.sqrt(lam / score)
+
+
+def with_detectable_size(ranked: list[Candidate], effects: dict[str, Effect], robot: Robot, alpha_each: float,
+                         power: float = DETECT_POWER) -> None:
+    """Give every candidate rejected by its score test the size this data would find with probability
+    ``power`` (:func:`detectable_factor` times its expected change: ``detectable``, name -> (value, unit) of
+    the effect's own parameters, empty where the change is reported in others), into its reason's numbers: a
+    run that cannot see an effect says from what size it would (issue 28: sc_8_final alone sees a length
+    scale of the shape it carries only from k = 0.8-1.5 %)."""
+    for c in ranked:
+        if c.reason is None or c.reason.code != "score_not_significant" or c.effect not in effects:
+            continue
+        factor = detectable_factor(c.score, c.score_dof, alpha_each, power)
+        specs = effects[c.effect].params(robot)
+        size: dict[str, tuple[float, str]] = {}
+        if math.isfinite(factor) and all(sp.name in c.epc for sp in specs):
+            size = {sp.name: (float(sp.absent + factor * (c.epc[sp.name] - sp.absent)), sp.unit) for sp in specs}
+        c.reason = replace(c.reason, numbers={**c.reason.numbers, "detect_factor": factor, "detect_power": power,
+                                              "detectable": size})
 
 
 PAIR_POOL = 3  # candidates whose pairs the look-ahead step refits together

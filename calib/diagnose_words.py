@@ -4,6 +4,7 @@ Nothing here computes a statistic: the numbers are the diagnosis's (:mod:`calib.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,8 @@ def decision_text(c: Candidate) -> str:
     if code == "unobservable":
         return "rejected: this data cannot observe it"
     if code == "score_not_significant":
-        return f"rejected: not significant (score test p = {c.score_p:.2g}, needs < {n['alpha_each']:.2g})"
+        return (f"rejected: not significant (score test p = {c.score_p:.2g}, needs < {n['alpha_each']:.2g})"
+                + detectable_text(n))
     if code == "refit_not_converged":
         return f"rejected: its refit did not converge in {n['iterations']} iterations"
     if code == "refit_stuck":
@@ -56,6 +58,18 @@ def decision_text(c: Candidate) -> str:
                 f"together significant, within their plausible ranges, and predicting left-out poses better "
                 f"(cross-validated chi2 {n['cv_gain']:+.1f} lower)")
     raise ValueError(f"calib.diagnose: unknown reason code {code!r}.")
+
+
+def detectable_text(n: dict[str, Any]) -> str:
+    """'; this data finds it ... only from ...': the size a score test would detect
+    (calib.diagnose.with_detectable_size)."""
+    factor = n.get("detect_factor")
+    if factor is None or not np.isfinite(factor):
+        return ""
+    size = ", ".join(f"{k} = {math.degrees(v):.4g} deg" if u == "rad" else f"{k} = {v:.4g}"
+                     + (f" {u}" if u != "1" else "") for k, (v, u) in list(n.get("detectable", {}).items())[:4])
+    return (f"; this data finds it with {100 * n['detect_power']:.0f} % probability only from {factor:.2g} times "
+            "its expected change" + (f" ({size})" if size else ""))
 
 
 def misfit_location(diag: Diagnosis, top: int = 2) -> dict[str, list[str]]:

@@ -11,8 +11,10 @@ Unknowns of a joint fit over runs r = 1..R:
 
 Each run keeps its own :class:`calib.selfcal.problem.Problem` (its rows and weights); the theta of run r is
 [zeta_0, its own effect values, the shared values], so the joint Jacobian is the runs' dense Jacobians
-(:func:`calib.fitting.residuals`) side by side on the shared columns. It is solved by a dense
-Levenberg-Marquardt on unit-norm columns (a ridge keeps the directions no run sees where they started).
+(:func:`calib.fitting.residuals`) side by side on the shared columns. It is solved by Levenberg-Marquardt
+with geodesic acceleration on unit-norm columns, the normal equations by blocks (each pose's 6 x 6 block
+eliminated, :class:`Arrow`; a ridge keeps the directions no run sees where they started), until a stated
+criterion holds or the cap is reached (:class:`Stop`; every JointFit says which).
 
 **Weights that fit the data** (:func:`fit_runs` with ``components``): the sigma of each run's channel group
 (tension, length, swivel, orientation) is rescaled by its variance component, sum r^2 / (n (1 - h)), with
@@ -41,7 +43,7 @@ from calib.selfcal.model import CHANNELS
 from calib.selfcal.problem import Problem
 
 GROUPS = CHANNELS  # the channel groups whose noise the variance components set
-LAMBDA_TRIES = 8  # damping increases tried before an LM iteration gives up
+LAMBDA_MAX = 1e10  # an LM iteration gives up when no damping up to this (relative to diag N) lowers the chi2
 HOLD_MAX = 8  # iterations at most that LM keeps a damping whose tenth was refused before trying it again
 RIDGE = 1e-9  # relative ridge of the normal equations (unit-norm columns)
 # the normal matrix's eigenvalue ratio above which its inverse is taken by a solve (condition below 1e8: the
@@ -170,6 +172,25 @@ class JointFit:
     n_residuals: int = 0
     n_free: int = 0
     history: list[dict[str, Any]] = field(default_factory=list)  # per weighting round: run -> weights, pose
+    stop: Stop | None = None  # why the last round's LM stopped (converged or not, the criterion)
+
+    def convergence_words(self) -> str:
+        """One sentence on the fit's convergence; a fit that did not converge is a WARNING (its values are where
+        the iterations stopped, not the least-squares solution)."""
+        c = self.convergence()
+        if c["converged"]:
+            return (f"converged ({c['criterion']}: {c['remaining_chi2']:.2g} chi2 left to gain; "
+                    f"{c['iterations']} iterations)")
+        what = "the iteration cap" if c["criterion"] == "cap" else "no damping lowering the chi2"
+        return (f"WARNING: not converged (stopped by {what} after {c['iterations']} iterations, the Gauss-Newton step "
+                f"still predicting {c['remaining_chi2']:.2g} chi2 to gain): its values are where it stopped")
+
+    def convergence(self) -> dict[str, Any]:
+        """Whether the fit reported converged, by which criterion, its LM iterations (all rounds) and the chi2
+        decrease the Gauss-Newton step still predicted (docs/effects.md, "Converged fits")."""
+        s = self.stop
+        return {"converged": bool(self.converged), "criterion": None if s is None else s.reason,
+                "iterations": int(self.iterations), "remaining_chi2": None if s is None else float(s.remaining)}
 
     @property
     def names(self) -> list[str]:
@@ -260,7 +281,7 @@ def _rows_of(ph: Physical, rows: slice, p0: int, p: int, q: int) -> Physical:
     return out
 
 
-def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False) -> tuple[list, float]:
+def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False, jacobian: bool = True) -> tuple[list, float]:
     """Each run's Residuals with their Jacobian (the model's predictions carry their derivatives anyway, so
     an accepted LM trial is not evaluated twice) and the joint chi2 (weighted residuals' sum of squares,
     priors included). ``batch`` (:func:`one_robot`; q the shared parameters): the physical quantities of all
@@ -271,11 +292,11 @@ def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False) -> tuple[list
                 for rf in runs]
         robot, ph = runs[0].problem.model.physical(t0, np.vstack(rows))
         ends = np.cumsum([0] + [z.shape[0] for z in rows])
-        blocks = [residuals(rf.problem, rf.theta, rf.poses,
+        blocks = [residuals(rf.problem, rf.theta, rf.poses, jacobian,
                             physical=(robot, _rows_of(ph, slice(a, b), t0.shape[0], rf.theta.shape[0], q)))
                   for rf, a, b in zip(runs, ends[:-1], ends[1:], strict=True)]
     else:
-        blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
+        blocks = [residuals(rf.problem, rf.theta, rf.poses, jacobian) for rf in runs]
     return blocks, float(sum(np.sum(b.r ** 2) for b in blocks))
 
 
@@ -332,9 +353,10 @@ def _clip(runs: list[RunFit], q: int, lo: np.ndarray, hi: np.ndarray) -> None:
 _DIAG6 = np.arange(6)
 
 
-def _by_pose(res: Residuals, k: int, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _by_pose(res: Residuals, k: int, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per pose, its entries' (the first ones, ``res.row`` >= 0) 6 pose columns X (k, e_max, 6), theta columns
-    T (k, e_max, t) and residuals (k, e_max), zero-padded: a pose's columns meet only its own entries."""
+    T (k, e_max, t) and residuals (k, e_max), zero-padded: a pose's columns meet only its own entries; and the
+    entries' positions there (k, e_max; e, the entry count, marks the padding)."""
     row = res.row
     e = int(np.count_nonzero(row >= 0))
     pose = row[:e]
@@ -343,7 +365,7 @@ def _by_pose(res: Residuals, k: int, T: np.ndarray) -> tuple[np.ndarray, np.ndar
     idx = np.full((k, max(int(counts.max(initial=0)), 1)), e)  # e: the zero row
     idx[pose[order], np.arange(e) - np.repeat(np.cumsum(counts) - counts, counts)] = order
     X = np.vstack([res.A[np.arange(e)[:, None], 6 * pose[:, None] + _DIAG6], np.zeros((1, 6))])
-    return X[idx], np.vstack([T[:e], np.zeros((1, T.shape[1]))])[idx], np.r_[res.r[:e], 0.0][idx]
+    return X[idx], np.vstack([T[:e], np.zeros((1, T.shape[1]))])[idx], np.r_[res.r[:e], 0.0][idx], idx
 
 
 @dataclass
@@ -361,20 +383,26 @@ class Arrow:
     scale: np.ndarray
     cols: list[tuple[slice, slice]]
     q: int  # shared columns in the problem (0 when fixed)
+    # per run, what J^T r of another residual vector needs: the per-pose column blocks X, the theta
+    # columns T (unscaled) and the per-pose order of the entries (:func:`_by_pose`)
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = field(default_factory=list, repr=False)
+    pinned: np.ndarray | None = None  # (q,) bool: shared columns held (a bound the step would cross)
+    _last: tuple | None = field(default=None, repr=False)  # the reduced matrix of the last damping
 
     @classmethod
     def of(cls, runs: list[RunFit], blocks: list[Residuals], q: int, fixed_shared: bool) -> Arrow:
         """From the runs' Residuals: a pose's columns only meet that pose's rows, so the pose blocks of the
         normal matrix are 6 x 6 (no dense m x (6k + p) product)."""
         qq = 0 if fixed_shared else q
-        raw, cols, start = [], [], qq
+        raw, cols, parts, start = [], [], [], qq
         for rf, res in zip(runs, blocks, strict=True):
             k = rf.poses.shape[0]
             p_own = rf.theta.shape[0] - q
             T = res.A[:, 6 * k:6 * k + p_own + qq]
-            X, Tp, rp = _by_pose(res, k, T)
+            X, Tp, rp, idx = _by_pose(res, k, T)
             Xt = X.transpose(0, 2, 1)
             raw.append((Xt @ X, Xt @ Tp, T.T @ T, (Xt @ rp[..., None])[..., 0], T.T @ res.r))
+            parts.append((X, T, idx, int(np.count_nonzero(res.row >= 0))))
             cols.append((slice(start, start + p_own), slice(start + p_own, start + p_own + 6 * k)))
             start += p_own + 6 * k
         d2 = np.zeros(start)
@@ -385,7 +413,7 @@ class Arrow:
             d2[:qq] += np.diag(V)[p_own:]
         scale = np.sqrt(d2)
         scale[scale == 0] = 1.0
-        out = cls([], [], [], [], [], scale, cols, qq)
+        out = cls([], [], [], [], [], scale, cols, qq, parts)
         for (U, W, V, gp, gt), (so, sp) in zip(raw, cols, strict=True):
             sp_, st = scale[sp].reshape(-1, 6), np.r_[scale[so], scale[:qq]]
             out.U.append(U / (sp_[:, :, None] * sp_[:, None, :]))
@@ -396,24 +424,36 @@ class Arrow:
         return out
 
     @functools.cached_property
-    def _fixed(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Per run, what every damping's step shares: the pose blocks' diagonals (floored), [W, gp] and V's
-        diagonal."""
-        return [(np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12), np.concatenate([W, gp[..., None]], axis=2),
-                 np.diag(V).copy()) for U, W, V, gp in zip(self.U, self.W, self.V, self.gp, strict=True)]
+    def _fixed(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per run, what every damping's step shares: the pose blocks' diagonals (floored) and V's diagonal."""
+        return [(np.maximum(np.diagonal(U, axis1=1, axis2=2), 1e-12), np.diag(V).copy()) for U, V in
+                zip(self.U, self.V, strict=True)]
 
-    def step(self, damping: float) -> tuple[np.ndarray, float]:
+    def gradient(self, rs: Sequence[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """J^T r on the scaled columns, by blocks (pose gp (k, 6), theta gt (t,) per run), of other residual
+        vectors rs (one per run, in the order of the runs' Residuals)."""
+        gps, gts = [], []
+        for (X, T, idx, e), r, (so, sp) in zip(self.parts, rs, self.cols, strict=True):
+            rp = np.r_[r[:e], 0.0][idx]
+            sp_, st = self.scale[sp].reshape(-1, 6), np.r_[self.scale[so], self.scale[:self.q]]
+            gps.append(np.einsum("kei,ke->ki", X, rp) / sp_)
+            gts.append((T.T @ r) / st)
+        return gps, gts
+
+    def step(self, damping: float, grads: tuple[list, list] | None = None) -> tuple[np.ndarray, float]:
         """The step ds (scaled columns) solving (N + damping diag(N)) ds = -g by eliminating each run's pose
         blocks (a Schur complement on [shared, own_1, own_2, ...]), and the decrease -(2 g.ds + ds.N.ds) the
-        undamped quadratic model predicts for it."""
-        M, rhs, parts = self._reduced(damping)
+        undamped quadratic model predicts for it. ``grads``: another g (:meth:`gradient`) than the residuals'
+        (the geodesic acceleration's right-hand side)."""
+        gps, gts = (self.gp, self.gt) if grads is None else grads
+        M, rhs, parts = self._reduced(damping, gps, gts)
         x = -np.linalg.solve(M, rhs)
         qq = self.q
         ds = np.zeros(self.scale.shape[0])
         ds[:qq] = x[:qq]
         gain = 0.0
-        for (so, sp), (idx, Y, y), U, W, V, gp, gt in zip(self.cols, parts, self.U, self.W, self.V, self.gp,
-                                                          self.gt, strict=True):
+        for (so, sp), (idx, Y, y), U, W, V, gp, gt in zip(self.cols, parts, self.U, self.W, self.V, gps, gts,
+                                                          strict=True):
             dt = x[idx]
             dp = -(y + Y @ dt)
             ds[so], ds[sp] = dt[:so.stop - so.start], dp.ravel()
@@ -425,7 +465,7 @@ class Arrow:
     def covariance(self) -> tuple[np.ndarray, int] | None:
         """The shared block of N's inverse (scaled columns) and N's rank from the inverse of the Schur
         complement on [shared, own_1, ...]; None when a pose block or it is singular (the caller's SVD decides)."""
-        M, _, _ = self._reduced(0.0)
+        M, _, _ = self._reduced(0.0, pins=False)
         for a in [*self.U, M[None]]:
             ev = np.linalg.eigvalsh(a)
             if a.size and np.any(ev[..., 0] <= SINGULAR * np.maximum(ev[..., -1], 1e-300)):
@@ -434,36 +474,61 @@ class Arrow:
         cov = np.linalg.solve(M, np.eye(M.shape[0])[:, :q])[:q] if q else np.zeros((0, 0))
         return cov, int(self.scale.shape[0])
 
-    def _reduced(self, damping: float) -> tuple[np.ndarray, np.ndarray, list]:
+    def _reduced(self, damping: float, gps: list | None = None, gts: list | None = None, pins: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray, list]:
         """The damped system reduced to [shared, own_1, own_2, ...] (each run's pose blocks eliminated), its
-        right-hand side, and per run what the poses' back-substitution needs (indices in it, Y, y)."""
+        right-hand side (of the gradient gps, gts; None: the residuals'), and per run what the poses'
+        back-substitution needs (indices in it, Y, y). ``pins``: the held shared columns (``pinned``) get no
+        step. The reduced matrix of the last damping is kept (the geodesic acceleration's second solve)."""
+        gps = self.gp if gps is None else gps
+        gts = self.gt if gts is None else gts
+        M, facs, at = self._factor(damping, pins)
+        qq = self.q
+        rhs = np.zeros(at[-1])
+        parts = []
+        for j, (W, gp, gt, (Ui, Y)) in enumerate(zip(self.W, gps, gts, facs, strict=True)):
+            y = (Ui @ gp[..., None])[..., 0]
+            rr = gt - W.reshape(-1, W.shape[2]).T @ y.ravel()
+            o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]  # the run's own block, then the shared one
+            rhs[o] += rr[:no]
+            rhs[:qq] += rr[no:]
+            parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
+        if pins and self.pinned is not None:
+            rhs[np.flatnonzero(self.pinned)] = 0.0
+        return M, rhs, parts
+
+    def _factor(self, damping: float, pins: bool) -> tuple[np.ndarray, list, np.ndarray]:
+        """The reduced matrix at this damping, per run the inverse damped pose blocks and Y = U_d^-1 W, and
+        the reduced columns' offsets (cached for the last damping)."""
+        key = (damping, pins and self.pinned is not None and bool(self.pinned.any()))
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
         qq = self.q
         own = [so.stop - so.start for so, _ in self.cols]
         at = np.cumsum([qq, *own])
-        M, rhs = np.zeros((at[-1], at[-1])), np.zeros(at[-1])
-        dg = np.zeros(at[-1])
-        parts = []
-        for j, (U, W, V, gt, (dU, WG, dV)) in enumerate(zip(self.U, self.W, self.V, self.gt, self._fixed,
-                                                             strict=True)):
+        M, dg, facs = np.zeros((at[-1], at[-1])), np.zeros(at[-1]), []
+        for j, (U, W, V, (dU, dV)) in enumerate(zip(self.U, self.W, self.V, self._fixed, strict=True)):
             Ud = U.copy()
             Ud[:, _DIAG6, _DIAG6] += damping * dU
-            sol = np.linalg.solve(Ud, WG)
-            Y, y = sol[..., :-1], sol[..., -1]
+            Ui = np.linalg.inv(Ud)
+            Y = Ui @ W
             t = W.shape[2]
-            Wf = W.reshape(-1, t)
-            S, rr = V - Wf.T @ Y.reshape(-1, t), gt - Wf.T @ y.ravel()
-            o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]  # the run's own block, then the shared one
+            S = V - W.reshape(-1, t).T @ Y.reshape(-1, t)
+            o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]
             M[o, o] += S[:no, :no]
             M[o, :qq] += S[:no, no:]
             M[:qq, o] += S[no:, :no]
             M[:qq, :qq] += S[no:, no:]
-            rhs[o] += rr[:no]
-            rhs[:qq] += rr[no:]
             dg[o] += dV[:no]
             dg[:qq] += dV[no:]
-            parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
+            facs.append((Ui, Y))
         M[range(at[-1]), range(at[-1])] += damping * np.maximum(dg, 1e-12)
-        return M, rhs, parts
+        if key[1]:  # held columns: no step, the others without them
+            i = np.flatnonzero(self.pinned)
+            M[i, :], M[:, i] = 0.0, 0.0
+            M[i, i] = 1.0
+        self._last = (key, (M, facs, at))
+        return M, facs, at
 
 
 @dataclass
@@ -489,23 +554,115 @@ class Damping:
             self.lam = max(self.lam / 10.0, 1e-12)
 
 
+@dataclass(frozen=True)
+class Stop:
+    """Why a joint Levenberg-Marquardt fit stopped. ``reason``: 'decrease' (the Gauss-Newton step predicts at
+    most FTOL of the chi2, or CHI2_TOL, left to gain), 'gradient' (every scaled column is within GTOL of
+    orthogonal to the residuals) -- both converged; 'cap' (max_iter accepted steps) or 'stalled' (no damping
+    up to LAMBDA_MAX lowers the chi2 while the Gauss-Newton step still predicts a gain) -- not converged.
+    ``remaining``: the chi2 decrease the Gauss-Newton step predicted at the last iterate."""
+
+    converged: bool
+    reason: str
+    iterations: int
+    remaining: float
+
+
+FTOL = 1e-5  # converged when the Gauss-Newton step predicts at most this share of the chi2 left to gain
+CHI2_TOL = 1e-10  # ... or at most this much chi2 (a step of 1e-5 sigma: zero-residual problems)
+GTOL = 1e-10  # ... or when the cosine between the residuals and every scaled column is below this
+GEO_ALPHA = 0.75  # a geodesic acceleration a is used while 2 |a| / |v| <= this (Transtrum & Sethna 2012)
+GEO_H = 0.1  # finite-difference step along v of the residuals' second directional derivative (same paper)
+
+
+def _directional(runs: list[RunFit], blocks: list[Residuals], x: np.ndarray, q: int, cols, fixed_shared: bool
+                 ) -> list[np.ndarray]:
+    """Per run, the Jacobian times the step x (physical units, :func:`stack`'s column order)."""
+    out = []
+    for rf, res, (so, sp) in zip(runs, blocks, cols, strict=True):
+        k6, p_own = rf.poses.size, rf.theta.shape[0] - q
+        dx = np.zeros(res.A.shape[1])
+        dx[:k6], dx[k6:k6 + p_own] = x[sp], x[so]
+        if not fixed_shared and q:
+            dx[k6 + p_own:] = x[:q]
+        out.append(res.A @ dx)
+    return out
+
+
+def geodesic_step(runs: list[RunFit], blocks: list[Residuals], arrow: Arrow, damping: float, q: int,
+                  fixed_shared: bool, batch: bool) -> np.ndarray:
+    """The damped step with geodesic acceleration (Transtrum & Sethna, arXiv:1201.5885), scaled columns:
+    v + a / 2, v the damped Gauss-Newton step, a = -(N + damping D)^-1 J^T r_vv with r_vv the residuals'
+    second directional derivative along v (one finite difference, GEO_H). It follows a curved valley (the
+    medium runs' heights against the cables' compliance) where the straight step v leaves it. Where
+    2 |a| / |v| > GEO_ALPHA the second-order expansion does not hold over the step (far from the solution):
+    the plain step v."""
+    v, _ = arrow.step(damping)
+    x = v / arrow.scale
+    jv = _directional(runs, blocks, x, q, arrow.cols, fixed_shared)
+    near, _ = _evaluate(_apply(runs, GEO_H * x, q, arrow.cols, fixed_shared), q, batch, jacobian=False)
+    rvv = [2.0 / GEO_H * ((h.r - b.r) / GEO_H - j) for h, b, j in zip(near, blocks, jv, strict=True)]
+    acc, _ = arrow.step(damping, arrow.gradient(rvv))
+    if not np.all(np.isfinite(acc)) or 2.0 * np.linalg.norm(acc) > GEO_ALPHA * np.linalg.norm(v):
+        return v
+    return v + 0.5 * acc
+
+
+def _at_bounds(runs: list[RunFit], ds: np.ndarray, q: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """The shared values at a bound that the Gauss-Newton step ds (scaled columns, shared first) would cross
+    (held: an active set, so that the other values' step and the convergence test are those of the problem on
+    the bound); None when no shared column is free or none is held."""
+    if not q or runs[0].theta.shape[0] < q:
+        return None
+    th = runs[0].theta[runs[0].theta.shape[0] - q:]
+    out = ((th >= hi) & (ds[:q] > 0)) | ((th <= lo) & (ds[:q] < 0))
+    return out if out.any() else None
+
+
+def _cosine(arrow: Arrow, cost: float) -> float:
+    """The largest cosine between the residual vector and a column of the joint Jacobian (MINPACK's gtol)."""
+    qq = arrow.q
+    shared = np.zeros(qq)
+    top = 0.0
+    for (so, _), gp, gt in zip(arrow.cols, arrow.gp, arrow.gt, strict=True):
+        no = so.stop - so.start
+        top = max(top, float(np.abs(gp).max(initial=0.0)), float(np.abs(gt[:no]).max(initial=0.0)))
+        shared += gt[no:]
+    if arrow.pinned is not None:
+        shared[arrow.pinned] = 0.0
+    return max(top, float(np.abs(shared).max(initial=0.0))) / max(math.sqrt(cost), 1e-300)
+
+
 def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = False, max_iter: int = 60,
-            tol: float = 1e-5, covariance: bool = True) -> tuple[list[RunFit], float, bool, int, np.ndarray, int]:
-    """Levenberg-Marquardt on the joint problem (its normal equations by blocks, :class:`Arrow`). Returns
-    the runs, chi2, converged, iterations, the scaled inverse normal matrix's shared block (covariance of
-    the shared values) and the rank (without ``covariance``: zeros and 0, the SVD skipped)."""
-    robot = runs[0].rows.robot
+            covariance: bool = True) -> tuple[list[RunFit], float, Stop, np.ndarray, int]:
+    """Levenberg-Marquardt with geodesic acceleration (:func:`geodesic_step`) on the joint problem (its
+    normal equations by blocks, :class:`Arrow`, unit-norm columns). Returns the runs, chi2, why it stopped
+    (:class:`Stop`), the scaled inverse normal matrix's shared block (covariance of the shared values) and the
+    rank (without ``covariance``: zeros and 0, the SVD skipped)."""
+    robot = runs[0].problem.model.robot
     q, _, lo, hi = _layout(shared, robot)
-    damping, iterations, converged = Damping(), 0, False
+    damping = Damping()
     batch = one_robot(runs, shared)
     blocks, cost = _evaluate(runs, q, batch)
-    for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
+    it = 0
+    while True:
         arrow = Arrow.of(runs, blocks, q, fixed_shared)
-        improved, held = False, damping.hold > 0
-        for trial_no in range(LAMBDA_TRIES):
-            ds, gain = arrow.step(damping.lam + RIDGE)
-            if trial_no == 0 and not held and gain < tol * cost:
-                break  # the lightly damped step predicts nothing left to gain
+        gn, remaining = arrow.step(RIDGE)
+        arrow.pinned = _at_bounds(runs, gn, arrow.q, lo, hi)
+        if arrow.pinned is not None:
+            _, remaining = arrow.step(RIDGE)
+        if remaining <= max(FTOL * cost, CHI2_TOL):
+            stop = Stop(True, "decrease", it, remaining)
+            break
+        if _cosine(arrow, cost) <= GTOL:
+            stop = Stop(True, "gradient", it, remaining)
+            break
+        if it >= max_iter:
+            stop = Stop(False, "cap", it, remaining)
+            break
+        improved, trial_no = False, 0
+        while damping.lam <= LAMBDA_MAX:  # Marquardt: x10 after each refused trial
+            ds = geodesic_step(runs, blocks, arrow, damping.lam + RIDGE, q, fixed_shared, batch)
             trial = _apply(runs, ds / arrow.scale, q, arrow.cols, fixed_shared)
             _clip(trial, q, lo, hi)
             trial_blocks, c1 = _evaluate(trial, q, batch)
@@ -513,26 +670,23 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
                 improved = True
                 break
             damping.refused()
+            trial_no += 1
         if not improved:
-            converged = True
+            stop = Stop(False, "stalled", it, remaining)
             break
-        rel = (cost - c1) / max(cost, 1e-300)
         runs, cost, blocks = trial, c1, trial_blocks
         damping.accepted(after_refusal=trial_no > 0)
-        if rel < tol:
-            converged = True
-            break
+        it += 1
     for rf, b in zip(runs, blocks, strict=True):
         rf.chi2, rf.res = float(b.r @ b.r), b
     if not covariance:
-        return runs, cost, converged, iterations, np.zeros((q, q)), 0
-    arrow = Arrow.of(runs, blocks, q, fixed_shared)
+        return runs, cost, stop, np.zeros((q, q)), 0
     by_blocks = arrow.covariance()
     if by_blocks is not None:  # full rank: the shared block of N's inverse from the runs' Schur complements
         cov_s, rank = by_blocks
         cov = cov_s / np.outer(arrow.scale[:cov_s.shape[0]], arrow.scale[:cov_s.shape[0]]) if q and not \
             fixed_shared else np.zeros((q, q))
-        return runs, cost, converged, iterations, cov, rank
+        return runs, cost, stop, cov, rank
     _, A, _ = stack(runs, q, fixed_shared, blocks=blocks)
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
@@ -548,7 +702,7 @@ def lm_runs(runs: list[RunFit], shared: Sequence[Effect], fixed_shared: bool = F
         rank = int(keep.sum())
         cov_s = ((Vt[keep, :q].T / s[keep] ** 2) @ Vt[keep, :q]) if not fixed_shared else None
     cov = np.zeros((q, q)) if cov_s is None else cov_s / np.outer(scale[:q], scale[:q])
-    return runs, cost, converged, iterations, cov, rank
+    return runs, cost, stop, cov, rank
 
 
 def components(rf: RunFit, redundancy: float, floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -584,14 +738,14 @@ def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, 
     robot = runs[0].rows.robot
     floor = sensor_noise(robot)
     history = []
-    it_total, conv = 0, False
+    it_total = 0
     for rnd in range(rounds + 1):
         iters = max_iter if rnd == rounds or weight_iter is None else min(max_iter, weight_iter)
-        runs, cost, conv, it, cov, rank = lm_runs(runs, shared, frozen, iters,
-                                                  covariance=covariance or rnd < rounds)
-        it_total += it
+        runs, cost, stop, cov, rank = lm_runs(runs, shared, frozen, iters, covariance=covariance or rnd < rounds)
+        it_total += stop.iterations
         history.append({rf.name: {"weights": {c: [float(v) for v in s] for c, s in rf.sigma.items()},
-                                  "initial_pose": [float(v) for v in rf.theta[:6]]} for rf in runs})
+                                  "initial_pose": [float(v) for v in rf.theta[:6]], "stop": stop.reason}
+                        for rf in runs})
         m = sum(rf.residuals().r.shape[0] for rf in runs)
         if rnd == rounds:
             break
@@ -603,7 +757,7 @@ def fit_runs(items: Sequence[tuple[str, RunRows]], shared: Sequence[Effect], *, 
         runs = new
     q = _layout(shared, robot)[0]
     values = runs[0].theta[runs[0].theta.shape[0] - q:] if q else np.zeros(0)
-    return JointFit(shared, values.copy(), cov, runs, cost, conv, it_total, m, rank, history)
+    return JointFit(shared, values.copy(), cov, runs, cost, stop.converged, it_total, m, rank, history, stop)
 
 
 def held_out_score(rf: RunFit) -> float:

@@ -140,6 +140,7 @@ def model_document(fit: JointFit, paths: list[str] | None = None, selection: dic
         "robot": robot,
         "effects": docs,
         "runs": [run_summary(rf, None if paths is None else paths[i]) for i, rf in enumerate(fit.runs)],
+        "fit": fit.convergence(),
         "selection": selection or {},
     })
 
@@ -201,7 +202,8 @@ def prior_effects(model: RobotModel, robot, classes: dict[str, type[Effect]], pa
     return out
 
 
-def solve_with_model(rows, effects: list[Effect], name: str = "run") -> RunFit:
+def solve_with_model(rows, effects: list[Effect], name: str = "run") -> JointFit:
     """One run solved with a model's effects as priors and its own unknowns refitted (initial pose, poses,
-    device errors, reference noise, yaw drift rate), weights by variance components."""
-    return fit_runs([(name, rows)], effects).runs[0]
+    device errors, reference noise, yaw drift rate), weights by variance components: the fit of one run
+    (``runs[0]``) and whether it converged."""
+    return fit_runs([(name, rows)], effects)

@@ -15,9 +15,11 @@ from drivers.interfaces import DeviceError, LinkStats, Reading
 
 
 def open_port(port: str, baud: int, what: str) -> serial.Serial:
-    """Open a serial port (USB adapter or pty slave) in raw 8N1 with a short read timeout."""
+    """Open a serial port in raw 8N1 with a short read timeout: a device path (USB adapter, pty slave) as
+    ``serial.Serial`` opens it, or a pyserial URL (``socket://HOST:PORT`` of a serial device server, the simulated
+    prototype's ``cdprsim://NAME``) through ``serial.serial_for_url``."""
     try:
-        return serial.Serial(port, baudrate=baud, timeout=0.01, write_timeout=1.0)
+        return serial.serial_for_url(port, baudrate=baud, timeout=0.01, write_timeout=1.0)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise DeviceError(f"{what}: cannot open serial port {port} at {baud} baud ({exc}).") from exc
 

@@ -1,8 +1,9 @@
 """The simulated prototype as a set of devices: physics + emulated CAN nodes + serial devices, in lockstep.
 
 :class:`SimBackend` creates the physics at a power-on equilibrium, a simulated CAN channel with a
-unique name carrying the emulated CiA 402 drives and CiA 406 encoders (canopen LocalNodes), pty pairs for
-the load-cell amplifier and the AHRS, and one SYNC subscriber that runs the lockstep. The channel is a
+unique name carrying the emulated CiA 402 drives and CiA 406 encoders (canopen LocalNodes), serial lines for
+the load-cell amplifier and the AHRS (socket pairs the drivers open as ``cdprsim://`` ports, or ptys with
+``serial_lines="pty"``: ``sim_backend.pty``), and one SYNC subscriber that runs the lockstep. The channel is a
 ``cdpr_sim`` one (``sim_backend.sim_bus``, a python-can interface plugin): a frame the master sends is handled in
 the master's own thread before its send returns, answers included, and the master's network has decoded the
 answers by then. The physics and the serial devices run one control period ahead of
@@ -58,7 +59,7 @@ from sim_backend.plant_link import (
     PlantView,
     child_process_possible,
 )
-from sim_backend.pty import open_pty_pair
+from sim_backend.pty import close_socket_line, open_pty_pair, open_socket_line
 from sim_backend.sim_bus import SimBus
 from sim_backend.xsens_emulator import XsensEmulator, XsensNoise
 
@@ -107,7 +108,10 @@ class SimBackend:
     platform is let settle there with the brakes on before power-on); ahrs_rate: the AHRS output rate (Hz)
     that :attr:`devices` asks the driver to request, as the ``ahrs: rate`` of a device file does;
     plant_process: run the physics and the serial devices in a child process (None: when the machine has a
-    second core for it; the results are the same either way).
+    second core for it; the results are the same either way); serial_lines: ``"socket"`` (default: a Unix socket
+    pair per device, which wakes its reader from the device's write) or ``"pty"`` (a pseudo-terminal per device,
+    its slave a device path as a USB adapter's; its bytes reach the reader through a kernel worker thread, late
+    on a loaded machine: docs/live.md). The same bytes reach the drivers either way.
 
     :attr:`physics` is the plant as the CAN nodes see it at the last SYNC (``sim_backend.plant_link.PlantView``).
     """
@@ -122,6 +126,7 @@ class SimBackend:
         heartbeat_period: float = 0.1,
         ahrs_rate: float = 100.0,
         plant_process: bool | None = None,
+        serial_lines: str = "socket",
     ):
         if not 0.0 < control_period <= 0.1:
             raise SimConfigError(f"SimBackend: control_period = {control_period!r} s must be in (0, 0.1].")
@@ -134,6 +139,9 @@ class SimBackend:
         self.true_robot = self.config.true_robot(robot)
         self.initial_pose = None if initial_pose is None else np.asarray(initial_pose, float).reshape(6)
         self.plant_process = plant_process
+        if serial_lines not in ("socket", "pty"):
+            raise SimConfigError(f"SimBackend: serial_lines = {serial_lines!r} is neither 'socket' nor 'pty'.")
+        self.serial_lines = serial_lines
         self.physics: PlantView | None = None
         self.devices: DeviceConfig | None = None
         self.drives: list[CanDriveEmulator] = []
@@ -146,6 +154,7 @@ class SimBackend:
         self._push = None  # the sway's force law (sway_push), made when first asked
         self._link: PlantLink | None = None
         self._fds: list[int] = []
+        self._urls: list[str] = []  # the socket lines' URLs (their driver's ends are held until close)
         self._bus: SimBus | None = None
         self._network = None
         self._started = False
@@ -171,16 +180,14 @@ class SimBackend:
             physics = self._make_physics()
             noise = self.config.sensors
             k_true = self.config.true_transmission(self.robot)
-            lc_fd, lc_path = open_pty_pair()
-            self._fds.append(lc_fd)
+            lc_fd, lc_path = self._open_line("loadcells")
             loadcells = LoadCellEmulator(
                 lc_fd, rngs[2 * n], channels=n, offsets=self.config.tension_offset(n),
                 gains=self.config.tension_gain(n), rate_hz=1.0 / self.control_period,
                 full_scale=self.robot.sensors.load_cell_full_scale, accuracy=self.robot.sensors.load_cell_accuracy,
                 noise_std=noise.loadcell_sigma, hysteresis=self.config.loadcell_hysteresis(),
             )
-            ahrs_fd, ahrs_path = open_pty_pair()
-            self._fds.append(ahrs_fd)
+            ahrs_fd, ahrs_path = self._open_line("ahrs")
             roll, pitch = self.config.ahrs_mounting()
             r_sd, p_sd, y_sd = noise.ahrs_sigma
             ahrs = XsensEmulator(ahrs_fd, rngs[2 * n + 1], mounting_roll=roll, mounting_pitch=pitch,
@@ -251,9 +258,22 @@ class SimBackend:
             except OSError:
                 pass
         self._fds = []
+        for url in self._urls:
+            close_socket_line(url)
+        self._urls = []
         self._started = False
 
     # -- setup helpers ------------------------------------------------------------------------------------
+    def _open_line(self, name: str) -> tuple[int, str]:
+        """A serial line for device ``name``: (the device's fd, the port the driver opens), closed by close()."""
+        if self.serial_lines == "pty":
+            fd, port = open_pty_pair()
+        else:
+            fd, port = open_socket_line(name)
+            self._urls.append(port)
+        self._fds.append(fd)
+        return fd, port
+
     def _new_physics(self) -> CablePhysics:
         """The plant at power-on, before any step."""
         robot = self.true_robot

@@ -1,22 +1,32 @@
-"""Pseudo-terminal pairs standing in for USB serial adapters.
+"""The simulated serial lines: pseudo-terminal pairs, or socket pairs, standing in for USB serial adapters.
 
-The emulated device owns the master side; the driver opens the slave path (``/dev/pts/N``) with pyserial
+A pty: the emulated device owns the master side; the driver opens the slave path (``/dev/pts/N``) with pyserial
 exactly as it opens ``/dev/ttyUSB0`` on the robot. The line is put in raw mode (no echo, no CR/LF
 translation, 8 bits) before anyone opens it, and the master is non-blocking: when nobody reads, the
 kernel buffer fills and further bytes are dropped, as a UART with no listener drops them.
+
+A socket line (:func:`open_socket_line`, the simulated prototype's): a Unix stream socket pair, the device's
+end non-blocking as a pty master; the driver opens the URL ``cdprsim://NAME`` through pyserial's
+``serial_for_url`` (handler: :mod:`sim_backend.protocol_cdprsim`). A pty hands the master's bytes to the slave's
+reader through the kernel's tty buffer work, run by a kernel worker thread of normal priority: on a loaded
+machine 5-150 ms late (benchmarks/bench_serial_latency.py), which a control loop paced in real time in lockstep
+waits for at every tick; a socket's write wakes its reader itself, like a pipe's. Same bytes, same order.
 """
 
 from __future__ import annotations
 
 import errno
+import itertools
 import os
 import select
+import socket
 import threading
 import time
 import tty
 from collections.abc import Callable
 
 import numpy as np
+import serial
 
 
 def open_pty_pair() -> tuple[int, str]:
@@ -31,16 +41,47 @@ def open_pty_pair() -> tuple[int, str]:
     return master, path
 
 
+SOCKET_SCHEME = "cdprsim"  # the pyserial URL scheme of a socket line: cdprsim://NAME
+_socket_lines: dict[str, int] = {}  # NAME -> the driver's end of each open socket line (this process)
+_line_ids = itertools.count(1)
+
+
+def open_socket_line(name: str) -> tuple[int, str]:
+    """A serial line over a Unix socket pair: (the device's fd, non-blocking; the URL the driver opens with
+    ``serial.serial_for_url``). Close it with :func:`close_socket_line` (the URL) and ``os.close`` (the fd)."""
+    if __package__ not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append(__package__)  # pyserial's documented plug-in list
+    device, driver = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+    key = f"{name}-{os.getpid()}-{next(_line_ids)}"
+    _socket_lines[key] = driver.detach()
+    fd = device.detach()
+    os.set_blocking(fd, False)
+    return fd, f"{SOCKET_SCHEME}://{key}"
+
+
+def socket_line_fd(url: str) -> int:
+    """The driver's end of the open socket line ``url`` (KeyError when none)."""
+    return _socket_lines[url.split("://", 1)[1]]
+
+
+def close_socket_line(url: str) -> None:
+    """Close the driver's end held for ``url`` (a driver that opened it holds its own copy)."""
+    fd = _socket_lines.pop(url.split("://", 1)[1], None)
+    if fd is not None:
+        os.close(fd)
+
+
 def write_master(fd: int, data: bytes) -> int:
-    """Write to a pty master without blocking; returns the bytes accepted (the rest is dropped)."""
+    """Write to a pty master (or a socket line's device end) without blocking; returns the bytes accepted (the
+    rest is dropped)."""
     done = 0
     while done < len(data):
         try:
             done += os.write(fd, data[done:])
         except (BlockingIOError, InterruptedError):
             break
-        except OSError as exc:  # no slave open (EIO) or fd closed: the bytes go nowhere
-            if exc.errno in (errno.EIO, errno.EBADF):
+        except OSError as exc:  # no slave open (EIO), no driver's end left (EPIPE) or fd closed: the bytes go nowhere
+            if exc.errno in (errno.EIO, errno.EBADF, errno.EPIPE, errno.ECONNRESET):
                 break
             raise
     return done
@@ -55,14 +96,17 @@ def read_master(fd: int, timeout: float) -> bytes:
     if not ready:
         return b""
     try:
-        return os.read(fd, 4096)
+        data = os.read(fd, 4096)
     except (BlockingIOError, InterruptedError):
         return b""
     except OSError as exc:
-        if exc.errno in (errno.EIO, errno.EBADF):  # slave closed: select keeps reporting it readable
+        if exc.errno in (errno.EIO, errno.EBADF, errno.ECONNRESET):  # slave closed: select keeps reporting it
             select.select([], [], [], timeout)
             return b""
         raise
+    if not data:  # a socket line's every driver's end closed: readable for ever, nothing to read
+        select.select([], [], [], timeout)
+    return data
 
 
 class GaussianBlocks:

@@ -76,12 +76,11 @@ def test_all_effects_composed_jacobian_matches_finite_differences():
     assert model.n_params == 6 + 1 + 4 + 4 + 4 + 1 + 2 + 1 + 3 + 1 + 8 + 2 + 1 + 1 + 8 + 8 + 4 + 1
     vals = _values(model, rng)
     # cable_sag's columns leave out rho times the change of the cable weights' tensions with the pulley
-    # geometry, swivel_entry's the change of its corrections with the robot effects' geometry, swivel_friction's
-    # the change of the cable's lever with it (second order, documented): all 0 here, their own columns are
-    # checked alone
+    # geometry, swivel_friction's the change of the cable's lever with it (second order, documented): both 0
+    # here, their own columns are checked alone
     names = model.param_names[6:]
     for j, name in enumerate(names):
-        if name.startswith(("cable_sag.", "swivel_entry.", "swivel_friction.")):
+        if name.startswith(("cable_sag.", "swivel_friction.")):
             vals[j] = 0.0
     theta = model.initial_params(POSES[1] + 0.01 * rng.standard_normal(6), vals)
     _check_fd(model, theta, POSES[:3], rng.choice([-1.0, 0.0, 1.0], size=(3, ROBOT.n, 4)))

@@ -468,3 +468,104 @@ def test_a_stalled_publisher_process_costs_the_loop_nothing_but_dropped_ticks(tm
     assert 0 < view.published and view.scenes <= tap.handed and not view.errors
     assert f"{tap.dropped} of {tap.dropped + tap.handed} ticks dropped" in said.getvalue()
     assert proc.exitcode == 0  # it ended on the end record, not killed
+
+
+def _readings(serial_lines: str, ticks: int = 240) -> tuple[str, np.ndarray]:
+    """The drivers' port name and (ticks, n + 3) load cells, roll, pitch, yaw the loop reads in lockstep from a
+    simulated prototype whose serial lines are ``serial_lines`` (its winches held at a torque ramp)."""
+    from acquisition.clock import SimClock
+    from acquisition.connect import connect
+    from sim_backend.backend import SimBackend
+
+    robot = load_robot("irma4u")
+    clock = SimClock(0.005)
+    rows = []
+    with SimBackend(robot, None, 3, 0.005, serial_lines=serial_lines) as sim:
+        rig = connect(sim.devices, robot, clock, lockstep=True, period=0.005)
+        try:
+            for _ in range(ticks):
+                tk = clock.advance()
+                snap = rig.tick(tk.index, tk.t, 2.0)
+                rows.append([*snap.tau, snap.roll, snap.pitch, snap.yaw])
+                rig.command(np.full(robot.n, 0.2 + 1e-3 * tk.index))
+        finally:
+            rig.close()
+        port = sim.devices.loadcells.port
+    return port, np.array(rows)
+
+
+def test_the_simulated_serial_lines_are_socket_pairs_that_carry_the_ptys_bytes():
+    """The simulated prototype's load-cell and AHRS lines are Unix socket pairs (their write wakes the reader:
+    no kernel worker thread between the plant's process and the loop, docs/live.md) that the drivers open as
+    pyserial ``cdprsim://`` ports; the loop reads from them what it reads from ptys, reading for reading."""
+    from sim_backend.pty import socket_line_fd
+
+    port, by_socket = _readings("socket")
+    pty_port, by_pty = _readings("pty")
+    assert port.startswith("cdprsim://loadcells-") and pty_port.startswith("/dev/pts/")
+    assert by_socket.shape == (240, 7) and np.isfinite(by_socket).all() and np.ptp(by_socket[:, 0]) > 0
+    np.testing.assert_array_equal(by_socket, by_pty)
+    with pytest.raises(KeyError):
+        socket_line_fd(port)  # the backend closed its end of the line
+
+
+def test_the_hybrid_wait_sleeps_to_its_margin_then_polls_and_the_loop_runs_with_no_timer_slack():
+    """RealClock(spin=...): the sleep ends ``spin`` s before the deadline and the clock is polled to it; without
+    spin the sleep is the whole wait (acquisition/clock.py). Inside loop_runtime the thread's timer slack is
+    1 ns (Linux's default for a normal thread: 50 us), restored after."""
+    import ctypes
+
+    from acquisition.clock import RealClock, loop_runtime
+
+    now, slept, polls = [10.0], [], []
+
+    def sleep(d):
+        slept.append(d)
+        now[0] += d
+
+    def monotonic():
+        polls.append(now[0])
+        now[0] += 1e-4  # each look at the clock costs 0.1 ms of the fake wall time
+        return now[0]
+
+    rc = RealClock(0.005, monotonic=monotonic, sleep=sleep, spin=0.001)
+    rc.advance()
+    now[0] += 0.001  # the loop computes for 1 ms
+    first = len(polls)
+    rc.advance()
+    # time zero 10.0001 (the first look); the second tick's deadline 10.0051 is asked for at 10.0013
+    assert slept == [pytest.approx(10.0051 - 10.0013 - 0.001)]
+    # one look, then about ten polls (0.1 ms each, rounding) from the sleep's end to the deadline and no further
+    assert 11 <= len(polls) - first <= 12 and 10.0051 - 1e-9 <= now[0] <= 10.0052 + 1e-9
+    assert rc.overruns.count == 0
+    with pytest.raises(ValueError, match="spin"):
+        RealClock(0.005, spin=0.005)
+    if not sys.platform.startswith("linux"):
+        return
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+    before = prctl(30, 0, 0, 0, 0)  # PR_GET_TIMERSLACK
+    with loop_runtime():
+        inside = prctl(30, 0, 0, 0, 0)
+    assert (inside, prctl(30, 0, 0, 0, 0)) == (1, before) and before > 1
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="SCHED_FIFO is Linux's")
+def test_real_time_priority_given_to_a_process_reaches_every_thread_of_it():
+    """set_realtime(priority, pid) puts every thread of process pid under SCHED_FIFO (the simulated plant's
+    process: its main thread and its serial devices' threads share its interpreter lock), not only its first."""
+    from acquisition.clock import set_realtime
+
+    code = ("import threading, time; threading.Thread(target=time.sleep, args=(30,), daemon=True).start(); "
+            "print('ready', flush=True); time.sleep(30)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        tids = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task")]
+        assert len(tids) == 2
+        if set_realtime(7, proc.pid) is not None:
+            pytest.skip("this process may not use SCHED_FIFO (no rtprio limit)")
+        assert [os.sched_getscheduler(t) & ~os.SCHED_RESET_ON_FORK for t in tids] == [os.SCHED_FIFO] * 2
+        assert [os.sched_getparam(t).sched_priority for t in tids] == [7, 7]
+    finally:
+        proc.kill()
+        proc.wait()

@@ -154,3 +154,29 @@ def test_the_shared_covariance_from_the_blocks_is_that_block_of_the_dense_invers
     cov, rank = Arrow.of(runs, blocks, q, False).covariance()
     np.testing.assert_allclose(cov, dense, rtol=1e-8)
     assert rank == A.shape[1]
+
+
+def test_the_geodesic_acceleration_solves_the_same_damped_system_for_the_second_derivative():
+    """Arrow.gradient(r') is the dense J^T r' on unit-norm columns, and Arrow.step with it the dense damped
+    solve (N + damping diag N) a = -J^T r'; a shared column held at a bound (Arrow.pinned) gets no step and the
+    others are the dense solve without it."""
+    runs, q = _runs(np.random.default_rng(5))
+    blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
+    _, A, _ = stack(runs, q, blocks=blocks)
+    scale = np.linalg.norm(A, axis=0)
+    As = A / scale
+    N = As.T @ As
+    other = [np.random.default_rng(6).standard_normal(b.r.shape[0]) for b in blocks]
+    arrow = Arrow.of(runs, blocks, q, False)
+    lam = 1e-3 + RIDGE
+    acc, _ = arrow.step(lam, arrow.gradient(other))
+    dense = -np.linalg.solve(N + lam * np.diag(np.diag(N)), As.T @ np.concatenate(other))
+    np.testing.assert_allclose(acc, dense, rtol=1e-8, atol=1e-10 * np.abs(dense).max())
+    arrow.pinned = np.ones(q, bool)  # the shared sag density held
+    held, _ = arrow.step(lam)
+    g = As.T @ np.concatenate([b.r for b in blocks])
+    free = np.arange(q, A.shape[1])
+    Nf = N[np.ix_(free, free)]
+    dense = -np.linalg.solve(Nf + lam * np.diag(np.diag(Nf)), g[free])
+    assert np.all(held[:q] == 0.0)
+    np.testing.assert_allclose(held[free], dense, rtol=1e-8, atol=1e-10 * np.abs(dense).max())

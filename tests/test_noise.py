@@ -112,10 +112,48 @@ def test_variance_factors_measure_the_rows_scatter_and_only_shrink_the_sigmas():
             assert shrunk is None
 
 
+def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
+    """Issue 29: 27 simulated equilibria whose cable-1 swivel readings carry twice the noise of the others
+    (variance 4x), weighed with one sigma for all four: the per-cable Helmert factors find cable 1's near 4x
+    the others' (their redundancies sum to the group's), and rescaled_sigma splits the group's sigma among
+    the cables by sqrt(f_i / f), at the group's level; one cable with too few degrees of freedom
+    (VCE_MIN_REDUNDANCY), or a group scattering beyond its noise's chi2 band, leaves the group pooled."""
+    from calib.selfcal.lm import levenberg_marquardt
+    from calib.selfcal.model import MeasurementModel
+    from calib.selfcal.noise import PER_CABLE, VCE_MIN_REDUNDANCY, rescaled_sigma, variance_factors
+    from calib.selfcal.problem import Problem
+    from sim_backend.config import sim_config_from_dict
+    from sim_backend.equilibrium_rows import simulated_rows
+
+    rows = simulated_rows(ROBOT, sim_config_from_dict({}), seed=4, grid=3, device_biases=False)
+    sw = float(np.asarray(rows.sigma["swivel"], float)[0])
+    rows.meas.dsigma[:, 0] += np.random.default_rng(7).normal(0.0, math.sqrt(3.0) * sw, rows.meas.k)
+    sigma = {c: np.asarray(v, float) for c, v in rows.sigma.items()}
+    problem = Problem(MeasurementModel(ROBOT), rows.meas, sigma)
+    res = levenberg_marquardt(problem, rows.zeta0.copy(), rows.poses.copy())
+    fac = variance_factors(problem, res.theta, res.poses, PER_CABLE)
+    per = np.array([fac[f"swivel.{i}"] for i in range(4)])
+    assert sum(per[:, 1]) == pytest.approx(fac["swivel"][1], rel=1e-9)
+    assert np.all(per[:, 1] > VCE_MIN_REDUNDANCY)
+    assert 2.0 < per[0, 0] / np.mean(per[1:, 0]) < 8.0, per
+    out = rescaled_sigma(sigma, fac)
+    split = np.sqrt(per[:, 0] / fac["swivel"][0]) * (math.sqrt(fac["swivel"][0]) if fac["swivel"][0] < 0.98 else 1)
+    np.testing.assert_allclose(out["swivel"], sw * split, rtol=1e-9)
+    assert out["swivel"][0] > 1.4 * np.max(out["swivel"][1:])
+    thin = dict(fac, **{"swivel.3": (per[3, 0], 0.5 * VCE_MIN_REDUNDANCY)})
+    pooled = rescaled_sigma(sigma, thin)
+    assert pooled is None or np.ptp(pooled["swivel"]) == 0.0
+    # rows scattering 5x their variance on these degrees of freedom: model error, which a split would share out
+    beyond = dict(fac, swivel=(5.0, fac["swivel"][1]))
+    pooled = rescaled_sigma(sigma, beyond)
+    assert pooled is None or np.ptp(pooled["swivel"]) == 0.0
+
+
 def test_a_group_dominated_by_model_error_weighs_what_its_rows_scatter_by():
     """Issue 28: a group whose rows scatter around the fit by far more than its window-mean sigma (Helmert
     factor above MISFIT_FACTOR) is model error: its sigma becomes its rows' scatter; a group the fit cannot
-    judge (fewer than VCE_MIN_REDUNDANCY degrees of freedom) is then floored at the sensors' specifications;
+    judge (fewer than VCE_MIN_REDUNDANCY degrees of freedom, or a misfit on fewer than MISFIT_MIN_REDUNDANCY:
+    yaw, 2.5) is then floored at the sensors' specifications;
     factors between 1 and MISFIT_FACTOR change nothing, and without a dominated group nothing is floored."""
     from calib.selfcal import sensor_noise
     from calib.selfcal.noise import MISFIT_FACTOR, rescaled_sigma
@@ -134,6 +172,9 @@ def test_a_group_dominated_by_model_error_weighs_what_its_rows_scatter_by():
     out = rescaled_sigma(sigma, calm, floor)
     np.testing.assert_allclose(out["orientation"], sigma["orientation"])
     assert out["tension"][0] == pytest.approx(0.2)
+    # noise, not misfit, on 3 degrees of freedom (more than 2): the group comes down to its rows' scatter
+    out = rescaled_sigma(sigma, dict(calm, length=(0.25, 3.0)), floor)
+    assert out["length"][0] == pytest.approx(0.5e-4)
 
 
 def test_the_reference_window_follows_its_channels_down_never_up():
@@ -147,7 +188,7 @@ def test_the_reference_window_follows_its_channels_down_never_up():
 
     within = {"tension": np.full(4, 0.2), "length": np.full(4, 1e-6), "swivel": np.full(4, 4e-6),
               "orientation": np.array([5e-5, 5e-5, 4e-5])}
-    fac = {"tension": (900.0, 22.0), "length": (0.01, 2.0), "swivel": (0.25, 20.0), "tilt": (1.0, 9.0),
+    fac = {"tension": (900.0, 22.0), "length": (0.01, 1.5), "swivel": (0.25, 20.0), "tilt": (1.0, 9.0),
            "yaw": (0.64, 6.0)}
     rows = rescaled_sigma(within, fac, sensor_noise(ROBOT))
     ref = reference_sigma(rows, within)
@@ -180,3 +221,19 @@ def test_estimate_noise_stays_near_the_paper_solve_on_the_misfitting_real_run(ir
     d_est = np.linalg.norm(est.initial_pose[:3] - zeta_0_real)
     assert d_est <= d_paper + 0.002, (d_est, d_paper)
     assert np.linalg.norm(est.initial_pose[:3] - paper.initial_pose[:3]) < 0.02
+
+
+def test_the_reference_prior_follows_each_cables_sigma():
+    """Issue 29: rows weighed with one swivel sigma per cable give the reference window one prior per cable
+    (scaled to its size, variances as 1 / size), kept as a list, and the same priors come back from it
+    (calib.runrows rebuilds them from `cdpr solve --json`'s reference_noise); equal sigmas stay one number."""
+    from calib.effects.priors import ReferenceNoise
+
+    sigma = {"tension": np.full(4, 0.1), "length": np.full(4, 4e-7), "swivel": np.array([1e-6, 2e-6, 2e-6, 4e-6]),
+             "orientation": np.array([1e-4, 1e-4, 2e-4])}
+    prior = ReferenceNoise.for_rows(sigma, np.array([[0, 39], [50, 89]]), 10)  # 40-sample rows, a 10-sample ref
+    np.testing.assert_allclose(prior.sd["swivel"], [2e-6, 4e-6, 4e-6, 8e-6])
+    assert prior.sd["length"] == pytest.approx(8e-7)
+    again = ReferenceNoise(**prior.sd)
+    sd = [s.prior for s in again.params(ROBOT)]
+    np.testing.assert_allclose(sd, [8e-7] * 4 + [2e-6, 4e-6, 4e-6, 8e-6] + [4e-4])

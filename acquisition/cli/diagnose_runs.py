@@ -106,12 +106,14 @@ def solve_with_model_file(args, run, reference, solve_kwargs: dict[str, Any]):
     prior = load_prior(args.model, run.robot, classes)
     kw = {k: v for k, v in solve_kwargs.items() if k not in ("noise", "reference_pose")}
     rows = run_rows(run, "estimate", kw.get("method", "tlse"), int(kw.get("stride", 1)), kw.get("reference_sample"))
-    rf = solve_with_model(rows, prior, Path(args.run).name)
+    fit = solve_with_model(rows, prior, Path(args.run).name)
+    rf = fit.runs[0]
     sol = solve(rows.robot, run, model=rf.problem.model, guess=(rf.theta, rf.poses), noise=rf.sigma,
                 reference_pose=reference, max_iter=0, **kw)
     sol.noise_source = "estimate (variance components)"
+    sol.converged, sol.iterations = fit.converged, fit.iterations
     sol.effects = {k: {a: b for a, b in v.items() if math.isfinite(b)} for k, v in rf.params().items()}
     drift = rf.params().get("ahrs_yaw_drift", {}).get("deg_per_hour", float("nan"))
     line = (f"model {args.model}: " + ", ".join(e.name for e in prior) + f" as priors; this run's yaw drift "
-            f"{drift:.1f} deg/h\n")
+            f"{drift:.1f} deg/h; the fit {fit.convergence_words()}\n")
     return sol, line

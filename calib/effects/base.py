@@ -24,7 +24,7 @@ stages:
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -101,7 +101,8 @@ class Context:
     (k, n, 4): [..., 0] the way each cable last moved before the row (+1 paid out, -1 reeled in), [..., 1]
     the way its tension last changed (+1 rising, -1 falling), [..., 2] the way its swivel last turned (+1 up),
     [..., 3] the way it last turned before the reference sample; 0 or None: unknown (older callers pass the
-    first two only)."""
+    first two only). ``robot_cols``: the theta columns of the robot effects, and ``robot_at(theta)`` the robot
+    with them at theta, for a reading effect whose edit depends on the geometry they change."""
 
     robot: Robot
     poses: np.ndarray
@@ -111,6 +112,8 @@ class Context:
     ref: Physical
     times: np.ndarray | None = None
     approach: np.ndarray | None = None
+    robot_cols: tuple[int, ...] = ()
+    robot_at: Callable[[np.ndarray], Robot] | None = None
 
 
 class Effect:
@@ -267,6 +270,8 @@ class EffectModel:
             self.slices.append(slice(start, start + len(s)))
             start += len(s)
         self._p = start
+        self._robot_cols = tuple(j for e, sl in zip(self.effects, self.slices, strict=True) if e.stage == "robot"
+                                 for j in range(sl.start, sl.stop))
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -384,7 +389,8 @@ class EffectModel:
             (i for i, e in enumerate(self.effects) if e.stage == "reading"), key=lambda i: self.effects[i].order
         )
         for i in readers:
-            ctx = Context(robot, z, theta, self.slices[i], at, ref, times, approach)
+            ctx = Context(robot, z, theta, self.slices[i], at, ref, times, approach, self._robot_cols,
+                          self.true_robot)
             self.effects[i].transform(ctx, np.asarray(theta[self.slices[i]]), out)
         return out
 

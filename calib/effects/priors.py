@@ -58,6 +58,12 @@ class DeviceAccuracy(Effect):
                 pr.d_theta[:, 2, a + n + 2] = t
 
 
+def _per_cable(sd) -> float | list[float]:
+    """A prior sigma given once for every cable (a float) or per cable (a list of floats; one value if all equal)."""
+    v = np.atleast_1d(np.asarray(sd, float)).ravel()
+    return float(v[0]) if v.size == 1 or np.all(v == v[0]) else [float(x) for x in v]
+
+
 class ReferenceNoise(Effect):
     """The noise of the reference window's means. The relative channels (cable lengths, swivel angles, yaw)
     of every row are read relative to the reference window's mean, so that mean's own error e, as large as
@@ -73,8 +79,9 @@ class ReferenceNoise(Effect):
     order = 46
     description = "noise of the reference window's means in the relative channels (m, rad)"
 
-    def __init__(self, length: float = 0.0, swivel: float = 0.0, yaw: float = 0.0):
-        self.sd = {"length": float(length), "swivel": float(swivel), "yaw": float(yaw)}
+    def __init__(self, length: float | list[float] = 0.0, swivel: float | list[float] = 0.0, yaw: float = 0.0):
+        """Prior sigmas of the reference means: per relative channel one for every cable, or a list per cable."""
+        self.sd = {"length": _per_cable(length), "swivel": _per_cable(swivel), "yaw": float(yaw)}
 
     @classmethod
     def for_rows(cls, sigma: dict[str, np.ndarray], windows: np.ndarray | None, ref_size: int) -> ReferenceNoise:
@@ -85,15 +92,16 @@ class ReferenceNoise(Effect):
         nh = 1.0 / float(np.mean(1.0 / sizes)) if sizes is not None and sizes.size and np.all(sizes > 0) else 1.0
         scale = math.sqrt(nh / max(int(ref_size), 1))
         o = np.asarray(sigma["orientation"], float)
-        return cls(float(np.max(sigma["length"])) * scale, float(np.max(sigma["swivel"])) * scale,
-                   float(o[2]) * scale)
+        return cls(_per_cable(np.asarray(sigma["length"], float) * scale),
+                   _per_cable(np.asarray(sigma["swivel"], float) * scale), float(o[2]) * scale)
 
     def params(self, robot: Robot) -> list[ParamSpec]:
         # the prior is the run's own noise of a mean (calib.selfcal.noise), not a plausibility bound
         out = []
         for c, unit in (("length", "m"), ("swivel", "rad")):
-            if self.sd[c] > 0:
-                out += [ParamSpec(f"d_{c}_{i + 1}", unit, 0.0, -np.inf, np.inf, self.sd[c], prior=self.sd[c])
+            sd = np.broadcast_to(np.asarray(self.sd[c], float), (robot.n,))
+            if np.all(sd > 0):
+                out += [ParamSpec(f"d_{c}_{i + 1}", unit, 0.0, -np.inf, np.inf, float(sd[i]), prior=float(sd[i]))
                         for i in range(robot.n)]
         if self.sd["yaw"] > 0:
             out.append(ParamSpec("d_yaw", "rad", 0.0, -np.inf, np.inf, self.sd["yaw"], prior=self.sd["yaw"]))
@@ -102,7 +110,7 @@ class ReferenceNoise(Effect):
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         n, j = ctx.robot.n, 0
         for c in ("length", "swivel"):
-            if self.sd[c] <= 0:
+            if not np.all(np.asarray(self.sd[c], float) > 0):
                 continue
             if c in preds:
                 pr = preds[c]

@@ -138,13 +138,30 @@ class SwivelEntry(Effect):
         cols_S = np.stack([np.zeros_like(s), -1.0 / s], axis=-1)
         return L1 - L0, dS, dL, dSd, cols_L, cols_S
 
+    @classmethod
+    def _geometry_columns(cls, ctx: Context, values: np.ndarray, poses: np.ndarray, base: tuple
+                          ) -> tuple[np.ndarray, np.ndarray]:
+        """d(change of L, sigma)/d(robot effects' columns) (k, n, p): the entry's corrections move with the
+        geometry the robot effects change (a tilted swivel axis turns the pulley's u and k): forward differences
+        of relative step 1e-6 of max(|value|, 1e-2) per robot column (one inverse kinematics each)."""
+        k, n = base[0].shape
+        cL, cS = np.zeros((k, n, ctx.theta.size)), np.zeros((k, n, ctx.theta.size))
+        for c in ctx.robot_cols if ctx.robot_at is not None and values.any() else ():
+            th = ctx.theta.copy()
+            h = 1e-6 * max(abs(th[c]), 1e-2)
+            th[c] += h
+            plus = cls._changes(ctx.robot_at(th), poses, values)
+            cL[..., c], cS[..., c] = (plus[0] - base[0]) / h, (plus[1] - base[1]) / h
+        return cL, cS
+
     def transform(self, ctx: Context, values: np.ndarray, preds: dict[str, ChannelPrediction]) -> None:
         n, c0 = ctx.robot.n, ctx.cols.start
         idx = c0 + 2 * np.arange(n)
         a = self._changes(ctx.robot, ctx.poses, values)
         b = self._changes(ctx.robot, ctx.theta[None, :6], values)
         for ph, (dv_L, dv_S, dp_L, dp_S, cL, cS), at_ref in ((ctx.at, a, False), (ctx.ref, b, True)):
-            tL, tS = ph.tL.copy(), ph.tsigma.copy()
+            gL, gS = self._geometry_columns(ctx, values, ctx.theta[None, :6] if at_ref else ctx.poses, (dv_L, dv_S))
+            tL, tS = ph.tL + gL, ph.tsigma + gS
             rows = np.arange(n)
             for j in range(2):
                 tL[:, rows, idx + j] = cL[..., j]

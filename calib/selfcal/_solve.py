@@ -12,6 +12,7 @@ from calib.robot import Robot
 from calib.selfcal.guess import prepare
 from calib.selfcal.lm import levenberg_marquardt
 from calib.selfcal.noise import (
+    PER_CABLE,
     pose_free_noise,
     reference_sigma,
     rescaled_sigma,
@@ -66,7 +67,8 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
         # window's mean follows its channels down, never up (noise.reference_sigma)
         within, floor = noise.sigma, sensor_noise(robot)
         for _ in range(VCE_ROUNDS_ROWS):
-            shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses), floor)
+            shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses, PER_CABLE),
+                                    floor)
             if shrunk is None:
                 break
             model, theta = _with_reference_noise(robot, model, res.theta, reference_sigma(shrunk, within),

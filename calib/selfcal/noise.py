@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.chi2 import chi2_sf
 from calib.robot import Robot
 
 QUANTISED = 0.5  # fewer non-zero second differences than this share: a quantised reading, not noise
@@ -268,7 +269,16 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
 
 
 VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")
-VCE_MIN_REDUNDANCY = 5.0  # a group with fewer degrees of freedom keeps its within-window sigma
+# a group (or a cable's rows) needs more degrees of freedom r than this for a component of its own: the weight
+# a Helmert factor of r degrees of freedom sets, 1/factor, has a finite expectation (r / (r - 2) times the
+# true weight) only for r > 2; with fewer the group keeps its within-window sigma
+VCE_MIN_REDUNDANCY = 2.0
+# model error is a stronger verdict than noise: a group is found dominated by it (scaled up to its rows' scatter,
+# the unjudged groups floored at the sensors' specifications) only on at least this many degrees of freedom
+# (issue 28: with fewer, a real run's small AHRS and length groups were scaled by one noisy factor each)
+MISFIT_MIN_REDUNDANCY = 5.0
+PER_CABLE = ("swivel",)  # groups whose cables get components of their own where each cable's rows carry them
+NOISE_LEVEL = 0.01  # a group's rows scatter as noise while its factor x redundancy is inside this two-sided chi2 band
 VCE_SETTLED = 0.98  # a factor above this is 1: nothing left to shrink
 # a factor above this: the group's rows scatter around the fit by more than ~3 times the noise of a window mean
 # (far beyond what a mis-estimated noise does: the within-window estimate is within ~1.6x of the scatter of
@@ -277,28 +287,32 @@ VCE_SETTLED = 0.98  # a factor above this is 1: nothing left to shrink
 MISFIT_FACTOR = 10.0
 
 
-def variance_factors(problem, theta: np.ndarray, poses: np.ndarray) -> dict[str, tuple[float, float]]:
+def variance_factors(problem, theta: np.ndarray, poses: np.ndarray, per_cable: tuple[str, ...] = ()
+                     ) -> dict[str, tuple[float, float]]:
     """Per channel group (tensions, lengths, swivel angles, roll and pitch, yaw; the reference row's tensions
     and roll/pitch count with their group), Helmert's variance factor of the window means at a solution and
     the group's redundancy: sum r_i^2 / sum (1 - h_ii) of the weighted residuals r, h the hat matrix of the
     whitened fit over theta and every pose (dense: a few hundred rows). 1 when the group's sigma is what its
-    rows scatter by around the fitted model."""
+    rows scatter by around the fitted model. For the groups in ``per_cable`` each cable's rows also get
+    their own factor and redundancy, under the key "group.i" (i from 0)."""
     ev = problem.evaluate(theta, poses)
     k, p = poses.shape[0], theta.size
     n = problem.model.robot.n
-    res, rows, labels = [], [], []
+    res, rows, labels, cables = [], [], [], []
     for g, r, J, G in ev.groups:
         m = g.idx.size
         full = np.zeros((m, r.shape[1], p + 6 * k))
         full[..., :p] = G
         full[np.arange(m)[:, None], :, p + 6 * g.idx[:, None] + np.arange(6)[None, :]] = J.transpose(0, 2, 1)
-        names = []
+        names, which = [], []
         for c in g.channels:
             names += ["tilt", "tilt", "yaw"] if c == "orientation" else [c] * n
+            which += [-1, -1, -1] if c == "orientation" else list(range(n))
         keep = g.weight > 0
         res.append(r[keep])
         rows.append(full[keep])
         labels.append(np.broadcast_to(np.array(names), r.shape)[keep])
+        cables.append(np.broadcast_to(np.array(which), r.shape)[keep])
     ref: list[str] = []
     for c in problem.ref_channels:
         ref += [c] * n if c == "tension" else ["tilt", "tilt", "yaw"]
@@ -309,14 +323,21 @@ def variance_factors(problem, theta: np.ndarray, poses: np.ndarray) -> dict[str,
     res.append(ev.r0[keep0])
     rows.append(g0[keep0])
     labels.append(np.array(ref)[keep0])
-    r, lab = np.concatenate(res), np.concatenate(labels)
+    cables.append(np.full(len(ref), -1)[keep0])  # the reference row and the priors: their group's only
+    r, lab, cable = np.concatenate(res), np.concatenate(labels), np.concatenate(cables)
     q, _ = np.linalg.qr(np.vstack(rows))
     red = 1.0 - np.sum(q * q, axis=1)
     out = {}
+
+    def factor(m: np.ndarray) -> tuple[float, float]:
+        return float(np.sum(r[m] ** 2) / max(float(np.sum(red[m])), 1e-12)), float(np.sum(red[m]))
+
     for c in VCE_GROUPS:
         m = lab == c
         if m.any():
-            out[c] = (float(np.sum(r[m] ** 2) / max(float(np.sum(red[m])), 1e-12)), float(np.sum(red[m])))
+            out[c] = factor(m)
+        if c in per_cable:
+            out |= {f"{c}.{i}": factor(m & (cable == i)) for i in range(n) if np.any(m & (cable == i))}
     return out
 
 
@@ -343,9 +364,10 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
         else:
             out[c] = out[c] * s
 
-    misfit = any(red >= VCE_MIN_REDUNDANCY and f > MISFIT_FACTOR for f, red in factors.values())
-    for c, (f, red) in factors.items():
-        if red < VCE_MIN_REDUNDANCY:
+    groups = {c: v for c, v in factors.items() if "." not in c}
+    misfit = any(red >= MISFIT_MIN_REDUNDANCY and f > MISFIT_FACTOR for f, red in groups.values())
+    for c, (f, red) in groups.items():
+        if red < VCE_MIN_REDUNDANCY or (f > MISFIT_FACTOR and red < MISFIT_MIN_REDUNDANCY):
             if misfit and floor is not None:
                 ch, sl = ("orientation", slice(0, 2)) if c == "tilt" else ("orientation", slice(2, 3)) \
                     if c == "yaw" else (c, slice(None))
@@ -354,10 +376,20 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
                     out[ch][sl] = np.maximum(out[ch][sl], np.asarray(floor[ch], float)[sl])
                     changed = True
             continue
-        if VCE_SETTLED <= f <= MISFIT_FACTOR:
-            continue
-        scale(c, math.sqrt(max(f, 1e-6)))
-        changed = True
+        if not VCE_SETTLED <= f <= MISFIT_FACTOR:
+            scale(c, math.sqrt(max(f, 1e-6)))
+            changed = True
+        if f > MISFIT_FACTOR:
+            continue  # model error: the group's rows together, as they scatter
+        cable = [factors.get(f"{c}.{i}") for i in range(out[c].size)] if c not in ("tilt", "yaw") else [None]
+        p = chi2_sf(f * red, red)
+        if 2.0 * min(p, 1.0 - p) >= NOISE_LEVEL and all(v is not None and v[1] >= VCE_MIN_REDUNDANCY for v in cable):
+            # the cables' own components split the group's level among them (f_i / f each), where the group
+            # scatters as its noise does: beyond that it holds model error, which the split would only share out
+            split = np.sqrt(np.maximum([v[0] for v in cable], 1e-6) / max(f, 1e-6))
+            if np.max(np.abs(split - 1.0)) > 1.0 - VCE_SETTLED:
+                out[c] = out[c] * split
+                changed = True
     return out if changed else None
 
 

@@ -111,7 +111,8 @@ class Solution:
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
     reference: ReferenceComparison | None = None
     window_search: WindowSearch | None = None
-    reference_noise: dict[str, float] | None = None  # priors of the reference window's noise (m, rad, rad)
+    # priors of the reference window's noise (m, rad, rad): one value, or one per cable where they differ
+    reference_noise: dict[str, float | list[float]] | None = None
 
     @property
     def sigma_scale(self) -> float:
@@ -160,7 +161,8 @@ class Solution:
                 "ripple_tol": float(ws.ripple_tol),
             }
         if self.reference_noise is not None:
-            out["reference_noise"] = {k: float(v) for k, v in self.reference_noise.items()}
+            out["reference_noise"] = {k: v if isinstance(v, list) else float(v)  # a list: one per cable
+                                      for k, v in self.reference_noise.items()}
         if self.reference is not None:
             out["reference"] = {
                 "eps_p": self.reference.eps_p,

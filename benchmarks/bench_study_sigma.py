@@ -1,0 +1,76 @@
+"""Is the study's 1-sigma honest per axis (issue 29, done-when 2; not collected by pytest)?
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_study_sigma.py --keep DIR [--runs 200] [--first 0]
+
+Simulated grid2 startups as `cdpr study --plan grid2` runs them (acquisition.study.startup_request, the
+seed's sensor noise and power-on pose), kept with their truth in DIR (made once: a second call only
+re-solves them, about 0.5 s of CPU a run), each re-solved with this checkout's estimate-noise solve (what
+`cdpr startup` prints) and scored as the study scores it (run_result against the pose the reference
+window's mean readings describe, plan_statistics). Prints the study's per-axis rms(error/sigma) and
+coverage of the 1-sigma; targets 0.8-1.25 and 60-76 % on every axis. Exits 1 on a miss.
+With N runs a coverage is known to about +-sqrt(0.68 x 0.32 / N) (3.3 % at 200).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from pathlib import Path
+
+RMS_BAND = (0.8, 1.25)
+COVERAGE_BAND = (0.60, 0.76)
+
+
+def kept_startup(folder: Path, seed: int) -> None:
+    """The study's grid2 startup of ``seed`` in folder/run with its truth in folder/truth.json (made once)."""
+    from acquisition import session
+    from acquisition.study import RunTask, StudyConfig, startup_request
+
+    if (folder / "truth.json").exists():
+        return
+    task = RunTask("grid2", seed, StudyConfig())
+    session.run_startup(startup_request(task, str(folder / "run"), str(folder / "truth.json"), None))
+
+
+def scored(folder: Path, seed: int) -> dict:
+    """The run re-solved with this checkout and scored as `cdpr study` scores it (acquisition.study.run_result)."""
+    from acquisition.runlog import read_run
+    from acquisition.study import RunTask, StudyConfig, run_result
+    from calib.selfcal import solve
+
+    run = read_run(folder / "run")
+    sol = solve(run.robot, run, noise="estimate")
+    summary = {"solution": sol.to_json(), "timing": {"acquisition_s": 0.0}, "windows": [], "setpoints": 8}
+    return run_result(RunTask("grid2", seed, StudyConfig()), summary, json.loads((folder / "truth.json").read_text()))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--keep", required=True, help="folder of the kept startups (made on the first call)")
+    ap.add_argument("--runs", type=int, default=200)
+    ap.add_argument("--first", type=int, default=0, help="first seed")
+    args = ap.parse_args()
+    warnings.simplefilter("ignore")
+    from acquisition.study import plan_statistics
+
+    results = []
+    for seed in range(args.first, args.first + args.runs):
+        folder = Path(args.keep) / f"s{seed:05d}"
+        kept_startup(folder, seed)
+        results.append(scored(folder, seed))
+    axes = plan_statistics(results)["axes"]
+    ok = True
+    for name, rms, cov in zip("xyz", axes["rms_error_over_sigma"], axes["coverage_1sigma"], strict=True):
+        hit = RMS_BAND[0] <= rms <= RMS_BAND[1] and COVERAGE_BAND[0] <= cov <= COVERAGE_BAND[1]
+        ok &= hit
+        print(f"{name}: rms(error/sigma) {rms:.2f} (target {RMS_BAND[0]}-{RMS_BAND[1]}), coverage of the 1-sigma "
+              f"{100 * cov:.0f} % (target {100 * COVERAGE_BAND[0]:.0f}-{100 * COVERAGE_BAND[1]:.0f} %) "
+              f"{'ok' if hit else 'MISS'}")
+    print(f"{'PASS' if ok else 'FAIL'}: {len(results)} grid2 startups, seeds {args.first}-{args.first + args.runs - 1}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
