@@ -7,14 +7,11 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
 from calib.fitting import Residuals
-
-if TYPE_CHECKING:
-    from calib.multirun import RunFit
 
 SINGULAR = 1e-13  # a block whose eigenvalue ratio is below this is singular to working precision (the SVD decides)
 
@@ -58,8 +55,9 @@ class Arrow:
     _last: tuple | None = field(default=None, repr=False)  # the reduced matrix of the last damping
 
     @classmethod
-    def of(cls, runs: list[RunFit], blocks: list[Residuals], q: int, fixed_shared: bool) -> Arrow:
-        """From the runs' Residuals: a pose's columns only meet that pose's rows, so the pose blocks of the
+    def of(cls, runs: list[Any], blocks: list[Residuals], q: int, fixed_shared: bool) -> Arrow:
+        """From the runs (:class:`calib.multirun.RunFit`: its poses and theta) and their Residuals: a pose's
+        columns only meet that pose's rows, so the pose blocks of the
         normal matrix are 6 x 6 (no dense m x (6k + p) product)."""
         qq = 0 if fixed_shared else q
         raw, cols, parts, start = [], [], [], qq
