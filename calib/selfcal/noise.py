@@ -386,8 +386,10 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
         if f > MISFIT_FACTOR:
             continue  # model error: the group's rows together, as they scatter
         cable = [factors.get(f"{c}.{i}") for i in range(out[c].size)] if c not in ("tilt", "yaw") else [None]
+        if not all(v is not None and v[1] >= VCE_MIN_REDUNDANCY for v in cable):
+            continue  # no components of its cables (not asked for, or too few degrees of freedom)
         p = chi2_sf(f * red, red)
-        if 2.0 * min(p, 1.0 - p) >= NOISE_LEVEL and all(v is not None and v[1] >= VCE_MIN_REDUNDANCY for v in cable):
+        if 2.0 * min(p, 1.0 - p) >= NOISE_LEVEL:
             # the cables' own components split the group's level among them (f_i / f each), where the group
             # scatters as its noise does: beyond that it holds model error, which the split would only share out
             split = np.sqrt(np.maximum([v[0] for v in cable], 1e-6) / max(f, 1e-6))
