@@ -49,7 +49,7 @@ def _to_the_bottom(fit: multirun.JointFit, monkeypatch) -> tuple[float, float]:
 def test_the_curved_valley_is_followed_to_its_bottom_and_a_cap_is_said(medium_runs, monkeypatch):
     """With geodesic acceleration the fit converges well within its cap and is where a 1e5 times tighter
     criterion leaves it (chi2 within 0.01, compliance within 0.1 sigma); with straight steps (acceleration
-    refused) the same fit stops at the cap 0.5-1.5 sigma short of it (0.94 measured), and says so."""
+    refused) the same fit stops at the cap 0.3-0.6 sigma short of it, and says so."""
     fit = _pair_fit(medium_runs)
     conv = fit.convergence()
     assert conv["converged"] and conv["criterion"] == "decrease" and conv["iterations"] < 40
@@ -58,13 +58,12 @@ def test_the_curved_valley_is_followed_to_its_bottom_and_a_cap_is_said(medium_ru
     sd = float(np.sqrt(fit.cov[0, 0]))
     chi2, c = _to_the_bottom(fit, monkeypatch)
     assert fit.chi2 - chi2 < 0.01 and abs(c - fit.values[0]) < 0.1 * sd
-    # EA (N) at the bottom of the valley: 9.2 kN with the swivel rows weighted per cable (5.6 kN pooled)
-    assert 8.0e3 < 1.0 / c < 10.5e3
+    assert 5.0e3 < 1.0 / c < 6.5e3  # EA (N) at the bottom of the valley
 
     monkeypatch.setattr(multirun, "GEO_ALPHA", 0.0)  # every acceleration refused: Marquardt's straight steps
     capped = _pair_fit(medium_runs)
     monkeypatch.undo()
     assert not capped.converged and capped.stop.reason == "cap" and capped.stop.remaining > 0.05
     assert capped.convergence_words().startswith("WARNING: not converged (stopped by the iteration cap")
-    assert 0.5 * sd < abs(capped.values[0] - c) < 1.5 * sd
+    assert 0.3 * sd < abs(capped.values[0] - c) < 0.6 * sd
     assert capped.chi2 - chi2 > 0.1

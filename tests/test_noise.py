@@ -120,7 +120,7 @@ def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
     (VCE_MIN_REDUNDANCY), or a group scattering beyond its noise's chi2 band, leaves the group pooled."""
     from calib.selfcal.lm import levenberg_marquardt
     from calib.selfcal.model import MeasurementModel
-    from calib.selfcal.noise import PER_CABLE, VCE_MIN_REDUNDANCY, rescaled_sigma, variance_factors
+    from calib.selfcal.noise import VCE_MIN_REDUNDANCY, rescaled_sigma, variance_factors
     from calib.selfcal.problem import Problem
     from sim_backend.config import sim_config_from_dict
     from sim_backend.equilibrium_rows import simulated_rows
@@ -131,7 +131,7 @@ def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
     sigma = {c: np.asarray(v, float) for c, v in rows.sigma.items()}
     problem = Problem(MeasurementModel(ROBOT), rows.meas, sigma)
     res = levenberg_marquardt(problem, rows.zeta0.copy(), rows.poses.copy())
-    fac = variance_factors(problem, res.theta, res.poses, PER_CABLE)
+    fac = variance_factors(problem, res.theta, res.poses, ("swivel",))
     per = np.array([fac[f"swivel.{i}"] for i in range(4)])
     assert sum(per[:, 1]) == pytest.approx(fac["swivel"][1], rel=1e-9)
     assert np.all(per[:, 1] > VCE_MIN_REDUNDANCY)
