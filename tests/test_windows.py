@@ -191,7 +191,8 @@ def test_online_and_offline_judge_a_record_identically(robot, seed):
     t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, sway=0.002)
     # the spans' judgement alone (the ends test, which both also apply, is test_the_detector_waits_for_...;
     # the offline cut where the reference moves is the detector's start after each move, tau_ref left out)
-    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, None, sp, options=WindowOptions(ends_p=0.0))
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, None, sp,
+                        options=WindowOptions(ends_p=0.0, settle_test_p=0.0))
     offline = [(w.first, w.last) for w in ws.found]
     assert len(offline) == 10 and not any(w.quasi for w in ws.found)
     given = Stillness(5, ws.thresholds, ws.ripple_tol)
@@ -225,7 +226,8 @@ def test_windows_cut_the_creep_towards_rest_the_ranges_let_in(robot):
             rng = np.random.default_rng(seed)
             sp = _setpoints(rng, 8)
             t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, rest=5.0, noise=0.5, decay=1.0, hz=0.0)
-            ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp, options=WindowOptions(ends_p=p))
+            opt = WindowOptions(ends_p=p, settle_test_p=p)  # both off: the ranges alone
+            ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp, options=opt)
             assert [w.setpoint for w in ws.used] == list(range(8)) and not any(w.quasi for w in ws.used)
             creep = 4.0 * _swing(ref, 1.0, 0.0)
             shifts += [abs(float(creep[w.slice].mean())) for w in ws.used]
@@ -270,8 +272,8 @@ def test_on_the_real_sc_8_final_the_ends_test_cuts_only_motion_and_keeps_the_pap
     run = import_irma(irma_data / "sc_8_final_parsed.mat", tmp_path / "r",
                       targets=irma_data / "sc_control_target_8_final.mat")
     args = (run.robot, run.t, run.tau, run.dl, run.dsigma, run.roll, run.pitch, run.tau_ref, run.setpoints)
-    off = search_windows(*args, options=WindowOptions(ends_p=0.0))
-    on = search_windows(*args, options=WindowOptions(ends_p=1e-3))
+    off = search_windows(*args, options=WindowOptions(ends_p=0.0, settle_test_p=0.0))
+    on = search_windows(*args, options=WindowOptions(ends_p=1e-3, settle_test_p=0.0))
     assert sorted(w.setpoint for w in on.used) == list(range(8)) == sorted(w.setpoint for w in off.used)
     noise = quiet_noise(run.dl)
     assert np.all(noise < 0.02e-3)
@@ -286,7 +288,7 @@ def test_on_the_real_sc_8_final_the_ends_test_cuts_only_motion_and_keeps_the_pap
             assert np.max(np.abs(run.dl[end] - kept) / noise) > 10.0, (w0, w1, end)
     assert cut >= 8
     pose = [solve(run.robot, run, noise="paper", window_options=o).initial_pose[:3]
-            for o in (WindowOptions(ends_p=0.0), WindowOptions(ends_p=1e-3))]
+            for o in (WindowOptions(ends_p=0.0, settle_test_p=0.0), WindowOptions(ends_p=1e-3, settle_test_p=0.0))]
     assert np.linalg.norm(pose[1] - pose[0]) < 0.2e-3
 
 

@@ -68,6 +68,13 @@ class WindowOptions:
     # ends test at settle_p (when ends_p is 0) finds resting end to end: a hold-time rule for new startups
     settle_s: float = 3.0
     settle_p: float = 1e-3
+    # the settle test (:class:`SettleTest`): each end's block of settle_block_s against the middle half's mean
+    # and scatter, false-alarm probability settle_test_p per block (0: no test)
+    settle_block_s: float = 0.5
+    settle_test_p: float = 1e-3
+    # the tail too (off: a window's tail on the real robot is the next quintic's start, which its logged
+    # reference dates; cutting it moved the real 27-pose run's estimate by 4 mm)
+    settle_tail: bool = False
 
 
 @dataclass(frozen=True)
@@ -154,6 +161,14 @@ def quiet_noise(x: np.ndarray) -> np.ndarray:
     step = np.min(np.where(d1 > 0, d1, np.inf), axis=0)
     step = np.where(np.isfinite(step), step / math.sqrt(12.0), 0.0)
     return np.where(quiet > 0, quiet, np.maximum(sample_noise(x), step))
+
+
+def resolution(x: np.ndarray) -> np.ndarray:
+    """Per column of x (N, c), the smallest non-zero change between consecutive samples over sqrt(12): the
+    rounding error of a reading on its counts (a reading that never changes: 0)."""
+    d1 = np.abs(np.diff(x, axis=0))
+    step = np.min(np.where(d1 > 0, d1, np.inf), axis=0) if x.shape[0] > 1 else np.full(x.shape[1:], np.inf)
+    return np.where(np.isfinite(step), step / math.sqrt(12.0), 0.0)
 
 
 def slow_drift(x: np.ndarray, w: int, rest: np.ndarray) -> np.ndarray:
@@ -314,6 +329,111 @@ class EndsTest:
 
 
 @dataclass(frozen=True)
+class SettleTest:
+    """Whether a still stretch has settled at its ends: a platform still swinging or converging after a move
+    (the wobble of a lightly damped platform, the approach's last samples) shows at the stretch's start as
+    samples off its resting mean or scattered beyond its resting scatter, in every channel that sees the
+    motion (the AHRS the swing, the swivels and lengths the approach). The rest is the stretch's middle half:
+    per column its mean m and standard deviation s (the window's own scatter, so a creep or sway that the
+    whole window shares is the rest's, not an end's; floored at ``floor``, the run's quiet sample noise
+    of the column's counts, :func:`resolution`, for a reading that sits on one count there). An end block of ``q`` samples gives
+    T = sum over its samples and every column of ((x - m) / s)^2, at rest about chi2 with q x columns degrees
+    of freedom (scaled for the estimated m and s); above its 1 - p quantile the end still moves and one sample
+    is cut from it, until both end blocks pass (the test runs from the window's middle outward: what it keeps
+    is what matches the middle). A swing is caught by its scatter, a slow approach by its offset."""
+
+    q: int
+    p: float
+    floor: dict[str, np.ndarray]
+    tail: bool = True  # test the tail as well as the head
+
+    @classmethod
+    def of_samples(cls, tau: np.ndarray, channels: dict[str, np.ndarray], span: int,
+                   options: WindowOptions) -> SettleTest:
+        """The test of a run (tensions (N, n) N, ``channels`` as :func:`still_channels`): end blocks of
+        ``options.settle_block_s`` for a span of ``span`` samples of ``options.span_s``."""
+        per = options.span_s / span
+        every = {"tension": tau} | dict(channels)
+        # the encoders' columns at least a twelfth of their range floor, as the ends test: a few counts of
+        # quasi-static motion at a window's end on a precise encoder are not a move (the real winches creep by
+        # micrometres in a hold); the AHRS angles, never on counts, keep their own scatter (a wobble shows
+        # there first: a fifth of its 0.3 deg floor would hide a 2 mrad swing at 0.35 mrad of noise)
+        tols = {"length": options.length_tol, "swivel": options.swivel_tol}
+        floor = {c: np.maximum(resolution(x), tols.get(c, 0.0) / 12.0).reshape(-1) for c, x in every.items()}
+        return cls(max(2, int(round(options.settle_block_s / per))), options.settle_test_p, floor,
+                   options.settle_tail)
+
+    def end_scores(self, x: np.ndarray, floor: np.ndarray, groups: list[slice]) -> tuple[np.ndarray, np.ndarray]:
+        """Per block of ``q`` samples starting at 0, 1, ... up to the middle half (the head's) and ending at
+        L - 1, L - 2, ... (the tail's, innermost last), the largest T over its limit among the channel
+        ``groups`` (column slices of x (L, c)): <= 1 at rest. Empty when the stretch is too short for a
+        block on each side of a middle of at least 2 q samples."""
+        L = x.shape[0]
+        lo, hi = L // 4, L - L // 4
+        n = hi - lo
+        if lo < self.q or n < max(2 * self.q, 4):
+            return np.zeros(0), np.zeros(0)
+        # the rest: a line per column over the middle half (a steady creep or a slow sway is the window's, its
+        # mean is where the line is at the window's centre), its residuals' variance and lag-1 correlation
+        t = np.arange(L, dtype=float)
+        centre = 0.5 * (t[lo] + t[hi - 1])
+        tm = t[lo:hi] - centre
+        sxx = float(tm @ tm)
+        mid = x[lo:hi]
+        m = mid.mean(axis=0)
+        slope = tm @ (mid - m) / sxx
+        res = mid - m - np.outer(tm, slope)
+        ss = np.sum(res**2, axis=0)
+        s2 = np.maximum(ss / (n - 2), np.maximum(floor**2, 1e-300))
+        rho = np.clip(np.sum(res[1:] * res[:-1], axis=0) / np.maximum(ss, 1e-300), 0.0, 0.95)
+        # each sample's squared deviation from the line's prediction over its variance, per column
+        d = t - centre
+        z2 = (x - m - np.outer(d, slope)) ** 2 / (s2 * (1.0 + 1.0 / n + (d**2 / sxx)[:, None]))
+        # at rest a block's T in a group sums q x columns squared standard normals correlated in time (AR(1)
+        # per column): its mean and variance 2 sum_c (q + 2 sum_k (q - k) rho_c^(2k)) give a scaled chi2
+        # (Satterthwaite), whose 1 - p / (groups x disjoint blocks scanned) quantile is the group's limit
+        k = np.arange(1, self.q)
+        var_c = 2.0 * (self.q + 2.0 * np.sum((self.q - k)[None, :] * rho[:, None] ** (2 * k[None, :]), axis=1))
+        tests = len(groups) * max(1, -(-lo // self.q))
+        c = np.cumsum(np.r_[np.zeros((1, x.shape[1])), z2], axis=0)
+        block = c[self.q :] - c[: -self.q]  # (L - q + 1, c): the block starting at each sample
+        score = np.zeros(block.shape[0])
+        for g in groups:
+            mean = float(self.q * (g.stop - g.start))
+            scale = float(np.sum(var_c[g])) / (2.0 * mean)
+            limit = scale * chi2_isf(self.p / tests, max(1, int(round(mean / scale))))
+            np.maximum(score, block[:, g].sum(axis=1) / limit, out=score)
+        heads = score[: lo - self.q + 1]
+        tails = score[hi:][::-1]  # blocks ending at L - 1, L - 2, ...
+        return heads, tails
+
+    def trim(self, tau: np.ndarray, channels: dict[str, np.ndarray], min_len: int = 2) -> tuple[int, int]:
+        """Samples (a, b) to cut from the start and end of a still stretch (tensions (L, n), channels (L, c)):
+        the test runs from the middle outward and cuts up to and including the first sample of the innermost
+        end block that still moves, then again on what is left, until no end block moves; the whole stretch
+        (a + b = L) when fewer than ``min_len`` samples would be left."""
+        every = {"tension": tau} | dict(channels)
+        L = tau.shape[0]
+        cols = [v.reshape(L, -1) for v in every.values()]
+        x = np.concatenate(cols, axis=1)
+        edges = np.cumsum([0] + [c.shape[1] for c in cols])
+        groups = [slice(int(i), int(j)) for i, j in zip(edges[:-1], edges[1:], strict=True)]
+        floor = np.concatenate([self.floor[k] for k in every])
+        a, b = 0, 0
+        while L - a - b >= min_len:
+            heads, tails = self.end_scores(x[a : L - b], floor, groups)
+            moving_h = np.flatnonzero(heads > 1.0)
+            moving_t = np.flatnonzero(tails > 1.0) if self.tail else np.zeros(0, int)
+            if moving_h.size == 0 and moving_t.size == 0:
+                return a, b
+            if moving_h.size:
+                a += int(moving_h[-1]) + 1
+            if moving_t.size:
+                b += int(moving_t[-1]) + 1
+        return a, L - a
+
+
+@dataclass(frozen=True)
 class Stillness:
     """The stillness test of one run: span (samples), range per channel (SI, per column) and ripple tolerance
     (N). ``parts`` gives per sample the largest ratio of a channel's range over the span to its limit and the
@@ -323,6 +443,7 @@ class Stillness:
     thresholds: dict[str, np.ndarray]
     ripple_tol: float
     ends: EndsTest | None = None
+    settle: SettleTest | None = None
 
     @classmethod
     def of_samples(
@@ -345,7 +466,8 @@ class Stillness:
         thr = {c: np.maximum(noise[c], spread[c] + options.drift_factor * slow_drift(x, w, rest))
                for c, x in channels.items()}
         ends = EndsTest.of_samples(tau, channels, w, rest, options, act) if options.ends_p > 0 else None
-        return cls(w, thr, ripple_tol, ends)  # ends_p 0: no test, and none of its noise figures computed
+        settle = SettleTest.of_samples(tau, channels, w, options) if options.settle_test_p > 0 else None
+        return cls(w, thr, ripple_tol, ends, settle)  # p 0: no test, and none of its noise figures computed
 
     @classmethod
     def of_run(
@@ -373,7 +495,12 @@ class Stillness:
     def trim(self, tau: np.ndarray, channels: dict[str, np.ndarray], min_len: int = 2) -> tuple[int, int]:
         """Samples to cut from the start and the end of a still stretch (tensions (L, n), channels (L, c)) so
         that what is left rests (:meth:`EndsTest.trim`); (0, 0) without an ends test."""
-        return (0, 0) if self.ends is None else self.ends.trim(tau, channels, min_len)
+        a, b = (0, 0) if self.ends is None else self.ends.trim(tau, channels, min_len)
+        L = tau.shape[0]
+        if self.settle is None or L - a - b < min_len:
+            return a, b
+        c, d = self.settle.trim(tau[a : L - b], {k: x[a : L - b] for k, x in channels.items()}, min_len)
+        return a + c, b + d
 
     def still(self, tau: np.ndarray, channels: dict[str, np.ndarray]) -> bool:
         """Whether a block of ``span`` samples is still: both scores of :meth:`judge` <= 1."""
