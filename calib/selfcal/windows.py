@@ -68,10 +68,12 @@ class WindowOptions:
     # ends test at settle_p (when ends_p is 0) finds resting end to end: a hold-time rule for new startups
     settle_s: float = 3.0
     settle_p: float = 1e-3
-    # the settle test (:class:`SettleTest`): each end's block of settle_block_s against the middle half's mean
-    # and scatter, false-alarm probability settle_test_p per block (0: no test)
+    # the settle test (:class:`SettleTest`): each head block of settle_block_s against the line of the middle
+    # half, false-alarm probability settle_test_p per window at rest (0: no test). 0.05: a false alarm only
+    # shortens a window, a miss leaves the approach in it (simulated settling_sway seeds 0-7: chi2 in its 99 %
+    # band 8 of 8 at 0.05, 6 at 0.01, 4 at 1e-3)
     settle_block_s: float = 0.5
-    settle_test_p: float = 1e-3
+    settle_test_p: float = 0.05
     # the tail too (off: a window's tail on the real robot is the next quintic's start, which its logged
     # reference dates; cutting it moved the real 27-pose run's estimate by 4 mm)
     settle_tail: bool = False
@@ -330,22 +332,24 @@ class EndsTest:
 
 @dataclass(frozen=True)
 class SettleTest:
-    """Whether a still stretch has settled at its ends: a platform still swinging or converging after a move
-    (the wobble of a lightly damped platform, the approach's last samples) shows at the stretch's start as
-    samples off its resting mean or scattered beyond its resting scatter, in every channel that sees the
-    motion (the AHRS the swing, the swivels and lengths the approach). The rest is the stretch's middle half:
-    per column its mean m and standard deviation s (the window's own scatter, so a creep or sway that the
-    whole window shares is the rest's, not an end's; floored at ``floor``, the run's quiet sample noise
-    of the column's counts, :func:`resolution`, for a reading that sits on one count there). An end block of ``q`` samples gives
-    T = sum over its samples and every column of ((x - m) / s)^2, at rest about chi2 with q x columns degrees
-    of freedom (scaled for the estimated m and s); above its 1 - p quantile the end still moves and one sample
-    is cut from it, until both end blocks pass (the test runs from the window's middle outward: what it keeps
-    is what matches the middle). A swing is caught by its scatter, a slow approach by its offset."""
+    """Whether a still stretch has settled at its head (and tail, ``tail``): a platform still swinging or
+    converging after a move (the wobble of a lightly damped platform, the approach's last samples) shows there
+    as samples off the line the rest follows or scattered beyond the rest's scatter, in the channels that see
+    the motion (the AHRS the swing, the swivels and lengths the approach). The rest is the stretch's middle
+    half: per column a line (mean m, slope: a steady creep or a slow sway the whole window shares is the
+    window's, its mean is the line's value at the centre) and the residuals' variance s^2 and lag-1
+    correlation (the window's own scatter), s floored at ``floor`` (a column's counts, :func:`resolution`;
+    an encoder's at least a twelfth of its range floor). Each block of ``q`` samples (0.5 s, a wobble's
+    period) between an end and the middle half gives, per channel group (tensions, lengths, swivels, tilt),
+    T = sum of ((x - prediction)^2 / its variance); at rest a scaled chi2 (Satterthwaite, for the AR(1)
+    correlation), whose 1 - p / (groups x blocks) quantile is its limit. Scanned from the middle outward,
+    the innermost block above its limit and all beyond it are cut, and the test runs again on what is left:
+    what is kept matches the middle. A swing is caught by its scatter, a slow approach by its offset."""
 
     q: int
     p: float
     floor: dict[str, np.ndarray]
-    tail: bool = True  # test the tail as well as the head
+    tail: bool = False  # test the tail as well as the head
 
     @classmethod
     def of_samples(cls, tau: np.ndarray, channels: dict[str, np.ndarray], span: int,
@@ -389,17 +393,22 @@ class SettleTest:
         # each sample's squared deviation from the line's prediction over its variance, per column
         d = t - centre
         z2 = (x - m - np.outer(d, slope)) ** 2 / (s2 * (1.0 + 1.0 / n + (d**2 / sxx)[:, None]))
-        # at rest a block's T in a group sums q x columns squared standard normals correlated in time (AR(1)
-        # per column): its mean and variance 2 sum_c (q + 2 sum_k (q - k) rho_c^(2k)) give a scaled chi2
-        # (Satterthwaite), whose 1 - p / (groups x disjoint blocks scanned) quantile is the group's limit
+        # at rest a block's T in a group sums, per column, q squared deviations over a variance estimated on
+        # nu = n - 2 degrees of freedom, correlated in time (AR(1)): per column the mean q nu / (nu - 2) and
+        # the variance 2 (q + 2 sum_k (q - k) rho^(2k)) nu^2 (q + nu - 2) / ((nu - 2)^2 (nu - 4)) (q F(q, nu)
+        # for white noise) give a scaled chi2 (Satterthwaite), whose 1 - p / (groups x disjoint blocks
+        # scanned) quantile is the group's limit
+        nu = max(n - 2, 5)
         k = np.arange(1, self.q)
-        var_c = 2.0 * (self.q + 2.0 * np.sum((self.q - k)[None, :] * rho[:, None] ** (2 * k[None, :]), axis=1))
+        ar = 2.0 * (self.q + 2.0 * np.sum((self.q - k)[None, :] * rho[:, None] ** (2 * k[None, :]), axis=1))
+        mean_c = self.q * nu / (nu - 2.0)
+        var_c = ar * nu**2 * (self.q + nu - 2.0) / ((nu - 2.0) ** 2 * (nu - 4.0))
         tests = len(groups) * max(1, -(-lo // self.q))
         c = np.cumsum(np.r_[np.zeros((1, x.shape[1])), z2], axis=0)
         block = c[self.q :] - c[: -self.q]  # (L - q + 1, c): the block starting at each sample
         score = np.zeros(block.shape[0])
         for g in groups:
-            mean = float(self.q * (g.stop - g.start))
+            mean = mean_c * (g.stop - g.start)
             scale = float(np.sum(var_c[g])) / (2.0 * mean)
             limit = scale * chi2_isf(self.p / tests, max(1, int(round(mean / scale))))
             np.maximum(score, block[:, g].sum(axis=1) / limit, out=score)
