@@ -71,7 +71,7 @@ class WindowOptions:
     # the settle test (:class:`SettleTest`): each head block of settle_block_s against the line of the middle
     # half, false-alarm probability settle_test_p per window at rest (0: no test). 0.05: a false alarm only
     # shortens a window, a miss leaves the approach in it (simulated settling_sway seeds 0-7: chi2 in its 99 %
-    # band 8 of 8 at 0.05, 6 at 0.01, 4 at 1e-3)
+    # band 8 of 8 at 0.05, 7 at 0.01, 4 at 1e-3)
     settle_block_s: float = 0.5
     settle_test_p: float = 0.05
     # the tail too (off: a window's tail on the real robot is the next quintic's start, which its logged
