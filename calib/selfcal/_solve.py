@@ -39,11 +39,6 @@ def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[st
     return new, np.r_[theta[:n_kept], np.zeros(new.n_params - n_kept)]
 
 
-def _floored(sigma: dict[str, np.ndarray], floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Each channel's sigmas at least the floor's (same keys and shapes)."""
-    return {c: np.maximum(np.asarray(v, float), np.asarray(floor[c], float)) for c, v in sigma.items()}
-
-
 def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
     """See :func:`calib.selfcal.solve`."""
     method, max_iter, reference_pose = opts.method, opts.max_iter, opts.reference_pose
@@ -51,15 +46,8 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
     problem, theta0, Z0, wins, search, ref = pre.problem, pre.theta0, pre.poses0, pre.windows, pre.search, pre.ref
     model, meas, ref_sample, source = problem.model, problem.meas, pre.ref_sample, pre.noise_source
     t_start, t_rows, t_guess = pre.marks
-    rounds = source == "estimate" and method == "tlse" and ref is not None and max_iter > 0
-    # the first pass of an estimate solve never weighs a channel above its sensor's specification: the
-    # within-window scatter of a real run whose rigid model misses by far more (sc_8_medium_a, windows cut
-    # to their rest: a tension sigma of 0.15 N) drove it 100 mm into another minimum that the rounds
-    # below kept; they start from its solution and set the weights themselves
-    if rounds:
-        problem = Problem(model, meas, _floored(problem.sigma, sensor_noise(robot)))
     res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
-    if rounds and res.converged:
+    if source == "estimate" and method == "tlse" and ref is not None and res.converged and max_iter > 0:
         # the kinematic channels' window-mean noise without the platform's motion (which the rows' poses
         # absorb), estimated at the solution; a second pass at the better solution settles it
         sig = pre.signals
