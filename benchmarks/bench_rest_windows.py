@@ -20,7 +20,10 @@ Each finished seed is appended to ``--out`` (JSON lines; seeds already there are
 interrupted measure resumes. Exit code 1 on a miss.
 
     python benchmarks/bench_rest_windows.py [--seeds 100] [--first 0] [--workers 2] [--out FILE]
-        [--config settling_sway]
+        [--config settling_sway] [--settle-p P]
+
+``--settle-p``: the offline search's settle test (``WindowOptions.settle_test_p``; the default solve's is off,
+docs/windows.md); the startups' online detector applies it either way.
 """
 
 from __future__ import annotations
@@ -65,13 +68,14 @@ def resting_offset(robot, poses: np.ndarray, tensions: np.ndarray, push: np.ndar
     return float(np.linalg.norm(np.linalg.solve(jac[0], (r - w).mean(axis=0))[:3]))
 
 
-def one(seed: int, config: str, grid: int) -> dict | None:
+def one(seed: int, config: str, grid: int, settle_p: float | None = None) -> dict | None:
     """One simulated startup and the default solve of its run: per used window its offset from rest (m), the
     chi2 and dof, the position error and printed sigma (m)."""
     from acquisition.cli.errors import OperationError, UsageError
     from acquisition.runlog import read_run
     from acquisition.session import simulated_startup
     from calib.selfcal import solve
+    from calib.selfcal.windows import WindowOptions
     from sim_backend.config import example_path, load_sim_config
 
     path = example_path(config)
@@ -85,7 +89,8 @@ def one(seed: int, config: str, grid: int) -> dict | None:
         run = read_run(out)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sol = solve(run.robot, run, noise="estimate")
+            opt = None if settle_p is None else WindowOptions(settle_test_p=settle_p)
+            sol = solve(run.robot, run, noise="estimate", window_options=opt)
     true_robot = load_sim_config(path, run.robot.n).true_robot(run.robot)
     poses, mean_poses, tensions, push = (np.asarray(truth[k], float)
                                          for k in ("poses", "mean_poses", "tensions", "push"))
@@ -126,6 +131,7 @@ def main() -> int:
     ap.add_argument("--config", default="settling_sway", help="a sim_backend/examples name")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--out", help="JSON lines of the finished seeds (resumed when it exists)")
+    ap.add_argument("--settle-p", type=float, help="the offline settle test's false-alarm probability")
     args = ap.parse_args()
     t0 = time.perf_counter()
     done: dict[int, dict] = {}
@@ -136,7 +142,7 @@ def main() -> int:
             done[r["seed"]] = r
     todo = [s for s in range(args.first, args.first + args.seeds) if s not in done]
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        for r in pool.map(one, todo, [args.config] * len(todo), [args.grid] * len(todo)):
+        for r in pool.map(one, todo, [args.config] * len(todo), [args.grid] * len(todo), [args.settle_p] * len(todo)):
             done[r["seed"]] = r
             if out is not None:
                 with out.open("a") as f:

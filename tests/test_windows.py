@@ -369,7 +369,7 @@ def test_the_settle_test_cuts_a_swinging_head_and_keeps_a_resting_or_creeping_wi
     follows is the window's, not a move)."""
     floor = {"tension": np.full(4, 0.003), "length": np.full(4, 2e-3 / 12),
              "swivel": np.full(4, math.radians(0.1) / 12), "tilt": np.zeros(2)}
-    strict, default = SettleTest(5, 1e-3, floor), SettleTest(5, WindowOptions().settle_test_p, floor)
+    strict, default = SettleTest(5, 1e-3, floor), SettleTest(5, WindowOptions().settle_online_p, floor)
     rng = np.random.default_rng(11)
     swinging = [_settle_block(rng, wobble=2e-3) for _ in range(20)]
     for test, least in ((strict, 3), (default, 6)):
