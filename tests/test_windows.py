@@ -11,7 +11,7 @@ import pytest
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from calib.robot import load_robot
 from calib.selfcal import Stillness, WindowOptions, search_windows
-from calib.selfcal.windows import SettleTest, quiet_noise
+from calib.selfcal.windows import SettleTest, quiet_noise, still_channels
 
 DT = 0.1
 
@@ -383,3 +383,30 @@ def test_the_settle_test_cuts_a_swinging_head_and_keeps_a_resting_or_creeping_wi
     assert sum(kept) >= 194  # measured 297 of 300: the budget is p per group and block (Bonferroni)
     creeping = [strict.trim(*_settle_block(rng, creep=5e-6), 10) == (0, 0) for _ in range(30)]
     assert sum(creeping) >= 28
+
+
+def test_the_detector_waits_for_the_settle_test_the_search_applies(robot):
+    """Online and offline one criterion, the settle test included: on a record whose platform still swings
+    after each move, the detector settles only on blocks the settle test leaves whole, later than without it."""
+    rng = np.random.default_rng(4)
+    sp = _setpoints(rng, 3)
+    t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, noise=0.5, decay=2.5)
+    opt = WindowOptions(settle_test_p=WindowOptions().settle_online_p)
+    ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp, options=opt)
+    ch = still_channels(dl, dsig, roll, pitch)
+    still = Stillness(5, ws.thresholds, ws.ripple_tol, None, SettleTest.of_samples(tau, ch, 5, opt))
+
+    def settles(stillness):
+        det = EquilibriumDetector(DT, DetectorConfig.for_robot(robot, stillness=stillness))
+        det.start(0.0)
+        return det, [det.push(t[i], tau[i], dl[i], dsig[i], roll[i], pitch[i]).settled for i in range(t.size)]
+
+    det, settled = settles(still)
+    n = det.span - 1 + det.needed
+    hits = [i for i in range(n, t.size) if settled[i]]
+    assert hits
+    for i in hits:
+        block = slice(i - n + 1, i + 1)
+        assert still.trim(tau[block], {c: x[block] for c, x in ch.items()}, n) == (0, 0)
+    _, early = settles(Stillness(5, ws.thresholds, ws.ripple_tol))
+    assert sum(early) > sum(settled)
