@@ -11,7 +11,7 @@ import pytest
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from calib.robot import load_robot
 from calib.selfcal import Stillness, WindowOptions, search_windows
-from calib.selfcal.windows import SettleTest, quiet_noise, still_channels
+from calib.selfcal.windows import SettleTest, quiet_noise, settle_test, still_channels
 
 DT = 0.1
 
@@ -394,7 +394,7 @@ def test_the_detector_waits_for_the_settle_test_the_search_applies(robot):
     opt = WindowOptions(settle_test_p=WindowOptions().settle_online_p)
     ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp, options=opt)
     ch = still_channels(dl, dsig, roll, pitch)
-    still = Stillness(5, ws.thresholds, ws.ripple_tol, None, SettleTest.of_samples(tau, ch, 5, opt))
+    still = Stillness(5, ws.thresholds, ws.ripple_tol, None, settle_test(tau, ch, 5, opt))
 
     def settles(stillness):
         det = EquilibriumDetector(DT, DetectorConfig.for_robot(robot, stillness=stillness))

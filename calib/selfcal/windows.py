@@ -34,6 +34,7 @@ import numpy as np
 from calib.chi2 import chi2_isf
 from calib.robot import Robot
 from calib.robust import median
+from calib.selfcal.settle import SettleTest, quiet_noise, sample_noise
 
 CHANNELS = ("length", "swivel", "tilt")
 
@@ -68,19 +69,13 @@ class WindowOptions:
     # ends test at settle_p (when ends_p is 0) finds resting end to end: a hold-time rule for new startups
     settle_s: float = 3.0
     settle_p: float = 1e-3
-    # the settle test (:class:`SettleTest`): each head block of settle_block_s against the line of the middle
-    # half, false-alarm probability settle_test_p per window at rest (0: no test). Off in the offline search by
-    # default: on the real sc_8_medium_a it cuts the heads that still converge by millimetres, and the
-    # estimate solve (its first pass weighted by the within-window scatter) then falls into another minimum
-    # and the three-run diagnosis into a singular fit (docs/windows.md). The online detector applies it at
-    # settle_online_p when settle_test_p is 0. 0.05: a false alarm only shortens a window, a miss leaves the
-    # approach in it (simulated settling_sway seeds 0-7: chi2 in its 99 % band 8 of 8 at 0.05, 7 at 0.01,
-    # 4 at 1e-3)
+    # the settle test (calib.selfcal.settle): blocks of settle_block_s, false-alarm probability settle_test_p per
+    # window at rest (0: off, the offline default: the real medium runs' estimate solve and diagnosis do not yet
+    # take rest-only windows, docs/windows.md); the online detector applies settle_online_p when it is 0
     settle_block_s: float = 0.5
     settle_test_p: float = 0.0
     settle_online_p: float = 0.05
-    # the tail too (off: a window's tail on the real robot is the next quintic's start, which its logged
-    # reference dates; cutting it moved the real 27-pose run's estimate by 4 mm)
+    # the tail too (off: on the real robot the next quintic's start; it moved the 27-pose run's estimate 4 mm)
     settle_tail: bool = False
 
 
@@ -143,39 +138,6 @@ def noise_floor(x: np.ndarray) -> np.ndarray:
     d = np.diff(x, axis=0)
     mad = median(np.abs(d - median(d, axis=0)), axis=0)
     return 1.4826 * mad / math.sqrt(2.0)
-
-
-def sample_noise(x: np.ndarray) -> np.ndarray:
-    """Robust white-noise standard deviation per column of x (N, c) from second differences (MAD): a smooth
-    motion leaves them near zero, white noise of sigma gives them sigma sqrt(6)."""
-    if x.shape[0] < 3:
-        return np.zeros(x.shape[1:])
-    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    return 1.4826 * median(np.abs(d2), axis=0) / math.sqrt(6.0)
-
-
-def quiet_noise(x: np.ndarray) -> np.ndarray:
-    """As :func:`sample_noise`, from the lower quartile of |second differences| instead of their median (a
-    Gaussian's |x| has its lower quartile at 0.3186 sigma): the noise of the quietest samples, which holds
-    while up to three quarters of a run still swing, as after every move of a lightly damped platform; a
-    reading on its counts most of the time falls back on the median's figure or its count / sqrt(12)."""
-    if x.shape[0] < 3:
-        return np.zeros(x.shape[1:])
-    d2 = np.abs(x[2:] - 2.0 * x[1:-1] + x[:-2])
-    quiet = np.quantile(d2, 0.25, axis=0) / 0.3186 / math.sqrt(6.0)
-    # a reading that mostly sits on its counts (an encoder of a still platform): its median, else its count
-    d1 = np.abs(np.diff(x, axis=0))
-    step = np.min(np.where(d1 > 0, d1, np.inf), axis=0)
-    step = np.where(np.isfinite(step), step / math.sqrt(12.0), 0.0)
-    return np.where(quiet > 0, quiet, np.maximum(sample_noise(x), step))
-
-
-def resolution(x: np.ndarray) -> np.ndarray:
-    """Per column of x (N, c), the smallest non-zero change between consecutive samples over sqrt(12): the
-    rounding error of a reading on its counts (a reading that never changes: 0)."""
-    d1 = np.abs(np.diff(x, axis=0))
-    step = np.min(np.where(d1 > 0, d1, np.inf), axis=0) if x.shape[0] > 1 else np.full(x.shape[1:], np.inf)
-    return np.where(np.isfinite(step), step / math.sqrt(12.0), 0.0)
 
 
 def slow_drift(x: np.ndarray, w: int, rest: np.ndarray) -> np.ndarray:
@@ -336,118 +298,6 @@ class EndsTest:
 
 
 @dataclass(frozen=True)
-class SettleTest:
-    """Whether a still stretch has settled at its head (and tail, ``tail``): a platform still swinging or
-    converging after a move (the wobble of a lightly damped platform, the approach's last samples) shows there
-    as samples off the line the rest follows or scattered beyond the rest's scatter, in the channels that see
-    the motion (the AHRS the swing, the swivels and lengths the approach). The rest is the stretch's middle
-    half: per column a line (mean m, slope: a steady creep or a slow sway the whole window shares is the
-    window's, its mean is the line's value at the centre) and the residuals' variance s^2 and lag-1
-    correlation (the window's own scatter), s floored at ``floor`` (a column's counts, :func:`resolution`;
-    an encoder's at least a twelfth of its range floor). Each block of ``q`` samples (0.5 s, a wobble's
-    period) between an end and the middle half gives, per channel group (tensions, lengths, swivels, tilt),
-    T = sum of ((x - prediction)^2 / its variance); at rest a scaled chi2 (Satterthwaite, for the AR(1)
-    correlation), whose 1 - p / (groups x blocks) quantile is its limit. Scanned from the middle outward,
-    the innermost block above its limit and all beyond it are cut, and the test runs again on what is left:
-    what is kept matches the middle. A swing is caught by its scatter, a slow approach by its offset."""
-
-    q: int
-    p: float
-    floor: dict[str, np.ndarray]
-    tail: bool = False  # test the tail as well as the head
-
-    @classmethod
-    def of_samples(cls, tau: np.ndarray, channels: dict[str, np.ndarray], span: int,
-                   options: WindowOptions) -> SettleTest:
-        """The test of a run (tensions (N, n) N, ``channels`` as :func:`still_channels`): end blocks of
-        ``options.settle_block_s`` for a span of ``span`` samples of ``options.span_s``."""
-        per = options.span_s / span
-        every = {"tension": tau} | dict(channels)
-        # the encoders' columns at least a twelfth of their range floor, as the ends test: a few counts of
-        # quasi-static motion at a window's end on a precise encoder are not a move (the real winches creep by
-        # micrometres in a hold); the AHRS angles, never on counts, keep their own scatter (a wobble shows
-        # there first: a fifth of its 0.3 deg floor would hide a 2 mrad swing at 0.35 mrad of noise)
-        tols = {"length": options.length_tol, "swivel": options.swivel_tol}
-        floor = {c: np.maximum(resolution(x), tols.get(c, 0.0) / 12.0).reshape(-1) for c, x in every.items()}
-        return cls(max(2, int(round(options.settle_block_s / per))), options.settle_test_p, floor,
-                   options.settle_tail)
-
-    def end_scores(self, x: np.ndarray, floor: np.ndarray, groups: list[slice]) -> tuple[np.ndarray, np.ndarray]:
-        """Per block of ``q`` samples starting at 0, 1, ... up to the middle half (the head's) and ending at
-        L - 1, L - 2, ... (the tail's, innermost last), the largest T over its limit among the channel
-        ``groups`` (column slices of x (L, c)): <= 1 at rest. Empty when the stretch is too short for a
-        block on each side of a middle of at least 2 q samples."""
-        L = x.shape[0]
-        lo, hi = L // 4, L - L // 4
-        n = hi - lo
-        if lo < self.q or n < max(2 * self.q, 4):
-            return np.zeros(0), np.zeros(0)
-        # the rest: a line per column over the middle half (a steady creep or a slow sway is the window's, its
-        # mean is where the line is at the window's centre), its residuals' variance and lag-1 correlation
-        t = np.arange(L, dtype=float)
-        centre = 0.5 * (t[lo] + t[hi - 1])
-        tm = t[lo:hi] - centre
-        sxx = float(tm @ tm)
-        mid = x[lo:hi]
-        m = mid.mean(axis=0)
-        slope = tm @ (mid - m) / sxx
-        res = mid - m - np.outer(tm, slope)
-        ss = np.sum(res**2, axis=0)
-        s2 = np.maximum(ss / (n - 2), np.maximum(floor**2, 1e-300))
-        rho = np.clip(np.sum(res[1:] * res[:-1], axis=0) / np.maximum(ss, 1e-300), 0.0, 0.95)
-        # each sample's squared deviation from the line's prediction over its variance, per column
-        d = t - centre
-        z2 = (x - m - np.outer(d, slope)) ** 2 / (s2 * (1.0 + 1.0 / n + (d**2 / sxx)[:, None]))
-        # at rest a block's T in a group sums, per column, q squared deviations over a variance estimated on
-        # nu = n - 2 degrees of freedom, correlated in time (AR(1)): per column the mean q nu / (nu - 2) and
-        # the variance 2 (q + 2 sum_k (q - k) rho^(2k)) nu^2 (q + nu - 2) / ((nu - 2)^2 (nu - 4)) (q F(q, nu)
-        # for white noise) give a scaled chi2 (Satterthwaite), whose 1 - p / (groups x disjoint blocks
-        # scanned) quantile is the group's limit
-        nu = max(n - 2, 5)
-        k = np.arange(1, self.q)
-        ar = 2.0 * (self.q + 2.0 * np.sum((self.q - k)[None, :] * rho[:, None] ** (2 * k[None, :]), axis=1))
-        mean_c = self.q * nu / (nu - 2.0)
-        var_c = ar * nu**2 * (self.q + nu - 2.0) / ((nu - 2.0) ** 2 * (nu - 4.0))
-        tests = len(groups) * max(1, -(-lo // self.q))
-        c = np.cumsum(np.r_[np.zeros((1, x.shape[1])), z2], axis=0)
-        block = c[self.q :] - c[: -self.q]  # (L - q + 1, c): the block starting at each sample
-        score = np.zeros(block.shape[0])
-        for g in groups:
-            mean = mean_c * (g.stop - g.start)
-            scale = float(np.sum(var_c[g])) / (2.0 * mean)
-            limit = scale * chi2_isf(self.p / tests, max(1, int(round(mean / scale))))
-            np.maximum(score, block[:, g].sum(axis=1) / limit, out=score)
-        heads = score[: lo - self.q + 1]
-        tails = score[hi:][::-1]  # blocks ending at L - 1, L - 2, ...
-        return heads, tails
-
-    def trim(self, tau: np.ndarray, channels: dict[str, np.ndarray], min_len: int = 2) -> tuple[int, int]:
-        """Samples (a, b) to cut from the start and end of a still stretch (tensions (L, n), channels (L, c)):
-        the test runs from the middle outward and cuts up to and including the first sample of the innermost
-        end block that still moves, then again on what is left, until no end block moves; the whole stretch
-        (a + b = L) when fewer than ``min_len`` samples would be left."""
-        every = {"tension": tau} | dict(channels)
-        L = tau.shape[0]
-        cols = [v.reshape(L, -1) for v in every.values()]
-        x = np.concatenate(cols, axis=1)
-        edges = np.cumsum([0] + [c.shape[1] for c in cols])
-        groups = [slice(int(i), int(j)) for i, j in zip(edges[:-1], edges[1:], strict=True)]
-        floor = np.concatenate([self.floor[k] for k in every])
-        a, b = 0, 0
-        while L - a - b >= min_len:
-            heads, tails = self.end_scores(x[a : L - b], floor, groups)
-            moving_h = np.flatnonzero(heads > 1.0)
-            moving_t = np.flatnonzero(tails > 1.0) if self.tail else np.zeros(0, int)
-            if moving_h.size == 0 and moving_t.size == 0:
-                return a, b
-            if moving_h.size:
-                a += int(moving_h[-1]) + 1
-            if moving_t.size:
-                b += int(moving_t[-1]) + 1
-        return a, L - a
-
-
-@dataclass(frozen=True)
 class Stillness:
     """The stillness test of one run: span (samples), range per channel (SI, per column) and ripple tolerance
     (N). ``parts`` gives per sample the largest ratio of a channel's range over the span to its limit and the
@@ -480,7 +330,7 @@ class Stillness:
         thr = {c: np.maximum(noise[c], spread[c] + options.drift_factor * slow_drift(x, w, rest))
                for c, x in channels.items()}
         ends = EndsTest.of_samples(tau, channels, w, rest, options, act) if options.ends_p > 0 else None
-        settle = SettleTest.of_samples(tau, channels, w, options) if options.settle_test_p > 0 else None
+        settle = settle_test(tau, channels, w, options) if options.settle_test_p > 0 else None
         return cls(w, thr, ripple_tol, ends, settle)  # p 0: no test, and none of its noise figures computed
 
     @classmethod
@@ -520,6 +370,14 @@ class Stillness:
         """Whether a block of ``span`` samples is still: both scores of :meth:`judge` <= 1."""
         kin, ripple = self.judge(tau, channels)
         return kin <= 1.0 and ripple <= 1.0
+
+
+def settle_test(tau: np.ndarray, channels: dict[str, np.ndarray], span: int, options: WindowOptions) -> SettleTest:
+    """The settle test of a run (:class:`calib.selfcal.settle.SettleTest`) with the options' block length,
+    false-alarm probability and encoder floors, for a span of ``span`` samples of ``options.span_s``."""
+    q = int(round(options.settle_block_s / (options.span_s / span)))
+    tols = {"length": options.length_tol, "swivel": options.swivel_tol}
+    return SettleTest.of_samples(tau, channels, q, options.settle_test_p, tols, options.settle_tail)
 
 
 def still_channels(dl: np.ndarray, dsigma: np.ndarray, roll: np.ndarray, pitch: np.ndarray) -> dict[str, np.ndarray]:
