@@ -282,7 +282,7 @@ def pair_pool(singles: Sequence[Trial]) -> list[Trial]:
     ranked = sorted(singles, key=lambda t: t.score)
     top = ranked[:PAIR_POOL]
     fair = next((t for t in ranked if t.plausible), None)
-    return top if fair is None or fair in top else [*top, fair]
+    return top if fair is None or any(t is fair for t in top) else [*top, fair]
 
 
 def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Selection:
