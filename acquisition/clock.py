@@ -29,6 +29,13 @@ LOOP_IMPORTS = ("numpy.ma",)
 # tick ends when asked (p50 lateness 0.05 ms instead of 0.1 ms at normal priority, docs/live.md)
 LOOP_TIMER_SLACK = 1
 _PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30  # prctl(2) options (linux/prctl.h)
+# bytes of heap the loop's thread faults in before the loop and keeps (no trim): numpy's temporaries, the logged
+# rows and the detector's refresh then reuse resident pages instead of faulting fresh ones in a tick
+LOOP_HEAP_RESERVE = 64 << 20
+_MCL_CURRENT, _MCL_FUTURE = 1, 2  # mlockall(2) flags (sys/mman.h)
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4  # mallopt(3) parameters (malloc.h)
+_TRIM_DEFAULT, _MMAP_MAX_DEFAULT = 128 * 1024, 65536  # glibc's defaults, restored after the loop
+_CAP_IPC_LOCK = 14  # capability(7) bit: lock memory beyond RLIMIT_MEMLOCK
 
 
 @dataclass(frozen=True)
@@ -192,12 +199,8 @@ def _threads(pid: int) -> list[int]:
 
 def _prctl() -> Callable[..., int] | None:
     """libc's prctl (Linux), None elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        return ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
+    libc = _libc()
+    return None if libc is None else getattr(libc, "prctl", None)
 
 
 def set_timer_slack(ns: int) -> int | None:
@@ -212,8 +215,72 @@ def set_timer_slack(ns: int) -> int | None:
     return int(old)
 
 
+def _libc() -> ctypes.CDLL | None:
+    """The C library (Linux), None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return None
+
+
+def _may_lock_all() -> str | None:
+    """None when this process may lock all its memory, now and future (RLIMIT_MEMLOCK unlimited, or
+    CAP_IPC_LOCK), else the reason in a few words."""
+    import resource
+
+    soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        with open("/proc/self/status") as f:
+            caps = next((line.split()[1] for line in f if line.startswith("CapEff:")), "0")
+        if int(caps, 16) >> _CAP_IPC_LOCK & 1:
+            return None
+    except (OSError, ValueError):
+        pass
+    return f"RLIMIT_MEMLOCK is {soft // 1024} KiB, not unlimited, and no CAP_IPC_LOCK"
+
+
+def lock_memory(reserve: int = LOOP_HEAP_RESERVE) -> str | None:
+    """Keep the process's memory resident for a real-time loop (the practice of real-time Linux: a page fault
+    or the memory compaction behind it can stall a thread for tens of ms): malloc keeps what is freed (no
+    trim) and takes large blocks from the heap too (no mmap per numpy array), ``reserve`` bytes of heap are
+    faulted in by the calling thread and kept, then ``mlockall(MCL_CURRENT | MCL_FUTURE)`` (every page mapped
+    now, and later at its mapping). None when done, else the one sentence saying why not (Linux with glibc;
+    needs ``ulimit -l unlimited`` or CAP_IPC_LOCK: with a finite limit a later allocation would fail)."""
+    libc = _libc()
+    why = "memory locking is available only on Linux" if libc is None else _may_lock_all()
+    if why is None:
+        libc.malloc.restype = ctypes.c_void_p
+        libc.free.argtypes = [ctypes.c_void_p]
+        libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
+        libc.mallopt(_M_MMAP_MAX, 0)
+        block = libc.malloc(ctypes.c_size_t(reserve))
+        if block:
+            ctypes.memset(block, 1, reserve)  # every page of it faulted in, then back to malloc's free list
+            libc.free(block)
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+            return None
+        why = os.strerror(ctypes.get_errno())
+        unlock_memory()
+    return (f"memory locking (mlockall) was not done ({why}); the loop's memory may page-fault (allow it with "
+            f"ulimit -l unlimited).")
+
+
+def unlock_memory() -> None:
+    """Undo :func:`lock_memory`: ``munlockall`` and glibc's default trim and mmap settings."""
+    libc = _libc()
+    if libc is not None:
+        libc.munlockall()
+        libc.mallopt(_M_MMAP_MAX, _MMAP_MAX_DEFAULT)
+        libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_DEFAULT)
+
+
 @contextmanager
-def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int | None = None) -> Iterator[bool]:
+def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int | None = None,
+                 lock: bool = False) -> Iterator[bool]:
     """The interpreter set up for a control loop, restored on exit; yields whether the loop's thread runs under
     real-time priority.
 
@@ -235,7 +302,8 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
     ``rt_priority`` (opt-in, for a loop paced by a real clock): the calling thread runs under ``SCHED_FIFO`` at
     that priority (:func:`set_realtime`), so that no process of normal priority keeps it waiting for a CPU;
     where the OS refuses, a warning says so in one sentence and the loop runs as without it. The calling thread's
-    timer slack is :data:`LOOP_TIMER_SLACK` meanwhile (:func:`set_timer_slack`)."""
+    timer slack is :data:`LOOP_TIMER_SLACK` meanwhile (:func:`set_timer_slack`). ``lock``: the process's
+    memory is locked and a heap reserve faulted in meanwhile (:func:`lock_memory`; refused, a warning)."""
     for name in LOOP_IMPORTS:
         importlib.import_module(name)
     outer = gc.get_freeze_count() == 0
@@ -252,10 +320,15 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
     if refused is not None:
         logging.getLogger(__name__).warning(refused)
     realtime = rt_priority is not None and refused is None
+    unlocked = lock_memory() if lock else "not asked"
+    if lock and unlocked is not None:
+        logging.getLogger(__name__).warning(unlocked)
     slack = set_timer_slack(LOOP_TIMER_SLACK)
     try:
         yield realtime
     finally:
+        if unlocked is None:
+            unlock_memory()
         if slack is not None:
             set_timer_slack(slack)
         sys.setswitchinterval(switch)

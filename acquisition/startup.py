@@ -76,6 +76,8 @@ class StartupConfig:
     # opt-in: SCHED_FIFO priority (1-99) of the loop's thread on a real clock (acquisition.clock.loop_runtime);
     # None: normal priority. Refused by the OS: a warning, and the loop runs at normal priority
     rt_priority: int | None = None
+    # lock the process's memory while a paced loop runs (acquisition.clock.lock_memory); None: with rt_priority
+    lock_memory: bool | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -368,8 +370,11 @@ class StartupRoutine:
     def run(self) -> StartupResult:
         """The whole procedure; raises :class:`StartupStopped` after a safe stop. The interpreter is set up for
         the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap; the
-        configuration's real-time priority on a real clock, and then the log worker's thread one below it)."""
-        with loop_runtime(rt_priority=self.cfg.rt_priority if self.clock.paced else None) as realtime:
+        configuration's real-time priority and memory locking on a real clock, and then the log worker's thread one
+        below it)."""
+        cfg, paced = self.cfg, self.clock.paced
+        lock = paced and (cfg.rt_priority is not None if cfg.lock_memory is None else cfg.lock_memory)
+        with loop_runtime(rt_priority=cfg.rt_priority if paced else None, lock=lock) as realtime:
             if realtime:  # the log worker shares the loop's interpreter lock: never preempted holding it
                 self._io.submit(set_realtime, max(1, self.cfg.rt_priority - 1)).result()
             try:

@@ -379,6 +379,58 @@ def test_real_time_priority_is_opt_in_and_falls_back_with_one_sentence():
     assert inside & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO and os.sched_getscheduler(0) == before
 
 
+REFUSED_LOCK = """
+import os, resource
+import numpy.ma
+from acquisition.clock import loop_runtime
+resource.setrlimit(resource.RLIMIT_MEMLOCK, (8 << 20, 8 << 20))  # a desktop's default: 8 MiB, not unlimited
+if os.getuid() == 0:
+    os.setgid(65534); os.setuid(65534)  # root may always (CAP_IPC_LOCK): be nobody
+with loop_runtime(lock=True):
+    print([line.split()[1] for line in open("/proc/self/status") if line.startswith("VmLck")][0])
+"""
+
+
+def _locked_kib() -> int:
+    with open("/proc/self/status") as f:
+        return int(next(line.split()[1] for line in f if line.startswith("VmLck")))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="mlockall and /proc are Linux's")
+def test_memory_locking_keeps_the_loop_from_faulting_and_falls_back_with_one_sentence():
+    """Issue 32 (acquisition/clock.py lock_memory, StartupConfig.lock_memory): inside loop_runtime(lock=True) the
+    process's pages are locked and a heap reserve is resident, so a 48 MiB buffer made and written in the
+    loop faults in (almost) no page, where outside it faults each of its pages (48 MiB: above glibc's largest
+    mmap threshold, so always fresh pages outside); after it nothing is locked.
+    Refused (a finite RLIMIT_MEMLOCK without CAP_IPC_LOCK), nothing is locked and one sentence says how."""
+    import resource
+
+    from acquisition.clock import loop_runtime
+
+    def faults_of_a_fresh_array() -> int:
+        before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+        a = bytearray(48 << 20)  # 12288 pages (not numpy's: it asks for transparent huge pages)
+        a[::4096] = b"\1" * (12 << 10)  # a byte in each page
+        del a
+        return resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", REFUSED_LOCK], cwd="/", env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert done.stdout.split() == ["0"], done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "memory locking (mlockall) was not done" in lines[0], done.stderr
+    assert "ulimit -l unlimited" in lines[0]
+    outside = faults_of_a_fresh_array()
+    with loop_runtime(lock=True):
+        locked = _locked_kib()
+        inside = faults_of_a_fresh_array()
+    if locked == 0:
+        pytest.skip("this process may not lock its memory (ulimit -l): the refusal is checked above")
+    assert outside >= 12000 and inside <= 20, (outside, inside)
+    assert locked > 64 * 1024 and _locked_kib() == 0
+
+
 def test_a_run_log_write_that_fails_on_the_log_worker_is_raised(tmp_path):
     from acquisition.estimates import LogWorker
 
