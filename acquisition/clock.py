@@ -9,12 +9,14 @@ device set sends SYNC at each tick.
 from __future__ import annotations
 
 import abc
+import contextlib
 import ctypes
 import gc
 import importlib
 import logging
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -187,6 +189,31 @@ def set_realtime(priority: int, pid: int = 0) -> str | None:
     return None
 
 
+def raise_lock_sharers(priority: int) -> list[tuple[int, int, os.sched_param]]:
+    """Every other thread of this process under ``SCHED_FIFO`` at ``priority`` (they share the interpreter lock
+    with the calling real-time thread: the run log's worker, python-can's notifier that receives every CAN frame
+    on the robot, a serial reader); returns (thread ID, policy, parameter) of each raised, to restore with
+    :func:`restore_threads`. A thread the OS refuses or that has ended is left out."""
+    me, raised = threading.get_native_id(), []
+    for tid in _threads(os.getpid()):
+        if tid == me:
+            continue
+        try:
+            old = (tid, os.sched_getscheduler(tid), os.sched_getparam(tid))
+            os.sched_setscheduler(tid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(int(priority)))
+        except OSError:
+            continue
+        raised.append(old)
+    return raised
+
+
+def restore_threads(saved: list[tuple[int, int, os.sched_param]]) -> None:
+    """Give each thread of ``saved`` (:func:`raise_lock_sharers`) its policy back (an ended one is skipped)."""
+    for tid, policy, param in saved:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(tid, policy, param)
+
+
 def _threads(pid: int) -> list[int]:
     """The thread IDs of process ``pid`` (Linux's /proc; the process itself elsewhere), read twice so that a
     thread started meanwhile is in."""
@@ -300,7 +327,9 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
     use is harmless (only the outermost sets up and restores).
 
     ``rt_priority`` (opt-in, for a loop paced by a real clock): the calling thread runs under ``SCHED_FIFO`` at
-    that priority (:func:`set_realtime`), so that no process of normal priority keeps it waiting for a CPU;
+    that priority (:func:`set_realtime`), so that no process of normal priority keeps it waiting for a CPU, and
+    every other thread of the process one priority below it (:func:`raise_lock_sharers`: a thread of normal
+    priority preempted while it holds the interpreter lock would keep the loop waiting), all restored on exit;
     where the OS refuses, a warning says so in one sentence and the loop runs as without it. The calling thread's
     timer slack is :data:`LOOP_TIMER_SLACK` meanwhile (:func:`set_timer_slack`). ``lock``: the process's
     memory is locked and a heap reserve faulted in meanwhile (:func:`lock_memory`; refused, a warning)."""
@@ -320,6 +349,7 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
     if refused is not None:
         logging.getLogger(__name__).warning(refused)
     realtime = rt_priority is not None and refused is None
+    sharers = raise_lock_sharers(max(1, rt_priority - 1)) if realtime else []
     unlocked = lock_memory() if lock else "not asked"
     if lock and unlocked is not None:
         logging.getLogger(__name__).warning(unlocked)
@@ -333,6 +363,7 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
             set_timer_slack(slack)
         sys.setswitchinterval(switch)
         if realtime:
+            restore_threads(sharers)
             os.sched_setscheduler(0, policy, param)
         if outer:
             gc.set_threshold(*thresholds)

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.clock import Clock, loop_runtime, set_realtime
+from acquisition.clock import Clock, loop_runtime
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from acquisition.estimates import EstimateWorker, LogWorker
@@ -370,13 +370,13 @@ class StartupRoutine:
     def run(self) -> StartupResult:
         """The whole procedure; raises :class:`StartupStopped` after a safe stop. The interpreter is set up for
         the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap; the
-        configuration's real-time priority and memory locking on a real clock, and then the log worker's thread one
-        below it)."""
+        configuration's real-time priority and memory locking on a real clock, and then the process's other threads
+        one below it)."""
         cfg, paced = self.cfg, self.clock.paced
         lock = paced and (cfg.rt_priority is not None if cfg.lock_memory is None else cfg.lock_memory)
-        with loop_runtime(rt_priority=cfg.rt_priority if paced else None, lock=lock) as realtime:
-            if realtime:  # the log worker shares the loop's interpreter lock: never preempted holding it
-                self._io.submit(set_realtime, max(1, self.cfg.rt_priority - 1)).result()
+        # under a granted priority the threads that share the interpreter lock (the log worker, the CAN notifier...)
+        # run one priority below the loop's: loop_runtime
+        with loop_runtime(rt_priority=cfg.rt_priority if paced else None, lock=lock):
             try:
                 return self._procedure()
             finally:

@@ -11,6 +11,7 @@ import os
 import struct
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -357,7 +358,8 @@ with loop_runtime(rt_priority=40) as rt:
 @pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="SCHED_FIFO is Linux's")
 def test_real_time_priority_is_opt_in_and_falls_back_with_one_sentence():
     """The loop's SCHED_FIFO (acquisition/clock.py, StartupConfig.rt_priority): granted, the loop's thread runs
-    under it inside loop_runtime only; refused (an unprivileged process without an rtprio limit), the loop runs
+    under it inside loop_runtime only, and the process's other threads (the interpreter lock's other holders)
+    one priority below it, restored after; refused (an unprivileged process without an rtprio limit), the loop runs
     at normal priority and one warning sentence says why and how to grant it."""
     from acquisition.clock import loop_runtime
     from acquisition.startup import StartupConfig
@@ -372,11 +374,29 @@ def test_real_time_priority_is_opt_in_and_falls_back_with_one_sentence():
     assert len(lines) == 1 and "real-time priority 40 (SCHED_FIFO) was refused" in lines[0]
     assert "ulimit -r 40" in lines[0]
     before = os.sched_getscheduler(0)
-    with loop_runtime(rt_priority=40) as rt:
-        inside = os.sched_getscheduler(0)
+    stop, started = threading.Event(), threading.Event()
+
+    def sharer() -> None:  # a thread of the process that shares the interpreter lock (the log worker, say)
+        sharer.tid = threading.get_native_id()
+        started.set()
+        stop.wait(30)
+
+    helper = threading.Thread(target=sharer, daemon=True)
+    helper.start()
+    started.wait(10)
+    try:
+        with loop_runtime(rt_priority=40) as rt:
+            inside = os.sched_getscheduler(0)
+            sharer_inside = os.sched_getscheduler(sharer.tid), os.sched_getparam(sharer.tid).sched_priority
+        sharer_after = os.sched_getscheduler(sharer.tid)
+    finally:
+        stop.set()
+        helper.join()
     if not rt:
         pytest.skip("this process may not use SCHED_FIFO (no rtprio limit): the refusal is checked above")
     assert inside & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO and os.sched_getscheduler(0) == before
+    assert (sharer_inside[0] & ~os.SCHED_RESET_ON_FORK, sharer_inside[1]) == (os.SCHED_FIFO, 39)
+    assert sharer_after == os.SCHED_OTHER
 
 
 REFUSED_LOCK = """
