@@ -78,6 +78,64 @@ print(json.dumps({"counts": counts, "scene_stamps": stamps}))
 """
 
 
+# a witness of each CPU: a process pinned to it, one priority above the loop's (normal priority without), that
+# sleeps to every millisecond and reports each wake-up more than WITNESS_LATE late: (deadline, lateness) on the
+# loop's time base (perf_counter: CLOCK_MONOTONIC). A late loop tick that a witness saw too was a stall of the
+# CPU (the VM's host, the kernel with interrupts off), not of anything the loop's process did or waited for
+WITNESS_LATE = 1e-3
+WITNESS = r"""
+import json, os, signal, sys, time
+cpu, prio, floor = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+os.sched_setaffinity(0, {cpu})
+if prio:
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except OSError:
+        pass
+stop = []
+signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+period, late = 1e-3, []
+print("ready", flush=True)
+deadline = time.perf_counter() + period
+while not stop:
+    now = time.perf_counter()
+    if now < deadline:
+        time.sleep(deadline - now)
+    woke = time.perf_counter()
+    if woke - deadline > floor:
+        late.append((deadline, woke - deadline))
+    deadline += period * (1 + int((woke - deadline) / period))
+print(json.dumps(late))
+"""
+
+
+class Witnesses:
+    """One witness process per CPU this process may use (:data:`WITNESS`); ``rt``: their SCHED_FIFO priority."""
+
+    def __init__(self, rt: int) -> None:
+        self.cpus = sorted(os.sched_getaffinity(0))
+        self.procs = [subprocess.Popen([sys.executable, "-c", WITNESS, str(c), str(rt), str(WITNESS_LATE)],
+                                       stdout=subprocess.PIPE, text=True) for c in self.cpus]
+        for p in self.procs:
+            p.stdout.readline()
+        self.late: dict[int, np.ndarray] = {}
+
+    def close(self) -> None:
+        for p in self.procs:
+            p.terminate()
+        for c, p in zip(self.cpus, self.procs, strict=True):
+            out = p.communicate(timeout=30)[0].strip().splitlines()
+            self.late[c] = np.array(json.loads(out[-1]) if out else [], float).reshape(-1, 2)
+
+    def during(self, start: float, end: float) -> dict[int, float]:
+        """The largest lateness (s) each CPU's witness had in a stall overlapping [start, end]."""
+        seen = {}
+        for c, ev in self.late.items():
+            hit = ev[(ev[:, 0] < end) & (ev[:, 0] + ev[:, 1] > start)] if len(ev) else ev
+            seen[c] = float(hit[:, 1].max()) if len(hit) else 0.0
+        return seen
+
+
 def _no_sleep(_: float) -> None:
     """The unpaced proxy's sleep."""
 
@@ -119,7 +177,7 @@ def _open_schedstat(path: str) -> int | None:
 # the previous tick's hand-out and this tick's request ("work") and during the wait for its deadline ("sleep")
 COLUMNS = ("late", "overflow", "work_wall", "work_cpu", "work_rq", "sleep_rq", "gc", "gc_gen", "modules",
            "minflt", "majflt", "nvcsw", "nivcsw", "others_cpu", "plant_cpu", "plant_rq", "plant_wait", "steal", "irq",
-           "where")
+           "where", "t")
 C = {name: i for i, name in enumerate(COLUMNS)}
 
 
@@ -199,6 +257,7 @@ class TickProbe:
                         ("irq", 14)):
             r[C[name]] = after[i] - m[i]
         r[C["where"]] = self.places.setdefault(where, len(self.places))
+        r[C["t"]] = after[0]
 
     def table(self) -> np.ndarray:
         return self.rows[:self.n].copy()
@@ -225,10 +284,12 @@ class MeasuredClock(RealClock):
         return tk
 
 
-def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: int = 20) -> list[dict]:
+def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: int = 20,
+           witnesses: Witnesses | None = None) -> list[dict]:
     """The ``count`` worst late episodes (paced: consecutive ticks more than half a period late, by their peak
     lateness) or the ``count`` ticks of most work (unpaced), each with the sums of what its ticks did and
-    waited for and the largest of those named as the cause (ms)."""
+    waited for and the largest of those named as the cause (ms); with ``witnesses``, how late each CPU's
+    witness was meanwhile (a stall of the CPU when one was about as late as the loop)."""
     names = {v: k for k, v in places.items()}
     typical_cpu = float(np.median(rows[:, C["work_cpu"]]))
     spans = []
@@ -267,6 +328,10 @@ def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: in
             "blocked: serial lines or a lock": tot["work_wall"] - tot["work_cpu"] - tot["work_rq"]
             - tot["plant_wait"] - max(tot["others_cpu"], 0.0),
         }
+        seen = {} if witnesses is None else witnesses.during(rows[peak, C["t"]] - rows[peak, C["late"]],
+                                                              rows[peak, C["t"]])
+        if seen and max(seen.values()) >= 0.5 * rows[peak, C["late"]]:
+            parts["the CPU stalled (its witness was late too)"] = max(seen.values())
         cause = max(parts, key=parts.get)
         detail = f"{cause} {1e3 * parts[cause]:.1f} ms"
         if cause == "garbage collection":
@@ -286,7 +351,8 @@ def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: in
                     "rq_ms": 1e3 * (tot["work_rq"] + tot["sleep_rq"]), "plant_wait_ms": 1e3 * tot["plant_wait"],
                     "others_ms": 1e3 * tot["others_cpu"], "steal_ms": 1e3 * tot["steal"],
                     "irq_ms": 1e3 * tot["irq"], "minflt": int(tot["minflt"]),
-                    "nivcsw": int(tot["nivcsw"]), "cause": cause, "detail": detail})
+                    "nivcsw": int(tot["nivcsw"]), "cause": cause, "detail": detail,
+                    "witness_ms": {c: 1e3 * v for c, v in seen.items()}})
     return out
 
 
@@ -317,6 +383,7 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
         client = subprocess.Popen([sys.executable, "-c", CLIENT, str(view.port)], stdout=subprocess.PIPE,
                                   text=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
         assert client.stdout.readline().strip() == "subscribed"
+    witnesses = Witnesses(rt + 1 if rt else 0) if paced and hasattr(os, "sched_setaffinity") else None
     load0, t0 = os.getloadavg()[0], time.perf_counter()
     with SimBackend(robot, None, 0, period, ahrs_rate=ahrs_rate_for(cfg.log_period), serial_lines=lines) as sim:
         clock.probe.attach(sim)
@@ -336,6 +403,8 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
             view.close()
             rig.close()
             clock.probe.close()
+    if witnesses is not None:
+        witnesses.close()
     rows = clock.probe.table()
     late, work = rows[:, C["late"]] * 1e3, rows[:, [C["work_wall"], C["work_cpu"]]] * 1e3
     waited = work[:, 0] - work[:, 1]
@@ -347,7 +416,9 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
            "waited": [float(np.percentile(waited, 99)), float(waited.max())],
            "collections": clock.probe.collections,
            "gc_ms": [float(1e3 * rows[:, C["gc"]].sum()), float(1e3 * rows[:, C["gc"]].max())],
-           "worst": causes(rows, period, clock.probe.places, paced)}
+           "worst": causes(rows, period, clock.probe.places, paced, witnesses=witnesses),
+           "witness_stalls": {c: [int((v > 2.5e-3).sum()), float(1e3 * v.max()) if len(v) else 0.0]
+                              for c, v in ((c, ev[:, 1]) for c, ev in witnesses.late.items())} if witnesses else {}}
     if client is not None:
         got = json.loads(client.communicate(timeout=60)[0].strip().splitlines()[-1])
         res["client"] = dict(got, dropped=view.tap.dropped, handed=view.tap.handed)
@@ -389,6 +460,9 @@ def report(name: str, r: dict) -> None:
           f"loop thread CPU {100 * r['loop_cpu']:.1f} % of a core; page faults in the loop's ticks {r['minflt']} "
           f"minor, {r['majflt']} major; "
           f"load average {r['load'][0]:.2f} -> {r['load'][1]:.2f}")
+    if r.get("witness_stalls"):
+        print("      the CPUs' witnesses (1 ms sleeps, one priority above the loop): wake-ups more than 2.5 ms late, "
+              "worst: " + "; ".join(f"CPU {c} {n}, {w:.2f} ms" for c, (n, w) in r["witness_stalls"].items()))
     c = r["collections"]
     print(f"      collections during the run: generation 0/1/2 {c[0]}/{c[1]}/{c[2]}, {r['gc_ms'][0]:.1f} ms in all, "
           f"the longest tick's {r['gc_ms'][1]:.1f} ms")
@@ -398,15 +472,18 @@ def report(name: str, r: dict) -> None:
     print(f"      {'the worst late episodes (peak tick)' if paced else 'the ticks of most work'}: ms summed over the "
           f"episode's ticks; rq: runnable but not running; plant: waited for the plant process; others: CPU of the "
           f"process's other threads; steal: CPU time the VM's host took from the machine's CPUs, irq: interrupts' "
-          f"(both in 10 ms steps)")
+          f"(both in 10 ms steps); witness: how late each CPU's witness was meanwhile")
     print(f"      {'tick':>6} {'late':>8} {'n':>3} {'wall':>7} {'cpu':>6} {'gc':>6} {'rq':>7} {'plant':>6} "
-          f"{'others':>6} {'steal':>6} {'irq':>5} {'minflt':>6} {'preempt':>7}  phase (setpoint): cause")
+          f"{'others':>6} {'steal':>6} {'irq':>5} {'minflt':>6} {'preempt':>7} {'witness':>11}  "
+          f"phase (setpoint): cause")
     for w in r["worst"][:r.get("show", 20)]:
         late = f"{w['late_ms']:8.2f}" if paced else f"{'-':>8}"
         print(f"      {w['tick']:6d} {late} {w['late_ticks']:3d} {w['wall_ms']:7.2f} {w['cpu_ms']:6.2f} "
               f"{w['gc_ms']:6.2f} {w['rq_ms']:7.2f} {w['plant_wait_ms']:6.2f} {w['others_ms']:6.2f} "
               f"{w.get('steal_ms', 0.0):6.1f} {w.get('irq_ms', 0.0):5.0f} "
-              f"{w['minflt']:6d} {w['nivcsw']:7d}  {w['phase']} ({w['setpoint']}): {w['detail']}")
+              f"{w['minflt']:6d} {w['nivcsw']:7d} "
+              f"{'/'.join(f'{v:.1f}' for v in w.get('witness_ms', {}).values()):>11}  "
+              f"{w['phase']} ({w['setpoint']}): {w['detail']}")
     tally: dict[str, int] = {}
     for w in r["worst"]:
         tally[w["cause"]] = tally.get(w["cause"], 0) + 1
