@@ -210,10 +210,19 @@ class StartupRoutine:
             return
         self._write(row)
 
+    @property
+    def logged(self) -> int:
+        """Samples handed to the run log so far (the next one's row index in samples.csv)."""
+        return len(self._ticks)
+
     def _write(self, row: tuple) -> None:
         t, tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, sync = row
         t0 = self._t_run0 or 0.0
-        self.writer.append(round(t - t0, 9), tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, tick=sync)
+        line = (round(t - t0, 9), tau, ref, dl, ds, roll, pitch, dyaw, phase, sp)
+        if self.clock.paced:  # a file write can wait for the file system's journal (361 ms once on a busy disk):
+            self._io.submit(partial(self.writer.append, *line, tick=sync))  # the log worker writes it, in order
+        else:
+            self.writer.append(*line, tick=sync)
         if self.plan.sequential is not None:
             self._log_rows.append((round(t - t0, 9), *row[1:]))
         self._ticks.append(sync)
@@ -244,7 +253,7 @@ class StartupRoutine:
     def _hold(self, tau: np.ndarray, setpoint: int, phase: str = "hold") -> tuple[int, int]:
         """Log the equilibrium window (phase hold); returns its [first, last] sample index."""
         self._phase, self._setpoint = phase, setpoint
-        first = self.writer.count if self.writer else 0
+        first = self.logged
         steps = int(round(self.cfg.hold_time / self.period))
         self._held = []
         noise, found = None, {}  # the run's own noise: from its own solve, once there is one (below)
@@ -277,7 +286,7 @@ class StartupRoutine:
         for k, m in found.items():  # the poses' windows as the final solve will see them (index 0: tau0)
             if 1 <= k < len(self._means):
                 self._means[k] = WindowMean(*m, self._means[k].noise, self._means[k].estimate)
-        last = self.writer.count - 1
+        last = self.logged - 1
         self._io.submit(self.writer.sync)
         return first, last
 

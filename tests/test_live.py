@@ -306,6 +306,53 @@ def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_threa
     assert list(run.phase).count("hold") == 5  # the pose's 0.5 s window at 10 Hz
 
 
+def test_on_a_real_clock_the_samples_lines_are_written_by_the_log_worker_in_order(tmp_path):
+    """Issue 32: a file write can wait for the file system's journal (a tick 361 ms late at load 12), so on a
+    real clock each samples.csv line is written and flushed by the log worker, not the loop (on the simulated
+    clock the loop writes them): every line is there, in the loop's order, and the windows' row indices name
+    the rows of their hold. The clock here is real but does not sleep (lockstep, as fast as it goes)."""
+    import threading
+
+    from acquisition.clock import RealClock
+    from acquisition.connect import ahrs_rate_for, connect
+    from acquisition.plans import Plan
+    from acquisition.runwriter import RunWriter
+    from acquisition.startup import StartupConfig, StartupRoutine
+    from sim_backend.backend import SimBackend
+
+    robot = load_robot("irma4u")
+    grid = Plan.for_robot(robot, 2, "equilibrium")
+    plan = Plan(grid.setpoints[:2], grid.ideal_poses[:2], grid.tau0)
+    cfg = StartupConfig(hold_time=0.5)
+    threads: set[str] = set()
+
+    class Recorded(RunWriter):  # the real writer, noting the thread each line is written in
+        def append(self, *a, **k):
+            threads.add(threading.current_thread().name)
+            super().append(*a, **k)
+
+    clock = RealClock(1.0 / cfg.rate, lockstep=True, sleep=lambda s: None)
+    with SimBackend(robot, None, 3, clock.period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
+        rig = connect(sim.devices, robot, clock, lockstep=True, period=clock.period)
+        try:
+            import acquisition.startup as startup
+
+            original, startup.RunWriter = startup.RunWriter, Recorded
+            try:
+                result = StartupRoutine(robot, rig, clock, plan, tmp_path / "run", cfg).run()
+            finally:
+                startup.RunWriter = original
+        finally:
+            rig.close()
+    assert len(threads) == 1 and threads != {threading.current_thread().name}, threads
+    run = read_run(tmp_path / "run")
+    assert len(run.t) == len(result.ticks) > 100
+    assert run.extra["tick"].astype(int).tolist() == result.ticks.tolist()
+    for j, (first, last) in enumerate(result.windows):
+        assert set(run.phase[first:last + 1]) == {"hold"} and set(run.setpoint[first:last + 1]) == {j}
+        assert run.phase[first - 1] != "hold" and (last + 1 == len(run.t) or run.phase[last + 1] != "hold")
+
+
 def test_inside_the_loop_runtime_the_objects_kept_never_cost_a_full_collection():
     """The loop's collector policy (acquisition/clock.py): objects kept by the hundred thousand (a long run's
     rows) trigger automatic collections of the oldest generation outside loop_runtime, none inside it, where
