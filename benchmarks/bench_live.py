@@ -118,6 +118,7 @@ class Witnesses:
     """One witness process per CPU this process may use (:data:`WITNESS`); ``rt``: their SCHED_FIFO priority."""
 
     def __init__(self, rt: int) -> None:
+        self.rt = rt
         self.cpus = sorted(os.sched_getaffinity(0))
         self.procs = [subprocess.Popen([sys.executable, "-c", WITNESS, str(c), str(rt), str(WITNESS_LATE)],
                                        stdout=subprocess.PIPE, text=True) for c in self.cpus]
@@ -335,8 +336,9 @@ def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: in
         }
         seen = {} if witnesses is None else witnesses.during(rows[peak, C["t"]] - rows[peak, C["late"]],
                                                               rows[peak, C["t"]])
-        if seen and max(seen.values()) >= 0.5 * rows[peak, C["late"]]:
-            parts["the CPU stalled (its witness was late too)"] = max(seen.values())
+        if seen and max(seen.values()) >= 0.5 * rows[peak, C["late"]]:  # a normal-priority witness: contention
+            parts["the CPU stalled (its witness was late too)" if witnesses.rt else
+                  "every CPU busy (a normal-priority witness was late too)"] = max(seen.values())
         cause = max(parts, key=parts.get)
         detail = f"{cause} {1e3 * parts[cause]:.1f} ms"
         if cause == "garbage collection":
