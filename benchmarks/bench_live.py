@@ -379,6 +379,7 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
     robot = load_robot("irma4u")
     cfg = StartupConfig(rate=rate, hold_time=hold, rt_priority=rt, lock_memory=lock)
     cpus = os.sched_getaffinity(0)
+    witnesses = Witnesses(rt + 1 if rt else 0) if paced and hasattr(os, "sched_setaffinity") else None  # each CPU
     if affinity and len(cpus) > 1:  # what this process starts from here on inherits the other CPUs
         _pin_threads(cpus - {max(cpus)})
     plan = Plan.for_robot(robot, grid, "equilibrium")
@@ -390,7 +391,6 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
         client = subprocess.Popen([sys.executable, "-c", CLIENT, str(view.port)], stdout=subprocess.PIPE,
                                   text=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
         assert client.stdout.readline().strip() == "subscribed"
-    witnesses = Witnesses(rt + 1 if rt else 0) if paced and hasattr(os, "sched_setaffinity") else None
     load0, t0 = os.getloadavg()[0], time.perf_counter()
     with SimBackend(robot, None, 0, period, ahrs_rate=ahrs_rate_for(cfg.log_period), serial_lines=lines) as sim:
         clock.probe.attach(sim)
