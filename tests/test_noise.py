@@ -116,11 +116,12 @@ def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
     """Issue 29: 27 simulated equilibria whose cable-1 swivel readings carry twice the noise of the others
     (variance 4x), weighed with one sigma for all four: the per-cable Helmert factors find cable 1's near 4x
     the others' (their redundancies sum to the group's), and rescaled_sigma splits the group's sigma among
-    the cables by sqrt(f_i / f), at the group's level; one cable with too few degrees of freedom
-    (VCE_MIN_REDUNDANCY), or a group scattering beyond its noise's chi2 band, leaves the group pooled."""
+    the cables by sqrt(f_i / f), f_i shrunk toward the group's level (cable_factors), at the group's level; one
+    cable with too few degrees of freedom (VCE_MIN_REDUNDANCY), or a group scattering beyond its noise's chi2
+    band, leaves the group pooled."""
     from calib.selfcal.lm import levenberg_marquardt
     from calib.selfcal.model import MeasurementModel
-    from calib.selfcal.noise import VCE_MIN_REDUNDANCY, rescaled_sigma, variance_factors
+    from calib.selfcal.noise import VCE_MIN_REDUNDANCY, cable_factors, rescaled_sigma, variance_factors
     from calib.selfcal.problem import Problem
     from sim_backend.config import sim_config_from_dict
     from sim_backend.equilibrium_rows import simulated_rows
@@ -137,9 +138,11 @@ def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
     assert np.all(per[:, 1] > VCE_MIN_REDUNDANCY)
     assert 2.0 < per[0, 0] / np.mean(per[1:, 0]) < 8.0, per
     out = rescaled_sigma(sigma, fac)
-    split = np.sqrt(per[:, 0] / fac["swivel"][0]) * (math.sqrt(fac["swivel"][0]) if fac["swivel"][0] < 0.98 else 1)
+    shrunk = cable_factors(per[:, 0], per[:, 1], sigma["swivel"])  # toward the pooled level, by empirical Bayes
+    assert np.all(np.abs(np.log(shrunk / fac["swivel"][0])) < np.abs(np.log(per[:, 0] / fac["swivel"][0])))
+    split = np.sqrt(shrunk / fac["swivel"][0]) * (math.sqrt(fac["swivel"][0]) if fac["swivel"][0] < 0.98 else 1)
     np.testing.assert_allclose(out["swivel"], sw * split, rtol=1e-9)
-    assert out["swivel"][0] > 1.4 * np.max(out["swivel"][1:])
+    assert out["swivel"][0] > 1.3 * np.max(out["swivel"][1:])  # the truth: 2x
     thin = dict(fac, **{"swivel.3": (per[3, 0], 0.5 * VCE_MIN_REDUNDANCY)})
     pooled = rescaled_sigma(sigma, thin)
     assert pooled is None or np.ptp(pooled["swivel"]) == 0.0
