@@ -29,6 +29,8 @@ At a solution the estimate is refined (calib.selfcal.solve, noise 'estimate'): :
 platform's motion out of the kinematic groups, and :func:`variance_factors` / :func:`rescaled_sigma` bring a
 group down to what its window means scatter by around the fit, and up only where the model misses it by more
 than sqrt(MISFIT_FACTOR) times its noise (model error: it must not pull the poses to its misfit; issue 28).
+The swivel rows' cables (:data:`PER_CABLE`) get factors of their own, shrunk toward the group's by empirical
+Bayes (:func:`cable_factors`), while the group's sigma is still a noise's (issue 29, docs/windows.md).
 The reference window's own noise,
 which every relative row carries at once, is a parameter with a prior (calib.effects.priors.ReferenceNoise).
 """
@@ -362,7 +364,7 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     scatter as noise does and its sigma is still a noise's: not above sqrt(MISFIT_FACTOR) times its
     within-window figure (``within``). A sigma raised to a misfit in an earlier round holds model error, and
     a split would down-weight the cables the model misses most (issue 28's guard against model error: on the
-    real sc_27_medium_a the swivel rows sit ~350x their within-window noise, cable 1's misfit 4x the others').
+    real sc_27_medium_a the swivel rows scatter ~2200x their within-window variance, cable 1's 2-4x the others').
     None when nothing changes."""
     out = {c: np.array(v, float) for c, v in sigma.items()}
     changed = False
