@@ -9,12 +9,14 @@ device set sends SYNC at each tick.
 from __future__ import annotations
 
 import abc
+import contextlib
 import ctypes
 import gc
 import importlib
 import logging
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -29,6 +31,13 @@ LOOP_IMPORTS = ("numpy.ma",)
 # tick ends when asked (p50 lateness 0.05 ms instead of 0.1 ms at normal priority, docs/live.md)
 LOOP_TIMER_SLACK = 1
 _PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30  # prctl(2) options (linux/prctl.h)
+# bytes of heap the loop's thread faults in before the loop and keeps (no trim): numpy's temporaries, the logged
+# rows and the detector's refresh then reuse resident pages instead of faulting fresh ones in a tick
+LOOP_HEAP_RESERVE = 64 << 20
+_MCL_CURRENT, _MCL_FUTURE = 1, 2  # mlockall(2) flags (sys/mman.h)
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4  # mallopt(3) parameters (malloc.h)
+_TRIM_DEFAULT, _MMAP_MAX_DEFAULT = 128 * 1024, 65536  # glibc's defaults, restored after the loop
+_CAP_IPC_LOCK = 14  # capability(7) bit: lock memory beyond RLIMIT_MEMLOCK
 
 
 @dataclass(frozen=True)
@@ -180,6 +189,31 @@ def set_realtime(priority: int, pid: int = 0) -> str | None:
     return None
 
 
+def raise_lock_sharers(priority: int) -> list[tuple[int, int, os.sched_param]]:
+    """Every other thread of this process under ``SCHED_FIFO`` at ``priority`` (they share the interpreter lock
+    with the calling real-time thread: the run log's worker, python-can's notifier that receives every CAN frame
+    on the robot, a serial reader); returns (thread ID, policy, parameter) of each raised, to restore with
+    :func:`restore_threads`. A thread the OS refuses or that has ended is left out."""
+    me, raised = threading.get_native_id(), []
+    for tid in _threads(os.getpid()):
+        if tid == me:
+            continue
+        try:
+            old = (tid, os.sched_getscheduler(tid), os.sched_getparam(tid))
+            os.sched_setscheduler(tid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(int(priority)))
+        except OSError:
+            continue
+        raised.append(old)
+    return raised
+
+
+def restore_threads(saved: list[tuple[int, int, os.sched_param]]) -> None:
+    """Give each thread of ``saved`` (:func:`raise_lock_sharers`) its policy back (an ended one is skipped)."""
+    for tid, policy, param in saved:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(tid, policy, param)
+
+
 def _threads(pid: int) -> list[int]:
     """The thread IDs of process ``pid`` (Linux's /proc; the process itself elsewhere), read twice so that a
     thread started meanwhile is in."""
@@ -192,12 +226,8 @@ def _threads(pid: int) -> list[int]:
 
 def _prctl() -> Callable[..., int] | None:
     """libc's prctl (Linux), None elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        return ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
+    libc = _libc()
+    return None if libc is None else getattr(libc, "prctl", None)
 
 
 def set_timer_slack(ns: int) -> int | None:
@@ -212,8 +242,72 @@ def set_timer_slack(ns: int) -> int | None:
     return int(old)
 
 
+def _libc() -> ctypes.CDLL | None:
+    """The C library (Linux), None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return None
+
+
+def _may_lock_all() -> str | None:
+    """None when this process may lock all its memory, now and future (RLIMIT_MEMLOCK unlimited, or
+    CAP_IPC_LOCK), else the reason in a few words."""
+    import resource
+
+    soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        with open("/proc/self/status") as f:
+            caps = next((line.split()[1] for line in f if line.startswith("CapEff:")), "0")
+        if int(caps, 16) >> _CAP_IPC_LOCK & 1:
+            return None
+    except (OSError, ValueError):
+        pass
+    return f"RLIMIT_MEMLOCK is {soft // 1024} KiB, not unlimited, and no CAP_IPC_LOCK"
+
+
+def lock_memory(reserve: int = LOOP_HEAP_RESERVE) -> str | None:
+    """Keep the process's memory resident for a real-time loop (the practice of real-time Linux: a page fault
+    or the memory compaction behind it can stall a thread for tens of ms): malloc keeps what is freed (no
+    trim) and takes large blocks from the heap too (no mmap per numpy array), ``reserve`` bytes of heap are
+    faulted in by the calling thread and kept, then ``mlockall(MCL_CURRENT | MCL_FUTURE)`` (every page mapped
+    now, and later at its mapping). None when done, else the one sentence saying why not (Linux with glibc;
+    needs ``ulimit -l unlimited`` or CAP_IPC_LOCK: with a finite limit a later allocation would fail)."""
+    libc = _libc()
+    why = "memory locking is available only on Linux" if libc is None else _may_lock_all()
+    if why is None:
+        libc.malloc.restype = ctypes.c_void_p
+        libc.free.argtypes = [ctypes.c_void_p]
+        libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
+        libc.mallopt(_M_MMAP_MAX, 0)
+        block = libc.malloc(ctypes.c_size_t(reserve))
+        if block:
+            ctypes.memset(block, 1, reserve)  # every page of it faulted in, then back to malloc's free list
+            libc.free(block)
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+            return None
+        why = os.strerror(ctypes.get_errno())
+        unlock_memory()
+    return (f"memory locking (mlockall) was not done ({why}); the loop's memory may page-fault (allow it with "
+            f"ulimit -l unlimited).")
+
+
+def unlock_memory() -> None:
+    """Undo :func:`lock_memory`: ``munlockall`` and glibc's default trim and mmap settings."""
+    libc = _libc()
+    if libc is not None:
+        libc.munlockall()
+        libc.mallopt(_M_MMAP_MAX, _MMAP_MAX_DEFAULT)
+        libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_DEFAULT)
+
+
 @contextmanager
-def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int | None = None) -> Iterator[bool]:
+def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int | None = None,
+                 lock: bool = False) -> Iterator[bool]:
     """The interpreter set up for a control loop, restored on exit; yields whether the loop's thread runs under
     real-time priority.
 
@@ -233,9 +327,12 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
     use is harmless (only the outermost sets up and restores).
 
     ``rt_priority`` (opt-in, for a loop paced by a real clock): the calling thread runs under ``SCHED_FIFO`` at
-    that priority (:func:`set_realtime`), so that no process of normal priority keeps it waiting for a CPU;
+    that priority (:func:`set_realtime`), so that no process of normal priority keeps it waiting for a CPU, and
+    every other thread of the process one priority below it (:func:`raise_lock_sharers`: a thread of normal
+    priority preempted while it holds the interpreter lock would keep the loop waiting), all restored on exit;
     where the OS refuses, a warning says so in one sentence and the loop runs as without it. The calling thread's
-    timer slack is :data:`LOOP_TIMER_SLACK` meanwhile (:func:`set_timer_slack`)."""
+    timer slack is :data:`LOOP_TIMER_SLACK` meanwhile (:func:`set_timer_slack`). ``lock``: the process's
+    memory is locked and a heap reserve faulted in meanwhile (:func:`lock_memory`; refused, a warning)."""
     for name in LOOP_IMPORTS:
         importlib.import_module(name)
     outer = gc.get_freeze_count() == 0
@@ -252,14 +349,21 @@ def loop_runtime(switch_interval: float = LOOP_SWITCH_INTERVAL, rt_priority: int
     if refused is not None:
         logging.getLogger(__name__).warning(refused)
     realtime = rt_priority is not None and refused is None
+    sharers = raise_lock_sharers(max(1, rt_priority - 1)) if realtime else []
+    unlocked = lock_memory() if lock else "not asked"
+    if lock and unlocked is not None:
+        logging.getLogger(__name__).warning(unlocked)
     slack = set_timer_slack(LOOP_TIMER_SLACK)
     try:
         yield realtime
     finally:
+        if unlocked is None:
+            unlock_memory()
         if slack is not None:
             set_timer_slack(slack)
         sys.setswitchinterval(switch)
         if realtime:
+            restore_threads(sharers)
             os.sched_setscheduler(0, policy, param)
         if outer:
             gc.set_threshold(*thresholds)

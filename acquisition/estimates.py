@@ -69,8 +69,9 @@ class LogWorker:
     at each window, run.yaml's rewrites (a sequential plan's setpoints, an event) and the final close, each a
     yaml dump and an fsync (10-15 ms of interpreter time on the lab PC, more on a slow disk), and on a real
     clock the equilibrium detector's refresh of its thresholds (acquisition/equilibrium.py). One thread
-    does them in the order they are asked for; the loop's own samples.csv lines (written and flushed, not
-    fsynced, by the loop) are untouched. A failure is raised by the next :meth:`submit` or by :meth:`close`."""
+    does them in the order they are asked for; on a real clock it also writes and flushes each samples.csv
+    line (a write can wait for the file system's journal), on the simulated clock the loop writes them itself.
+    A failure is raised by the next :meth:`submit` or by :meth:`close`."""
 
     def __init__(self) -> None:
         from concurrent.futures import ThreadPoolExecutor

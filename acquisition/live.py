@@ -205,7 +205,7 @@ class LiveTap:
             dl = ds = [math.nan] * len(snap.tau)
             dyaw = math.nan
         t = round(snap.t - t0, 9) if t0 is not None else math.nan  # the run log's time
-        index = r.writer.count - 1 if logged and r.writer is not None else -1  # the sample's row in samples.csv
+        index = r.logged - 1 if logged and r.writer is not None else -1  # the sample's row in samples.csv
         record = (time.time_ns(), t, snap.tau.tolist(), r._ref.tolist(), dl, ds, snap.roll, snap.pitch, dyaw,
                   r._phase, r._setpoint, snap.sync, logged, index, r.supervisor.requested, extra, new_ghosts)
         if not self._send(record):

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.clock import Clock, loop_runtime, set_realtime
+from acquisition.clock import Clock, loop_runtime
 from acquisition.control import ControllerConfig, Rig, Snapshot, TensionController, transmission_radius
 from acquisition.equilibrium import DetectorConfig, EquilibriumDetector
 from acquisition.estimates import EstimateWorker, LogWorker
@@ -76,6 +76,8 @@ class StartupConfig:
     # opt-in: SCHED_FIFO priority (1-99) of the loop's thread on a real clock (acquisition.clock.loop_runtime);
     # None: normal priority. Refused by the OS: a warning, and the loop runs at normal priority
     rt_priority: int | None = None
+    # lock the process's memory while a paced loop runs (acquisition.clock.lock_memory); None: with rt_priority
+    lock_memory: bool | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -208,10 +210,19 @@ class StartupRoutine:
             return
         self._write(row)
 
+    @property
+    def logged(self) -> int:
+        """Samples handed to the run log so far (the next one's row index in samples.csv)."""
+        return len(self._ticks)
+
     def _write(self, row: tuple) -> None:
         t, tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, sync = row
         t0 = self._t_run0 or 0.0
-        self.writer.append(round(t - t0, 9), tau, ref, dl, ds, roll, pitch, dyaw, phase, sp, tick=sync)
+        line = (round(t - t0, 9), tau, ref, dl, ds, roll, pitch, dyaw, phase, sp)
+        if self.clock.paced:  # a file write can wait for the file system's journal (361 ms once on a busy disk):
+            self._io.submit(partial(self.writer.append, *line, tick=sync))  # the log worker writes it, in order
+        else:
+            self.writer.append(*line, tick=sync)
         if self.plan.sequential is not None:
             self._log_rows.append((round(t - t0, 9), *row[1:]))
         self._ticks.append(sync)
@@ -242,7 +253,7 @@ class StartupRoutine:
     def _hold(self, tau: np.ndarray, setpoint: int, phase: str = "hold") -> tuple[int, int]:
         """Log the equilibrium window (phase hold); returns its [first, last] sample index."""
         self._phase, self._setpoint = phase, setpoint
-        first = self.writer.count if self.writer else 0
+        first = self.logged
         steps = int(round(self.cfg.hold_time / self.period))
         self._held = []
         noise, found = None, {}  # the run's own noise: from its own solve, once there is one (below)
@@ -275,7 +286,7 @@ class StartupRoutine:
         for k, m in found.items():  # the poses' windows as the final solve will see them (index 0: tau0)
             if 1 <= k < len(self._means):
                 self._means[k] = WindowMean(*m, self._means[k].noise, self._means[k].estimate)
-        last = self.writer.count - 1
+        last = self.logged - 1
         self._io.submit(self.writer.sync)
         return first, last
 
@@ -368,10 +379,13 @@ class StartupRoutine:
     def run(self) -> StartupResult:
         """The whole procedure; raises :class:`StartupStopped` after a safe stop. The interpreter is set up for
         the loop meanwhile (:func:`acquisition.clock.loop_runtime`: no collection of the long-lived heap; the
-        configuration's real-time priority on a real clock, and then the log worker's thread one below it)."""
-        with loop_runtime(rt_priority=self.cfg.rt_priority if self.clock.paced else None) as realtime:
-            if realtime:  # the log worker shares the loop's interpreter lock: never preempted holding it
-                self._io.submit(set_realtime, max(1, self.cfg.rt_priority - 1)).result()
+        configuration's real-time priority and memory locking on a real clock, and then the process's other threads
+        one below it)."""
+        cfg, paced = self.cfg, self.clock.paced
+        lock = paced and (cfg.rt_priority is not None if cfg.lock_memory is None else cfg.lock_memory)
+        # under a granted priority the threads that share the interpreter lock (the log worker, the CAN notifier...)
+        # run one priority below the loop's: loop_runtime
+        with loop_runtime(rt_priority=cfg.rt_priority if paced else None, lock=lock):
             try:
                 return self._procedure()
             finally:

@@ -4,7 +4,8 @@ sc_8_final, each solved with the effects its own `cdpr diagnose` recommends, lan
 
 What done-when 2 is measured as: **the single-run diagnosis of each route** ("its own diagnosis": `cdpr
 diagnose RUN` on sc_8_final alone, then `cdpr solve RUN --noise estimate --effects` of its verdict). That
-figure has the target; the benchmark exits 1 on its miss. Beside it, without a target, each route's **own
+figure is reading A: the benchmark exits 1 on its miss. Reading B, printed with its own pass/miss against the
+same target but not in the exit code (the issue's note decides which reading it claims): each route's **own
 three-run model** (`cdpr diagnose R1 R2 R3 --max-effects 4 --model-out M.yaml` on the route's sc_8_final,
 sc_8_medium_a, sc_27_medium_a, then sc_8_final solved with `--model M.yaml` and with `--effects` of that
 selection), each with its distance to zeta_0_real (docs/effects.md, "Two imports of one run").
@@ -131,18 +132,20 @@ def cli_solve(path: Path, effects: list[str], model: Path | None = None) -> dict
                           + (["--effects", ",".join(effects)] if effects else [])))
 
 
-def route_models(runs: dict[str, list[Path]], out: Path) -> dict[str, tuple[list[str], dict, dict]]:
+def route_models(runs: dict[str, list[Path]], out: Path) -> dict[str, tuple[list[str], dict, dict, str]]:
     """Each route's own three-run model (`cdpr diagnose R1 R2 R3 --max-effects 4 --model-out M`) and its
     first run (sc_8_final) solved with `--model M` and with `--effects` of that selection: per route the
-    effects selected and the two solutions."""
+    effects selected, the two solutions and the selection's finding (the implausible option that stopped it,
+    '' without one)."""
     from calib.robot_model import read_model
 
     out_models = {}
     for kind, paths in runs.items():
         mfile = out / f"model_{kind}.yaml"
-        cli(["diagnose", *map(str, paths), "--max-effects", str(MAX_EFFECTS), "--model-out", str(mfile)])
+        report = cli(["diagnose", *map(str, paths), "--max-effects", str(MAX_EFFECTS), "--model-out", str(mfile)])
+        finding = next((ln.split()[1] for ln in report.splitlines() if ln.startswith("FINDING: ")), "")
         names = read_model(mfile).names
-        out_models[kind] = (names, cli_solve(paths[0], [], mfile), cli_solve(paths[0], names))
+        out_models[kind] = (names, cli_solve(paths[0], [], mfile), cli_solve(paths[0], names), finding)
     return out_models
 
 
@@ -268,8 +271,13 @@ def main() -> int:
         f"{kind} {1000 * np.linalg.norm(np.subtract(sols[kind]['initial_pose'][:3], z_real)):.2f} mm"
         for kind in FILES))
     ok = d <= TARGET
-    print(f"raw .log vs parsed .mat initial positions, each route's single-run diagnosis (done-when 2): "
-          f"{1000 * d:.2f} mm (target <= {1000 * TARGET:.1f} mm): " + ("ok" if ok else "MISS"))
+    d3 = apart(models["raw"][1], models["parsed"][1])
+    print("done-when 2, raw .log vs parsed .mat initial positions of sc_8_final (target <= "
+          f"{1000 * TARGET:.1f} mm), two readings of 'the effects its own diagnosis selects':")
+    print(f"  A. each route's single-run diagnosis (sets the exit code): {1000 * d:.2f} mm: "
+          + ("ok" if ok else "MISS"))
+    print(f"  B. each route's own three-run model, --model (reported): {1000 * d3:.2f} mm: "
+          + ("ok" if d3 <= TARGET else "MISS"))
     return 0 if ok else 1
 
 
@@ -278,16 +286,17 @@ def apart(a: dict, b: dict) -> float:
     return float(np.linalg.norm(np.subtract(a["initial_pose"][:3], b["initial_pose"][:3])))
 
 
-def model_lines(models: dict[str, tuple[list[str], dict, dict]], z_real: np.ndarray) -> list[str]:
-    """The routes' own three-run models, reported beside the single-run figure (no target)."""
+def model_lines(models: dict[str, tuple[list[str], dict, dict, str]], z_real: np.ndarray) -> list[str]:
+    """The routes' own three-run models (done-when 2's reading B, beside the single-run figure)."""
     lines = [f"each route's own three-run model (cdpr diagnose R1 R2 R3 --max-effects {MAX_EFFECTS}), "
-             "sc_8_final solved with it (reported beside done-when 2, no target):"]
-    for kind, (names, with_model, with_effects) in models.items():
-        lines.append(f"  {kind:<6} selects {','.join(names) or 'nothing'}; to zeta_0_real: --model "
+             "sc_8_final solved with it (done-when 2's reading B):"]
+    for kind, (names, with_model, with_effects, finding) in models.items():
+        lines.append(f"  {kind:<6} selects {','.join(names) or 'nothing'}"
+                     + (f" (stopped by the finding {finding})" if finding else "") + "; to zeta_0_real: --model "
                      f"{1000 * np.linalg.norm(np.subtract(with_model['initial_pose'][:3], z_real)):.2f} mm, "
                      f"--effects {1000 * np.linalg.norm(np.subtract(with_effects['initial_pose'][:3], z_real)):.2f}"
                      " mm")
-    (_, pm, pe), (_, rm, re) = models["parsed"], models["raw"]
+    (_, pm, pe, _), (_, rm, re, _) = models["parsed"], models["raw"]
     lines.append(f"  raw vs parsed: --model {1000 * apart(rm, pm):.2f} mm, --effects {1000 * apart(re, pe):.2f} mm")
     return lines
 

@@ -11,13 +11,17 @@ A candidate set of shared effects is judged by what it predicts on data it was n
 * with one run, **leave one pose out** (:func:`calib.prediction.leave_one_pose_out`) on the weights of the
   base model, so that every candidate is scored in the same units.
 
-Forward steps: every single candidate is fitted on all runs (cheap, one joint fit each); the best
-``PROBE`` of them by joint fit, and the pairs of the best ``PAIR_POOL``, are judged by prediction. The best
+Forward steps: every single candidate is fitted on all runs (a short fit from the current one, then its
+own fit with a weighting round) and judged by prediction, and so are the pairs of the best ``PAIR_POOL``
+singles by prediction and the best plausible single (:func:`pair_pool`). No in-sample screen decides what
+is judged (an in-sample score favours the effects with many parameters); every candidate's prediction is
+measured and reported. The best
 option by prediction is taken, unless one with fewer parameters predicts within ``CONFUSED`` of its gain
 (the fewest parameters among confused candidates). An option must predict better in total and on most
 left-out runs (poses). When the best option by prediction has a value outside its plausible range, that is
-a finding, not a reason to take the next one: the selection stops there and says so (a likely error in the
-robot description or the setup, with the value found).
+a finding (and so is an effect whose values together are that far from their plausible box:
+:func:`box_chi2`), not a reason to take the next one: the selection stops there and says so (a likely
+error in the robot description or the setup, with the value found).
 """
 
 from __future__ import annotations
@@ -27,8 +31,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import stats
+from scipy.optimize import lsq_linear
 
-from calib.effects import Effect, Implausible
+from calib.effects import Effect, Implausible, Projected
 from calib.fitting import residuals
 from calib.multirun import (
     GROUPS,
@@ -45,8 +51,7 @@ from calib.runrows import RunRows
 from calib.selfcal.problem import Problem
 from calib.spread import Spread, spread
 
-PROBE = 3  # single candidates judged by prediction per step (the best by joint fit)
-PAIR_POOL = 3  # their pairs judged together
+PAIR_POOL = 3  # the best single candidates by prediction whose pairs are judged together
 CONFUSED = 0.10  # an option predicting within this share of the best gain is confused with it
 MIN_GAIN = 2.0  # held-out -2 log-likelihood gain an added option must bring (a likelihood ratio of e)
 QUICK_ITER = 15  # LM iterations of a screening fit
@@ -93,19 +98,48 @@ def _n_params(effects: Sequence[Effect], robot) -> int:
 
 
 Z_RANGE = 2.0  # a value is implausible when it leaves its plausible range by more than this many sigma
+RANGE_P = 2.0 * float(stats.norm.sf(Z_RANGE))  # the same level for an effect's values taken together (0.0455)
+
+
+def box_chi2(values: np.ndarray, cov: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[float, int]:
+    """How far an effect's fitted values are from the nearest values inside their plausible box [lo, hi],
+    in its covariance's metric: min over b in the box of (v - b)' C^+ (v - b) on the directions the fit
+    determines (C's eigenvalues above 1e-12 of the largest), and that number of directions (0: no
+    covariance). Correlated values can each lie within Z_RANGE sigma of the box and together far from it."""
+    w, U = np.linalg.eigh(np.asarray(cov, float))
+    keep = w > 1e-12 * max(float(w.max()), 0.0) if w.size else np.zeros(0, bool)
+    if not keep.any():
+        return 0.0, 0
+    A = (U[:, keep] / np.sqrt(w[keep])).T
+    if np.all((values >= lo) & (values <= hi)):
+        return 0.0, int(keep.sum())
+    big = 1e9 * np.maximum(np.abs(values), 1.0)
+    b = lsq_linear(A, A @ values, bounds=(np.where(np.isfinite(lo), lo, -big), np.where(np.isfinite(hi), hi, big)))
+    return float(np.sum((A @ (values - b.x)) ** 2)), int(keep.sum())
 
 
 def _implausible(f: JointFit) -> list[Implausible]:
-    """The shared values outside their plausible range by more than Z_RANGE times their 1-sigma."""
+    """The shared values outside their plausible range by more than Z_RANGE times their 1-sigma, and every
+    value outside its range of an effect whose values together are farther than that level from their
+    plausible box (:func:`box_chi2`, p < RANGE_P on its determined directions; the same rule for one value)."""
     robot = f.runs[0].rows.robot
     sig = f.shared_sigmas()
     out, q = [], 0
     for e in f.shared:
         nq = len(e.params(robot))
-        for v in e.implausible(robot, f.values[q:q + nq]):
-            s = sig.get(e.name, {}).get(v.param.split(".", 1)[1], 0.0)
-            if min(abs(v.value - v.lo), abs(v.value - v.hi)) > Z_RANGE * s:
-                out.append(v)
+        outside = e.implausible(robot, f.values[q:q + nq])
+        alone = [v for v in outside
+                 if min(abs(v.value - v.lo), abs(v.value - v.hi)) > Z_RANGE * sig.get(e.name, {}).get(
+                     v.param.split(".", 1)[1], 0.0)]
+        if outside and not alone:
+            vals, cov, specs = f.values[q:q + nq], f.cov[q:q + nq, q:q + nq], e.params(robot)
+            if isinstance(e, Projected):
+                vals, cov, specs = e.full_values(robot, vals), e.covariance(cov), e.inner.params(robot)
+            d2, k = box_chi2(vals, cov, np.array([s.plausible[0] for s in specs], float),
+                             np.array([s.plausible[1] for s in specs], float))
+            if k and stats.chi2.sf(d2, k) < RANGE_P:
+                alone = outside
+        out.extend(alone)
         q += nq
     return out
 
@@ -242,6 +276,15 @@ def _choose(judge: Judge, ok: list[Trial], current: Trial, step: dict[str, Any])
     return None
 
 
+def pair_pool(singles: Sequence[Trial]) -> list[Trial]:
+    """The singles whose pairs are judged: the best PAIR_POOL by prediction, and the best plausible one if
+    it is not among them (an implausible single may be taking a plausible one's part: the pair tells)."""
+    ranked = sorted(singles, key=lambda t: t.score)
+    top = ranked[:PAIR_POOL]
+    fair = next((t for t in ranked if t.plausible), None)
+    return top if fair is None or any(t is fair for t in top) else [*top, fair]
+
+
 def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Selection:
     """Forward selection by prediction (module doc)."""
     base = judge.judge(judge.fit([]))
@@ -253,8 +296,8 @@ def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Sel
             break
         quick = {c: judge.quick(current.fit, [*selected, c]) for c in rest}
         screen = sorted(rest, key=lambda c: quick[c][0])
-        probe = [judge.judge(judge.fit([*selected, c], quick[c][1])) for c in screen[:PROBE]]
-        top = sorted(probe, key=lambda t: t.score)[:PAIR_POOL]
+        probe = [judge.judge(judge.fit([*selected, c], quick[c][1])) for c in screen]
+        top = pair_pool(probe)
         pairs = []
         if len(selected) + 2 <= max_effects:
             for a in range(len(top)):

@@ -10,7 +10,7 @@ import yaml
 from acquisition.cli import main as cdpr
 from calib.effects import make_effects
 from calib.effects.builtin import TensionOffset
-from calib.multirun import DeviceBase, Learned, misfit_j
+from calib.multirun import NOT_CANDIDATES, DeviceBase, Learned, misfit_j
 from calib.robot import load_robot
 from calib.robot_model import ModelFileError, prior_effects, read_model
 
@@ -96,6 +96,11 @@ def test_a_model_learned_on_two_real_runs_predicts_the_third(real_runs, tmp_path
                  "--model-out", str(model)]) == 0
     report = capsys.readouterr().out
     assert "leave-one-run-out" in report and "recommended: " in report
+    # every candidate of the library is judged by prediction at the first step (no in-sample screen)
+    from calib.effects import BUILTIN
+
+    judged = {ln.split()[2] for ln in report.splitlines() if ln.startswith("  step 1: ")}
+    assert {n for n in BUILTIN if n not in NOT_CANDIDATES} <= judged
     doc = yaml.safe_load(model.read_text())
     assert doc["effects"] and {r["name"] for r in doc["runs"]} == {"sc_8_final", "sc_8_medium_a"}
     assert all(set(e["sigma"]) == set(e["values"]) for e in doc["effects"])

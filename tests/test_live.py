@@ -11,6 +11,7 @@ import os
 import struct
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -305,6 +306,53 @@ def test_the_loop_runs_on_a_frozen_heap_and_its_run_log_is_written_off_its_threa
     assert list(run.phase).count("hold") == 5  # the pose's 0.5 s window at 10 Hz
 
 
+def test_on_a_real_clock_the_samples_lines_are_written_by_the_log_worker_in_order(tmp_path):
+    """Issue 32: a file write can wait for the file system's journal (a tick 361 ms late at load 12), so on a
+    real clock each samples.csv line is written and flushed by the log worker, not the loop (on the simulated
+    clock the loop writes them): every line is there, in the loop's order, and the windows' row indices name
+    the rows of their hold. The clock here is real but does not sleep (lockstep, as fast as it goes)."""
+    import threading
+
+    from acquisition.clock import RealClock
+    from acquisition.connect import ahrs_rate_for, connect
+    from acquisition.plans import Plan
+    from acquisition.runwriter import RunWriter
+    from acquisition.startup import StartupConfig, StartupRoutine
+    from sim_backend.backend import SimBackend
+
+    robot = load_robot("irma4u")
+    grid = Plan.for_robot(robot, 2, "equilibrium")
+    plan = Plan(grid.setpoints[:2], grid.ideal_poses[:2], grid.tau0)
+    cfg = StartupConfig(hold_time=0.5)
+    threads: set[str] = set()
+
+    class Recorded(RunWriter):  # the real writer, noting the thread each line is written in
+        def append(self, *a, **k):
+            threads.add(threading.current_thread().name)
+            super().append(*a, **k)
+
+    clock = RealClock(1.0 / cfg.rate, lockstep=True, sleep=lambda s: None)
+    with SimBackend(robot, None, 3, clock.period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
+        rig = connect(sim.devices, robot, clock, lockstep=True, period=clock.period)
+        try:
+            import acquisition.startup as startup
+
+            original, startup.RunWriter = startup.RunWriter, Recorded
+            try:
+                result = StartupRoutine(robot, rig, clock, plan, tmp_path / "run", cfg).run()
+            finally:
+                startup.RunWriter = original
+        finally:
+            rig.close()
+    assert len(threads) == 1 and threads != {threading.current_thread().name}, threads
+    run = read_run(tmp_path / "run")
+    assert len(run.t) == len(result.ticks) > 100
+    assert run.extra["tick"].astype(int).tolist() == result.ticks.tolist()
+    for j, (first, last) in enumerate(result.windows):
+        assert set(run.phase[first:last + 1]) == {"hold"} and set(run.setpoint[first:last + 1]) == {j}
+        assert run.phase[first - 1] != "hold" and (last + 1 == len(run.t) or run.phase[last + 1] != "hold")
+
+
 def test_inside_the_loop_runtime_the_objects_kept_never_cost_a_full_collection():
     """The loop's collector policy (acquisition/clock.py): objects kept by the hundred thousand (a long run's
     rows) trigger automatic collections of the oldest generation outside loop_runtime, none inside it, where
@@ -357,7 +405,8 @@ with loop_runtime(rt_priority=40) as rt:
 @pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="SCHED_FIFO is Linux's")
 def test_real_time_priority_is_opt_in_and_falls_back_with_one_sentence():
     """The loop's SCHED_FIFO (acquisition/clock.py, StartupConfig.rt_priority): granted, the loop's thread runs
-    under it inside loop_runtime only; refused (an unprivileged process without an rtprio limit), the loop runs
+    under it inside loop_runtime only, and the process's other threads (the interpreter lock's other holders)
+    one priority below it, restored after; refused (an unprivileged process without an rtprio limit), the loop runs
     at normal priority and one warning sentence says why and how to grant it."""
     from acquisition.clock import loop_runtime
     from acquisition.startup import StartupConfig
@@ -372,11 +421,81 @@ def test_real_time_priority_is_opt_in_and_falls_back_with_one_sentence():
     assert len(lines) == 1 and "real-time priority 40 (SCHED_FIFO) was refused" in lines[0]
     assert "ulimit -r 40" in lines[0]
     before = os.sched_getscheduler(0)
-    with loop_runtime(rt_priority=40) as rt:
-        inside = os.sched_getscheduler(0)
+    stop, started = threading.Event(), threading.Event()
+
+    def sharer() -> None:  # a thread of the process that shares the interpreter lock (the log worker, say)
+        sharer.tid = threading.get_native_id()
+        started.set()
+        stop.wait(30)
+
+    helper = threading.Thread(target=sharer, daemon=True)
+    helper.start()
+    started.wait(10)
+    try:
+        with loop_runtime(rt_priority=40) as rt:
+            inside = os.sched_getscheduler(0)
+            sharer_inside = os.sched_getscheduler(sharer.tid), os.sched_getparam(sharer.tid).sched_priority
+        sharer_after = os.sched_getscheduler(sharer.tid)
+    finally:
+        stop.set()
+        helper.join()
     if not rt:
         pytest.skip("this process may not use SCHED_FIFO (no rtprio limit): the refusal is checked above")
     assert inside & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO and os.sched_getscheduler(0) == before
+    assert (sharer_inside[0] & ~os.SCHED_RESET_ON_FORK, sharer_inside[1]) == (os.SCHED_FIFO, 39)
+    assert sharer_after == os.SCHED_OTHER
+
+
+REFUSED_LOCK = """
+import os, resource
+import numpy.ma
+from acquisition.clock import loop_runtime
+resource.setrlimit(resource.RLIMIT_MEMLOCK, (8 << 20, 8 << 20))  # a desktop's default: 8 MiB, not unlimited
+if os.getuid() == 0:
+    os.setgid(65534); os.setuid(65534)  # root may always (CAP_IPC_LOCK): be nobody
+with loop_runtime(lock=True):
+    print([line.split()[1] for line in open("/proc/self/status") if line.startswith("VmLck")][0])
+"""
+
+
+def _locked_kib() -> int:
+    with open("/proc/self/status") as f:
+        return int(next(line.split()[1] for line in f if line.startswith("VmLck")))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="mlockall and /proc are Linux's")
+def test_memory_locking_keeps_the_loop_from_faulting_and_falls_back_with_one_sentence():
+    """Issue 32 (acquisition/clock.py lock_memory, StartupConfig.lock_memory): inside loop_runtime(lock=True) the
+    process's pages are locked and a heap reserve is resident, so a 48 MiB buffer made and written in the
+    loop faults in (almost) no page, where outside it faults each of its pages (48 MiB: above glibc's largest
+    mmap threshold, so always fresh pages outside); after it nothing is locked.
+    Refused (a finite RLIMIT_MEMLOCK without CAP_IPC_LOCK), nothing is locked and one sentence says how."""
+    import resource
+
+    from acquisition.clock import loop_runtime
+
+    def faults_of_a_fresh_array() -> int:
+        before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+        a = bytearray(48 << 20)  # 12288 pages (not numpy's: it asks for transparent huge pages)
+        a[::4096] = b"\1" * (12 << 10)  # a byte in each page
+        del a
+        return resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", REFUSED_LOCK], cwd="/", env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert done.stdout.split() == ["0"], done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "memory locking (mlockall) was not done" in lines[0], done.stderr
+    assert "ulimit -l unlimited" in lines[0]
+    outside = faults_of_a_fresh_array()
+    with loop_runtime(lock=True):
+        locked = _locked_kib()
+        inside = faults_of_a_fresh_array()
+    if locked == 0:
+        pytest.skip("this process may not lock its memory (ulimit -l): the refusal is checked above")
+    assert outside >= 12000 and inside <= 20, (outside, inside)
+    assert locked > 64 * 1024 and _locked_kib() == 0
 
 
 def test_a_run_log_write_that_fails_on_the_log_worker_is_raised(tmp_path):

@@ -62,7 +62,9 @@ def register(sub) -> None:
     p.add_argument("--realtime", action="store_true", help="pace the simulated prototype in real time")
     p.add_argument("--rt-priority", type=int, default=None, metavar="N",
                    help="run the control loop's thread (and a paced simulated plant) under SCHED_FIFO at priority N "
-                        "(1-99; Linux, needs an rtprio limit or CAP_SYS_NICE; refused: a warning, normal priority)")
+                        "(1-99; Linux, needs an rtprio limit or CAP_SYS_NICE; refused: a warning, normal priority), "
+                        "the process's other threads at N-1, and lock its memory (needs ulimit -l unlimited; "
+                        "refused: a warning)")
     p.add_argument("--offsets", help="also save the new sensor offsets to this YAML file (updated in place: "
                    "its previous content is kept in RUN/run.yaml as previous_offsets)")
     p.add_argument("--max-rate", type=float, default=MAX_TENSION_RATE,

@@ -1,0 +1,68 @@
+"""calib.runselect: the joint plausibility of an effect's values and the pool whose pairs are judged (issue 28)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+from scipy.optimize import minimize
+
+from calib.effects import Implausible
+from calib.runselect import RANGE_P, Z_RANGE, Trial, box_chi2, pair_pool
+
+
+def _brute(v, cov, lo, hi):
+    """The same distance by a general bounded minimiser (an independent route)."""
+    P = np.linalg.inv(cov)
+    r = minimize(lambda b: (v - b) @ P @ (v - b), np.clip(v, lo, hi), jac=lambda b: -2 * P @ (v - b),
+                 bounds=list(zip(lo, hi, strict=True)), method="L-BFGS-B", options={"ftol": 1e-15, "gtol": 1e-12})
+    return r.fun
+
+
+def test_one_value_is_the_per_parameter_rule():
+    d2, k = box_chi2(np.array([0.11]), np.array([[0.04 ** 2]]), np.array([-0.03]), np.array([0.03]))
+    assert k == 1
+    assert np.isclose(d2, (0.08 / 0.04) ** 2)  # 2 sigma beyond the bound
+    assert np.isclose(stats.chi2.sf(Z_RANGE ** 2, 1), RANGE_P)  # the same level as Z_RANGE sigma
+
+
+def test_inside_the_box_is_zero():
+    assert box_chi2(np.array([0.01, -0.02]), np.eye(2) * 1e-4, np.full(2, -0.03), np.full(2, 0.03)) == (0.0, 2)
+
+
+def test_correlated_values_each_within_two_sigma_are_far_together():
+    """Gains of +10 % and -10 % against a +-3 % range, 1-sigma 4 % each, correlation 0.9: each is 1.75 sigma out
+    (plausible alone), the pair's difference is 0.2 against its 1-sigma of 0.018."""
+    sd, rho = 0.04, 0.9
+    cov = sd ** 2 * np.array([[1.0, rho], [rho, 1.0]])
+    v, lo, hi = np.array([0.10, -0.10]), np.full(2, -0.03), np.full(2, 0.03)
+    d2, k = box_chi2(v, cov, lo, hi)
+    assert k == 2
+    assert np.isclose(d2, _brute(v, cov, lo, hi), rtol=1e-6)
+    assert np.isclose(d2, 0.14 ** 2 / (2 * sd ** 2 * (1 - rho)), rtol=1e-6)  # 61.25: the box's corner is nearest
+    assert stats.chi2.sf(d2, k) < RANGE_P
+    # the same values with the correlation's sign turned: the common mode is free, the distance small
+    d2b, _ = box_chi2(v, sd ** 2 * np.array([[1.0, -rho], [-rho, 1.0]]), lo, hi)
+    assert np.isclose(d2b, _brute(v, sd ** 2 * np.array([[1.0, -rho], [-rho, 1.0]]), lo, hi), rtol=1e-6)
+    assert stats.chi2.sf(d2b, 2) > RANGE_P
+
+
+def test_undetermined_directions_are_free():
+    """A covariance of rank 1 (only v1 + v2 determined): the box is reached along the free direction."""
+    u = np.array([1.0, 1.0]) / np.sqrt(2)
+    d2, k = box_chi2(np.array([0.05, -0.05]), 1e-4 * np.outer(u, u), np.full(2, -0.03), np.full(2, 0.03))
+    assert k == 1
+    assert np.isclose(d2, 0.0, atol=1e-12)
+
+
+def _trial(name: str, score: float, plausible: bool) -> Trial:
+    bad = [] if plausible else [Implausible(f"{name}.x", 1.0, "1", -0.1, 0.1)]
+    return Trial((name,), 1, None, score, score=score, implausible=bad)
+
+
+def test_pair_pool_keeps_the_best_plausible_single():
+    singles = [_trial("a", 10.0, False), _trial("b", 11.0, False), _trial("c", 12.0, False),
+               _trial("d", 13.0, True), _trial("e", 14.0, True)]
+    assert [t.names[0] for t in pair_pool(singles)] == ["a", "b", "c", "d"]
+    singles[1] = _trial("b", 11.0, True)
+    assert [t.names[0] for t in pair_pool(singles)] == ["a", "b", "c"]
+    assert [t.names[0] for t in pair_pool([_trial("a", 2.0, False), _trial("b", 1.0, False)])] == ["b", "a"]
