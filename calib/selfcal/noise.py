@@ -413,7 +413,7 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
 
 
 def _digamma(x: float) -> float:
-    """psi(x) for x > 0: the recurrence up to 6, then the asymptotic series (error < 1e-12)."""
+    """psi(x) for x > 0: the recurrence up to 10, then the asymptotic series (error < 1e-12)."""
     acc = 0.0
     while x < 10.0:
         acc -= 1.0 / x
@@ -423,7 +423,7 @@ def _digamma(x: float) -> float:
 
 
 def _trigamma(x: float) -> float:
-    """psi'(x) for x > 0: the recurrence up to 6, then the asymptotic series (error < 1e-12)."""
+    """psi'(x) for x > 0: the recurrence up to 10, then the asymptotic series (error < 1e-12)."""
     acc = 0.0
     while x < 10.0:
         acc += 1.0 / (x * x)
