@@ -7,11 +7,12 @@ services, no parameters, no playback control), so whatever a client sends is ref
 error status and never reaches this process; it binds 127.0.0.1 unless a host is named.
 
 The control loop never waits for it, nor shares its interpreter with it: :class:`LiveTap` runs in the loop's
-thread at each tick and only, every ``every`` ticks and at each logged sample, writes the tick's record (a few
-hundred bytes of plain numbers) into a pipe in one non-blocking write, dropping it when the pipe is full;
-the publisher, a process of its own (spawned, at a lower priority: :func:`_serve`), runs the server, estimates
-the platform's pose (:class:`acquisition.scene.PoseTracker`), builds, encodes and logs the messages. The
-server's own threads send them; a client that is slow, connects or vanishes only changes what it receives.
+thread at each tick and only, every ``every`` ticks and at each logged sample, copies the tick's record (a few
+hundred bytes of plain numbers) into a lock-free ring in shared memory (:mod:`acquisition.live_ring`: no
+system call, no wait), dropping it when the ring is full; the publisher, a process of its own (spawned, at
+a lower priority: :func:`_serve`), polls the ring, runs the server, estimates the platform's pose
+(:class:`acquisition.scene.PoseTracker`), builds, encodes and logs the messages. The server's own
+threads send them; a client that is slow, connects or vanishes only changes what it receives.
 """
 
 from __future__ import annotations
@@ -21,8 +22,6 @@ import json
 import math
 import os
 import pickle
-import select
-import struct
 import sys
 import threading
 import time
@@ -32,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from acquisition.live_messages import Frame, RunView
+from acquisition.live_ring import SLOTS, ShmRing
 from acquisition.scene import (
     ESTIMATE_SCHEMA,
     EVENT_SCHEMA,
@@ -45,10 +45,10 @@ from acquisition.scene import (
 from calib.robot import Robot
 
 SCENE_RATE = 20.0  # Hz, scene updates during a startup
-PIPE_SIZE = 1 << 18  # bytes the pipe to the publisher holds (~1000 records of ~250 bytes); what does not fit is dropped
+POLL = 0.002  # s the publisher sleeps when the ring is empty (watching the loop's process meanwhile)
 PUBLISHER_NICE = 10  # the publisher process's niceness above the loop's
 START_TIMEOUT = 60.0  # s to wait for the publisher process to listen
-NEWS = 4  # windows, events and estimates per record at most (a record is one write of at most PIPE_BUF bytes)
+NEWS = 4  # windows, events and estimates per record at most (a record fits one slot of the ring, 4080 bytes)
 GHOST_ROWS = 16  # planned poses per record at most
 # s the publisher keeps serving after the run's last word while a viewer is subscribed: the SDK sends from its
 # own runtime and its server's stop drops what is still queued (a loaded machine lost the final "stopped")
@@ -161,16 +161,15 @@ class LiveServer:
 
 class LiveTap:
     """The control loop's side of the live view: ``on_tick`` (StartupRoutine's hook) hands every ``every``-th
-    tick and every logged sample, as one small pickled record, to the publisher process through a pipe it
-    writes without waiting (a write that does not fit is dropped and counted); never blocks, never writes to
-    the routine. :meth:`attach` the routine before it runs. ``fd``: the pipe's write end (non-blocking)."""
+    tick and every logged sample, as one small pickled record, to the publisher process through the producer's
+    side of a :class:`ShmRing` (a record that does not fit is dropped and counted); makes no system call, never
+    waits, never writes to the routine. :meth:`attach` the routine before it runs."""
 
-    def __init__(self, every: int, fd: int):
+    def __init__(self, every: int, ring: ShmRing):
         self.every = max(int(every), 1)
-        self.fd = fd
+        self.ring = ring
         self.dropped = 0
         self.handed = 0
-        self.gone = False  # the publisher closed its end (its process ended)
         self._routine = None
         self._windows = self._events = self._estimates = 0  # seen so far
         self._ghosts = 0  # planned poses sent so far
@@ -219,26 +218,16 @@ class LiveTap:
             self._ghosts += len(new_ghosts[1])
 
     def _send(self, record) -> bool:
-        """Write one record in one atomic write (the pipe's size limit for that, PIPE_BUF) or drop it."""
-        data = pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL)
-        frame = struct.pack("!i", len(data)) + data  # multiprocessing.Connection's framing: the child recv_bytes
-        if len(frame) > select.PIPE_BUF:
-            self.dropped += 1
-            return False
-        try:
-            os.write(self.fd, frame)
-        except BlockingIOError:  # the pipe is full: dropped
-            self.dropped += 1
-            return False
-        except BrokenPipeError:  # the publisher is gone: the run goes on
-            self.gone = True
-            self.dropped += 1
-            return False
-        return True
+        """Put one record in the ring, or drop it (full, or longer than a slot)."""
+        if self.ring.put(pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL)):
+            return True
+        self.dropped += 1
+        return False
 
-    def close(self, timeout: float = 5.0) -> bool:
+    def close(self, timeout: float = 5.0, alive=lambda: True) -> bool:
         """Hand over what the routine recorded since its last tick (a stop's event), then tell the publisher the
-        run is over (tries for at most ``timeout`` s while the pipe is full); False if it could not."""
+        run is over (tries for at most ``timeout`` s while the ring is full and ``alive()``, the publisher's
+        process runs); False if it could not."""
         r = self._routine
         for _ in range(100 if r is not None and r._last is not None else 0):  # NEWS at a time
             seen = (self._windows, self._events, self._estimates)
@@ -246,9 +235,8 @@ class LiveTap:
             if (self._windows, self._events, self._estimates) == seen:
                 break
         end = time.monotonic() + timeout
-        while not self._send(None):
-            self.dropped -= 1  # the end of the run is not a tick
-            if self.gone or time.monotonic() > end:
+        while not self.ring.put_end():
+            if not alive() or time.monotonic() > end:
                 return False
             time.sleep(0.01)
         return True
@@ -328,11 +316,14 @@ class LivePublisher:
             self.scenes += topic == "/scene"
 
 
-def _serve(records, control, address: LiveAddress, robot: Robot, slack: float, overload: float) -> None:
-    """The publisher process: the server on ``address``, then every record of the pipe ``records`` published
-    until the end record (None) or the loop's process is gone; ``control`` says where it listens (or why it
-    cannot) and, at the end, what it published. Runs at a lower priority than the loop (nice +10) and leaves
-    SIGINT/SIGTERM to the routine (its safe stop is shown to the end)."""
+def _serve(ring_name: str, alive, control, address: LiveAddress, robot: Robot, slack: float,
+           overload: float) -> None:
+    """The publisher process: the server on ``address``, then every record of the ring ``ring_name`` published
+    until its end record or until the loop's process is gone (``alive``, the read end of a pipe the loop never
+    writes, reads end of file; or this process's parent changed); polls the ring every ``POLL`` s while it is
+    empty. ``control`` says where it listens (or why it cannot) and, at the end, what it published. Runs at a
+    lower priority than the loop (nice +10) and leaves SIGINT/SIGTERM to the routine (its safe stop is shown
+    to the end). Unlinks the ring if the loop's process is gone (else the loop does)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -341,24 +332,30 @@ def _serve(records, control, address: LiveAddress, robot: Robot, slack: float, o
         os.nice(PUBLISHER_NICE)
     except OSError:  # not allowed: the same priority as the loop, still in a process of its own
         pass
+    parent = os.getppid()
     try:
+        ring = ShmRing.attach(ring_name)
         server = LiveServer(address, robot.n, stream=io.StringIO())
     except OSError as exc:
         control.send(("error", str(exc)))
         return
     control.send(("listening", server.host, server.port))
     pub = LivePublisher(server, robot, slack, overload)
+    gone = False
     try:
         while True:
-            try:
-                record = pickle.loads(records.recv_bytes())
-            except EOFError:  # the loop's process is gone
+            data = ring.get()
+            if data is None:  # nothing yet: wait POLL s, unless the loop's process ends meanwhile
+                gone = alive.poll(POLL) or os.getppid() != parent
+                if gone:
+                    break
+                continue
+            if not data:  # the end record
                 break
-            if record is None:
-                break
-            pub.publish(record)
+            pub.publish(pickle.loads(data))
         pub.finish()
     finally:
+        ring.close(unlink=gone)
         server.close(linger=CLOSE_LINGER)
         try:
             control.send(("done", pub.published, pub.scenes, pub.errors))
@@ -372,8 +369,9 @@ class LiveView:
     view of a startup without ``--live`` (no hook, nothing started)."""
 
     def __init__(self, tap: LiveTap | None = None, process=None, control=None, host: str = "", port: int = 0,
-                 stream=None):
+                 stream=None, alive=None):
         self.tap, self.process, self.control = tap, process, control
+        self._alive = alive  # the write end of the pipe whose end of file tells the publisher the loop is gone
         self.host, self.port = host, port
         self.published = self.scenes = 0
         self.errors: list[str] = []
@@ -385,40 +383,45 @@ class LiveView:
 
     @classmethod
     def start(cls, address: str | LiveAddress, robot: Robot, rate: float, limits, scene_rate: float = SCENE_RATE,
-              stream=None, timeout: float = START_TIMEOUT, pipe_size: int = PIPE_SIZE) -> LiveView:
+              stream=None, timeout: float = START_TIMEOUT, slots: int = SLOTS) -> LiveView:
         """Start the publisher process listening on ``address`` ([HOST:]PORT) for a startup at ``rate`` Hz whose
         supervisor has ``limits`` (acquisition.safety.SafetyLimits); scene updates at ``scene_rate`` Hz; says
-        where it listens on ``stream``; the pipe to it holds ``pipe_size`` bytes. Raises ValueError (address)
-        or OSError (cannot listen)."""
+        where it listens on ``stream``; the ring to it holds ``slots`` records. Raises ValueError (address)
+        or OSError (cannot listen); the ring is unlinked then."""
         import multiprocessing
 
         addr = address if isinstance(address, LiveAddress) else LiveAddress.parse(address)
         ctx = multiprocessing.get_context("spawn")  # not forked: the loop's process may have the bus's threads
-        records_r, records_w = ctx.Pipe(duplex=False)
-        control_r, control_w = ctx.Pipe(duplex=False)
-        proc = ctx.Process(target=_serve, name="cdpr-live", daemon=True,
-                           args=(records_r, control_w, addr, robot, limits.slack, limits.overload))
-        proc.start()
-        records_r.close()
-        control_w.close()
+        ring = ShmRing.create(slots)
+        alive_r = alive_w = control_r = control_w = proc = None
         try:
-            if not control_r.poll(timeout):
-                raise OSError(f"the live view did not start listening on {addr.host}:{addr.port} within "
-                              f"{timeout:g} s.")
-            got = control_r.recv()
-        except (EOFError, OSError) as exc:
-            proc.kill()
-            records_w.close()
-            raise OSError(str(exc) if str(exc) else "the live view's process ended before it listened.") from exc
-        if got[0] == "error":
-            proc.join(timeout)
-            records_w.close()
-            raise OSError(got[1])
-        fd = records_w.fileno()
-        os.set_blocking(fd, False)
-        _size_pipe(fd, pipe_size)
-        view = cls(LiveTap(int(round(rate / scene_rate)), fd), proc, control_r, got[1], got[2], stream)
-        view._records = records_w  # kept open (the tap writes its file descriptor) until close
+            alive_r, alive_w = ctx.Pipe(duplex=False)
+            control_r, control_w = ctx.Pipe(duplex=False)
+            proc = ctx.Process(target=_serve, name="cdpr-live", daemon=True,
+                               args=(ring.name, alive_r, control_w, addr, robot, limits.slack, limits.overload))
+            proc.start()
+            alive_r.close()
+            control_w.close()
+            try:
+                if not control_r.poll(timeout):
+                    raise OSError(f"the live view did not start listening on {addr.host}:{addr.port} within "
+                                  f"{timeout:g} s.")
+                got = control_r.recv()
+            except (EOFError, OSError) as exc:
+                raise OSError(str(exc) if str(exc) else "the live view's process ended before it listened.") from exc
+            if got[0] == "error":
+                proc.join(timeout)
+                raise OSError(got[1])
+        except BaseException:
+            for end in (alive_r, alive_w, control_r, control_w):
+                if end is not None:
+                    end.close()
+            if proc is not None and proc.is_alive():
+                proc.kill()
+                proc.join(timeout)
+            ring.close()
+            raise
+        view = cls(LiveTap(int(round(rate / scene_rate)), ring), proc, control_r, got[1], got[2], stream, alive_w)
         view._stream.write(listening(view.host, view.port))
         return view
 
@@ -434,22 +437,25 @@ class LiveView:
         return routine
 
     def close(self, timeout: float = 10.0) -> None:
-        """Publish what is in the pipe, stop the server and its process (safe to call twice)."""
+        """Publish what is in the ring, stop the server and its process, unlink the ring (safe to call twice)."""
         if self.process is None:
             return
         proc, self.process = self.process, None
-        ended = self.tap.close()
-        if ended and self.control.poll(timeout):
-            try:
-                _, self.published, self.scenes, self.errors = self.control.recv()
-            except EOFError:
-                pass
-        self._records.close()
-        proc.join(timeout)
-        if proc.is_alive():
-            proc.kill()
+        try:
+            ended = self.tap.close(alive=proc.is_alive)
+            if ended and self.control.poll(timeout):
+                try:
+                    _, self.published, self.scenes, self.errors = self.control.recv()
+                except EOFError:
+                    pass
+        finally:
+            self._alive.close()
             proc.join(timeout)
-        self.control.close()
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout)
+            self.control.close()
+            self.tap.ring.close()
         tap = self.tap
         if tap.dropped or self.errors:
             self._stream.write(f"cdpr: live view: {tap.dropped} of {tap.dropped + tap.handed} ticks dropped (the "
@@ -463,12 +469,3 @@ def listening(host: str, port: int) -> str:
     return (f"cdpr: live view on ws://{host}:{port} (read-only; Foxglove: Open connection, Foxglove WebSocket, "
             f"this URL; layout docs/foxglove-layout.json)\n")
 
-
-def _size_pipe(fd: int, size: int) -> None:
-    """Let the pipe hold ``size`` bytes (Linux; the system's default, 64 KiB, elsewhere or if refused)."""
-    import fcntl
-
-    try:
-        fcntl.fcntl(fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), size)
-    except OSError:
-        pass

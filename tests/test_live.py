@@ -545,16 +545,10 @@ def test_on_a_real_clock_the_detector_refreshes_its_thresholds_on_a_worker_witho
     assert len(held) == 1 and slow.stillness.ripple_tol == cfg.ripple_floor  # one refresh asked, none taken
 
 
-def test_a_stalled_publisher_process_costs_the_loop_nothing_but_dropped_ticks(tmp_path):
-    """Issue 32: the publisher is a process of its own and the loop only writes to its pipe without waiting.
-    With that process frozen (SIGSTOP) and a pipe of one page, a one-pose startup runs to its end, the ticks
-    that do not fit are dropped and counted; thawed, the publisher publishes what the pipe held and ends."""
-    import io
-    import signal
-
+def _one_pose_startup(view, out: Path):
+    """A one-pose simulated startup (lockstep) with ``view``'s hook; its StartupResult."""
     from acquisition.clock import SimClock
     from acquisition.connect import ahrs_rate_for, connect
-    from acquisition.live import LiveView
     from acquisition.plans import Plan
     from acquisition.startup import StartupConfig, StartupRoutine
     from sim_backend.backend import SimBackend
@@ -563,30 +557,93 @@ def test_a_stalled_publisher_process_costs_the_loop_nothing_but_dropped_ticks(tm
     grid = Plan.for_robot(robot, 2, "equilibrium")
     plan = Plan(grid.setpoints[:1], grid.ideal_poses[:1], grid.tau0)
     cfg = StartupConfig(hold_time=0.5)
+    clock = SimClock(1.0 / cfg.rate)
+    with SimBackend(robot, None, 3, clock.period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
+        rig = connect(sim.devices, robot, clock, lockstep=True, period=clock.period)
+        try:
+            return view.started(StartupRoutine(robot, rig, clock, plan, out, cfg, on_tick=view.hook)).run()
+        finally:
+            rig.close()
+
+
+def _start_view(slots: int, said):
+    from acquisition.live import LiveView
+
+    robot = load_robot("irma4u")
+    return LiveView.start("127.0.0.1:0", robot, 200.0, SafetyLimits.for_robot(robot), stream=said, slots=slots)
+
+
+def test_a_stalled_publisher_process_costs_the_loop_nothing_but_dropped_ticks(tmp_path):
+    """Issue 32: the publisher is a process of its own and the loop only puts records in a shared-memory ring
+    without waiting. With that process frozen (SIGSTOP) and a ring of 16 slots, a one-pose startup runs to its
+    end, the ticks that do not fit are dropped and counted; thawed, the publisher publishes what the ring held
+    and ends, and the ring is unlinked."""
+    import io
+    import signal
+
     said = io.StringIO()
-    view = LiveView.start("127.0.0.1:0", robot, cfg.rate, SafetyLimits.for_robot(robot), stream=said,
-                          pipe_size=4096)
+    view = _start_view(16, said)
     assert said.getvalue().startswith(f"cdpr: live view on ws://127.0.0.1:{view.port} (read-only")
     assert view.process.pid != os.getpid() and view.process.is_alive()
+    name = view.tap.ring.name
+    assert Path("/dev/shm", name).exists()
     os.kill(view.process.pid, signal.SIGSTOP)
     try:
-        clock = SimClock(1.0 / cfg.rate)
-        with SimBackend(robot, None, 3, clock.period, ahrs_rate=ahrs_rate_for(cfg.log_period)) as sim:
-            rig = connect(sim.devices, robot, clock, lockstep=True, period=clock.period)
-            try:
-                result = view.started(StartupRoutine(robot, rig, clock, plan, tmp_path / "run", cfg,
-                                                     on_tick=view.hook)).run()
-            finally:
-                rig.close()
+        result = _one_pose_startup(view, tmp_path / "run")
     finally:
         os.kill(view.process.pid, signal.SIGCONT)
     tap = view.tap
-    assert result.windows and tap.handed >= 10 and tap.dropped > 5 * tap.handed  # a page: ~16 records
+    assert result.windows and tap.handed == 16 and tap.dropped > 5 * tap.handed  # the ring's 16 slots
     proc = view.process
     view.close()
     assert 0 < view.published and view.scenes <= tap.handed and not view.errors
     assert f"{tap.dropped} of {tap.dropped + tap.handed} ticks dropped" in said.getvalue()
     assert proc.exitcode == 0  # it ended on the end record, not killed
+    assert not Path("/dev/shm", name).exists()
+
+
+def test_a_publisher_gone_leaves_the_run_going_and_a_loop_gone_ends_the_publisher(tmp_path):
+    """The publisher killed before the run: the startup runs to its end, the ring fills and the rest is dropped,
+    the close does not wait for it and unlinks the ring. The loop's process killed mid-run: its publisher sees
+    the pipe the loop never writes reach its end of file, ends and unlinks the ring itself."""
+    import io
+    import signal
+
+    view = _start_view(16, io.StringIO())
+    name = view.tap.ring.name
+    view.process.kill()
+    view.process.join(30)
+    result = _one_pose_startup(view, tmp_path / "run")
+    t0 = time.monotonic()
+    view.close()
+    assert result.windows and view.tap.handed == 16 and view.tap.dropped > 100 and view.published == 0
+    assert time.monotonic() - t0 < 2.0 and not Path("/dev/shm", name).exists()
+
+    script = ("import io, time; from acquisition.live import LiveView; from acquisition.safety import SafetyLimits; "
+              "from calib.robot import load_robot; r = load_robot('irma4u'); v = LiveView.start('127.0.0.1:0', r, "
+              "200.0, SafetyLimits.for_robot(r), stream=io.StringIO(), slots=16); "
+              "print(v.process.pid, v.tap.ring.name, flush=True); time.sleep(600)")
+    loop = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1"))
+    try:
+        pid, name = loop.stdout.readline().split()
+        assert Path("/dev/shm", name).exists()
+        os.kill(loop.pid, signal.SIGKILL)
+        loop.wait(30)
+        end = time.monotonic() + 30
+        while Path("/dev/shm", name).exists() and time.monotonic() < end:
+            time.sleep(0.05)
+        assert not Path("/dev/shm", name).exists()  # the publisher unlinked it
+        while time.monotonic() < end:
+            try:
+                os.kill(int(pid), 0)
+            except ProcessLookupError:  # the publisher ended
+                break
+            time.sleep(0.05)
+        else:
+            raise AssertionError(f"the publisher {pid} outlived the loop's process by 30 s")
+    finally:
+        loop.kill()
 
 
 def _readings(serial_lines: str, ticks: int = 240) -> tuple[str, np.ndarray]:

@@ -68,7 +68,7 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
         within, floor = noise.sigma, sensor_noise(robot)
         for _ in range(VCE_ROUNDS_ROWS):
             shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses, PER_CABLE),
-                                    floor)
+                                    floor, within)
             if shrunk is None:
                 break
             model, theta = _with_reference_noise(robot, model, res.theta, reference_sigma(shrunk, within),

@@ -29,6 +29,8 @@ At a solution the estimate is refined (calib.selfcal.solve, noise 'estimate'): :
 platform's motion out of the kinematic groups, and :func:`variance_factors` / :func:`rescaled_sigma` bring a
 group down to what its window means scatter by around the fit, and up only where the model misses it by more
 than sqrt(MISFIT_FACTOR) times its noise (model error: it must not pull the poses to its misfit; issue 28).
+The swivel rows' cables (:data:`PER_CABLE`) get factors of their own, shrunk toward the group's by empirical
+Bayes (:func:`cable_factors`), while the group's sigma is still a noise's (issue 29, docs/windows.md).
 The reference window's own noise,
 which every relative row carries at once, is a parameter with a prior (calib.effects.priors.ReferenceNoise).
 """
@@ -278,10 +280,10 @@ VCE_MIN_REDUNDANCY = 2.0
 # (issue 28: with fewer, a real run's small AHRS and length groups were scaled by one noisy factor each)
 MISFIT_MIN_REDUNDANCY = 5.0
 # groups whose cables get components of their own where each cable's rows carry them (variance_factors'
-# per_cable): none by default. ("swivel",) makes the grid2 study's 1-sigma honest per axis (200 runs: x/y/z
-# 63/61/74 %, issue 29) but moves the real sc_27_medium_a solve with a model learned on the two 8-pose runs:
-# its orientation rms grows 20.7 % against the plain solve's (tests/test_diagnose_runs.py, issue 28 allows 20)
-PER_CABLE: tuple[str, ...] = ()
+# per_cable; rescaled_sigma shrinks them toward the group's level by empirical Bayes, cable_factors, and splits
+# only a group whose level is a noise's, not a model error's). grid2 (about 3 degrees of freedom a cable) pools
+# on most runs; the real runs, whose swivel rows sit hundreds of times above their noise, are not split
+PER_CABLE: tuple[str, ...] = ("swivel",)
 NOISE_LEVEL = 0.01  # a group's rows scatter as noise while its factor x redundancy is inside this two-sided chi2 band
 VCE_SETTLED = 0.98  # a factor above this is 1: nothing left to shrink
 # a factor above this: the group's rows scatter around the fit by more than ~3 times the noise of a window mean
@@ -346,7 +348,8 @@ def variance_factors(problem, theta: np.ndarray, poses: np.ndarray, per_cable: t
 
 
 def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float, float]],
-                   floor: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray] | None:
+                   floor: dict[str, np.ndarray] | None = None, within: dict[str, np.ndarray] | None = None
+                   ) -> dict[str, np.ndarray] | None:
     """The sigmas rescaled by the groups' variance factors (groups with at least VCE_MIN_REDUNDANCY degrees
     of freedom): a group whose rows scatter less than its sigma says (factor < VCE_SETTLED) is scaled by
     sqrt(factor); a group whose rows scatter by more than sqrt(MISFIT_FACTOR) times its sigma is dominated by
@@ -356,7 +359,13 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     by model error, the groups the fit cannot judge (too few degrees of freedom: the rows' own poses take
     their readings whole, e.g. the AHRS angles weighed by their window scatter) are floored at ``floor``
     (the sensors' specifications): their window scatter says nothing of the model's error there, and would
-    let them dictate the poses. None when nothing changes."""
+    let them dictate the poses. A group whose cables have components of their own (``factors`` "group.i",
+    :func:`variance_factors`' per_cable) is split among them (:func:`cable_factors`) only while its rows
+    scatter as noise does and its sigma is still a noise's: not above sqrt(MISFIT_FACTOR) times its
+    within-window figure (``within``). A sigma raised to a misfit in an earlier round holds model error, and
+    a split would down-weight the cables the model misses most (issue 28's guard against model error: on the
+    real sc_27_medium_a the swivel rows scatter ~2200x their within-window variance, cable 1's 2-4x the others').
+    None when nothing changes."""
     out = {c: np.array(v, float) for c, v in sigma.items()}
     changed = False
 
@@ -388,15 +397,75 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
         cable = [factors.get(f"{c}.{i}") for i in range(out[c].size)] if c not in ("tilt", "yaw") else [None]
         if not all(v is not None and v[1] >= VCE_MIN_REDUNDANCY for v in cable):
             continue  # no components of its cables (not asked for, or too few degrees of freedom)
+        if within is not None and np.any(sigma[c] > math.sqrt(MISFIT_FACTOR) * np.asarray(within[c], float)):
+            continue  # its level is a model error's (raised in an earlier round), not noise to share out
         p = chi2_sf(f * red, red)
         if 2.0 * min(p, 1.0 - p) >= NOISE_LEVEL:
-            # the cables' own components split the group's level among them (f_i / f each), where the group
-            # scatters as its noise does: beyond that it holds model error, which the split would only share out
-            split = np.sqrt(np.maximum([v[0] for v in cable], 1e-6) / max(f, 1e-6))
+            # the cables' own components split the group's level among them (f_i / f each, f_i shrunk toward
+            # the pooled level by their degrees of freedom: cable_factors), where the group scatters as its
+            # noise does: beyond that it holds model error, which the split would only share out
+            shrunk = cable_factors(np.array([v[0] for v in cable]), np.array([v[1] for v in cable]), out[c])
+            split = np.sqrt(np.maximum(shrunk, 1e-6) / max(f, 1e-6))
             if np.max(np.abs(split - 1.0)) > 1.0 - VCE_SETTLED:
                 out[c] = out[c] * split
                 changed = True
     return out if changed else None
+
+
+def _digamma(x: float) -> float:
+    """psi(x) for x > 0: the recurrence up to 10, then the asymptotic series (error < 1e-12)."""
+    acc = 0.0
+    while x < 10.0:
+        acc -= 1.0 / x
+        x += 1.0
+    r = 1.0 / (x * x)
+    return acc + math.log(x) - 0.5 / x - r * (1.0 / 12.0 - r * (1.0 / 120.0 - r * (1.0 / 252.0 - r / 240.0)))
+
+
+def _trigamma(x: float) -> float:
+    """psi'(x) for x > 0: the recurrence up to 10, then the asymptotic series (error < 1e-12)."""
+    acc = 0.0
+    while x < 10.0:
+        acc += 1.0 / (x * x)
+        x += 1.0
+    r = 1.0 / (x * x)
+    return acc + 1.0 / x + 0.5 * r + r / x * (1.0 / 6.0 - r * (1.0 / 30.0 - r * (1.0 / 42.0 - r / 30.0)))
+
+
+def prior_dof(variances: np.ndarray, dof: np.ndarray) -> float:
+    """Empirical-Bayes degrees of freedom d0 of a scaled inverse-chi2 prior shared by k variance estimates
+    (``variances`` with ``dof`` degrees of freedom each; Smyth 2004, the moments of log s^2): the spread of the
+    logs beyond what their own chi2 sampling makes, Var = trigamma(d0 / 2). inf when they spread no more than
+    sampling does (one common variance: pool them), 0 for a spread no prior can hold (keep each its own)."""
+    v, r = np.asarray(variances, float), np.asarray(dof, float)
+    if v.size < 2 or np.any(v <= 0) or np.any(r <= 0):
+        return math.inf
+    z = np.log(v) - np.array([_digamma(x / 2.0) - math.log(x / 2.0) for x in r])
+    excess = float(np.var(z, ddof=1)) - float(np.mean([_trigamma(x / 2.0) for x in r]))
+    if excess <= 0.0:
+        return math.inf
+    lo, hi = 1e-3, 1e6  # trigamma(d0 / 2) decreases in d0: bisect on a log scale
+    if excess >= _trigamma(lo / 2.0):
+        return 0.0
+    for _ in range(100):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if _trigamma(mid / 2.0) > excess else (lo, mid)
+    return math.sqrt(lo * hi)
+
+
+def cable_factors(factors: np.ndarray, dof: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """The cables' variance factors of one group (``factors`` f_i on ``dof`` r_i degrees of freedom, against
+    the cables' current ``sigma``) shrunk toward the group's pooled variance by empirical Bayes: each cable's
+    variance f_i sigma_i^2 is averaged with the pooled one, sum r_i f_i sigma_i^2 / sum r_i, weighed r_i
+    against the prior's d0 (:func:`prior_dof`); returned as factors against ``sigma``. With a few degrees of
+    freedom a cable (grid2: about 3) keeps its own factor only as far as the cables' factors differ by more
+    than their sampling does; identical cables pool (d0 = inf)."""
+    f, r, s2 = np.asarray(factors, float), np.asarray(dof, float), np.asarray(sigma, float) ** 2
+    v = f * s2
+    pooled = float(np.sum(r * v) / np.sum(r))
+    d0 = prior_dof(v, r)
+    post = np.full_like(v, pooled) if math.isinf(d0) else (d0 * pooled + r * v) / (d0 + r)
+    return post / s2
 
 
 def reference_sigma(rows: dict[str, np.ndarray], within: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
