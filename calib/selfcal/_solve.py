@@ -22,10 +22,12 @@ from calib.selfcal.noise import (
 from calib.selfcal.options import SolveOptions
 from calib.selfcal.problem import Problem
 from calib.selfcal.result import SelfCalFailure, Solution, compare_pose
-from calib.selfcal.rows import sensor_noise
+from calib.selfcal.rows import paper_noise, sensor_noise
 
 REFINE = 2  # estimate-noise solves: pose-free kinematic noise at the solution, then the solve again, twice
 VCE_ROUNDS_ROWS = 4  # then variance-component rounds on the window means (noise.rescaled_sigma; settles in 2-3)
+
+
 def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[str, np.ndarray],
                           windows: np.ndarray | None, ref_size: int):
     """The model with the reference window's noise for these sigmas (priors.ReferenceNoise.for_rows, in
@@ -39,6 +41,29 @@ def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[st
     return new, np.r_[theta[:n_kept], np.zeros(new.n_params - n_kept)]
 
 
+def _group_variance(sigma: dict[str, np.ndarray], group: str) -> float:
+    """The mean variance (SI^2) of a variance-component group's channels (``noise.VCE_GROUPS``: tilt and yaw
+    are the orientation's first two and its third)."""
+    ch, sl = {"tilt": ("orientation", slice(0, 2)), "yaw": ("orientation", slice(2, 3))}.get(group, (group, slice(None)))
+    return float(np.mean(np.asarray(sigma[ch], float)[sl] ** 2))
+
+
+def judged_noise(fitted: Problem, theta: np.ndarray, poses: np.ndarray, within: dict[str, np.ndarray],
+                 floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The within-window sigmas ``within`` an estimate solve weighs its rows with next, judged first against
+    the scatter of the rows around the current fit (``fitted``, solved to ``theta``, ``poses`` with weights
+    the data did not set: the paper's, then the last judged ones): a group whose rows scatter about it by more
+    than sqrt(MISFIT_FACTOR) times its within-window sigma on enough degrees of freedom holds model error and
+    gets that scatter instead (:func:`noise.rescaled_sigma`, up only; the groups it cannot judge floored at
+    ``floor``, the sensors' specifications). Judged under the new weights instead, a group the model misses
+    but weighed by its tiny within-window scatter takes its rows' poses with it and shows no redundancy to
+    judge (sc_8_medium_a's lengths: 0.7 degrees of freedom at 35 um), and the solve follows its misfit."""
+    factors = variance_factors(fitted, theta, poses)
+    scaled = {c: (max(1.0, f * _group_variance(fitted.sigma, c) / max(_group_variance(within, c), 1e-300)), red)
+              for c, (f, red) in factors.items()}
+    return rescaled_sigma(within, scaled, floor) or within
+
+
 def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
     """See :func:`calib.selfcal.solve`."""
     method, max_iter, reference_pose = opts.method, opts.max_iter, opts.reference_pose
@@ -46,10 +71,18 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
     problem, theta0, Z0, wins, search, ref = pre.problem, pre.theta0, pre.poses0, pre.windows, pre.search, pre.ref
     model, meas, ref_sample, source = problem.model, problem.meas, pre.ref_sample, pre.noise_source
     t_start, t_rows, t_guess = pre.marks
+    estimate = source == "estimate" and method == "tlse" and ref is not None and max_iter > 0
+    if estimate:
+        # the first pass of an estimate solve weighs with the paper's eq. 18 (a documented robust start): the
+        # within-window scatter of a real run whose rigid model misses by far more (sc_8_medium_a: swivels
+        # 28 urad against a 0.45 deg miss, tensions 0.15 N against 8 N) drove it into another minimum (100 mm
+        # off with its windows cut to their rest); each pass below is judged at the previous one's solution
+        problem = Problem(model, meas, paper_noise(robot))
     res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
-    if source == "estimate" and method == "tlse" and ref is not None and res.converged and max_iter > 0:
+    if estimate and res.converged:
         # the kinematic channels' window-mean noise without the platform's motion (which the rows' poses
-        # absorb), estimated at the solution; a second pass at the better solution settles it
+        # absorb), estimated at the solution, judged there against the rows' scatter (judged_noise); a second
+        # pass at the better solution settles it
         sig = pre.signals
         base = window_mean_noise(robot, sig, wins)
         ref_win = next(w for w in wins if w.first <= ref_sample <= w.last)
@@ -57,8 +90,9 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
             spans = [(ref_win.slice, res.theta[:6])] + [
                 (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
             noise = pose_free_noise(model, sig, spans, ref, res.theta, base).noise
-            model, theta = _with_reference_noise(robot, model, res.theta, noise.sigma, meas.windows, ref_win.size)
-            problem = Problem(model, meas, noise.sigma)
+            judged = judged_noise(problem, res.theta, res.poses, noise.sigma, sensor_noise(robot))
+            model, theta = _with_reference_noise(robot, model, res.theta, judged, meas.windows, ref_win.size)
+            problem = Problem(model, meas, judged)
             res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
         # the within-window sigmas bound each group's noise of a mean from above (they include motion the
         # means average out, e.g. the force control's ripple, and the share the rows' poses absorb): where
