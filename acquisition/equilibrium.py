@@ -67,12 +67,11 @@ class EquilibriumDetector:
         self.background = background
         self._refreshing: Future | None = None
         self.sample_period = float(sample_period)
-        # the offline ends and settle tests, on here even where the offline search leaves them off (the
-        # recordings' default), a sway's wander allowed over the settle_s block the ends test judges
+        # the offline ends test, on here even where the offline search leaves it off (the recordings' default),
+        # a sway's wander allowed over the settle_s block it judges; the settle test is the search's, as it is
         given = self.config.options
         opt = replace(given, ends_p=given.ends_p or given.settle_p,
-                      ends_reach_s=max(given.ends_reach_s, 0.5 * given.settle_s),
-                      settle_test_p=given.settle_test_p or given.settle_online_p)
+                      ends_reach_s=max(given.ends_reach_s, 0.5 * given.settle_s))
         self.options = opt
         self.span = span_samples(opt, self.sample_period)
         # consecutive still judgements that make a rest: a window's length, and at least settle_s

@@ -369,7 +369,7 @@ def test_the_settle_test_cuts_a_swinging_head_and_keeps_a_resting_or_creeping_wi
     follows is the window's, not a move)."""
     floor = {"tension": np.full(4, 0.003), "length": np.full(4, 2e-3 / 12),
              "swivel": np.full(4, math.radians(0.1) / 12), "tilt": np.zeros(2)}
-    strict, default = SettleTest(5, 1e-3, floor), SettleTest(5, WindowOptions().settle_online_p, floor)
+    strict, default = SettleTest(5, 1e-3, floor), SettleTest(5, WindowOptions().settle_test_p, floor)
     rng = np.random.default_rng(11)
     swinging = [_settle_block(rng, wobble=2e-3) for _ in range(20)]
     for test, least in ((strict, 3), (default, 6)):
@@ -391,7 +391,7 @@ def test_the_detector_waits_for_the_settle_test_the_search_applies(robot):
     rng = np.random.default_rng(4)
     sp = _setpoints(rng, 3)
     t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, noise=0.5, decay=2.5)
-    opt = WindowOptions(settle_test_p=WindowOptions().settle_online_p)
+    opt = WindowOptions()  # the default: the settle test on, as offline
     ws = search_windows(robot, t, tau, dl, dsig, roll, pitch, ref, sp, options=opt)
     ch = still_channels(dl, dsig, roll, pitch)
     still = Stillness(5, ws.thresholds, ws.ripple_tol, None, settle_test(tau, ch, 5, opt))

@@ -70,11 +70,12 @@ class WindowOptions:
     settle_s: float = 3.0
     settle_p: float = 1e-3
     # the settle test (calib.selfcal.settle): blocks of settle_block_s, false-alarm probability settle_test_p per
-    # window at rest (0: off, the offline default: the real medium runs' estimate solve and diagnosis do not yet
-    # take rest-only windows, docs/windows.md); the online detector applies settle_online_p when it is 0
+    # window at rest (0: off); one criterion, the same in the offline search and the online detector
     settle_block_s: float = 0.5
-    settle_test_p: float = 0.0
-    settle_online_p: float = 0.05
+    settle_test_p: float = 0.05
+    # s cut from the head of every window the settle test judged (0: none): the approach's last samples, where
+    # the hold's tensions still converge by 1-2 N under the load cells' noise of a sample (docs/windows.md)
+    settle_margin_s: float = 0.2
     # the tail too (off: on the real robot the next quintic's start; it moved the 27-pose run's estimate 4 mm)
     settle_tail: bool = False
 
@@ -435,13 +436,14 @@ def _merge_same(wins: list[Window], tau: np.ndarray, dl: np.ndarray, still: Stil
 
 
 def _rest_only(wins: list[Window], tau: np.ndarray, ch: dict[str, np.ndarray], still: Stillness,
-               min_len: int) -> list[Window]:
-    """The windows with the ends that still move cut off (:meth:`Stillness.trim`); a window left shorter
-    than ``min_len`` samples is dropped."""
+               min_len: int, margin: int = 0) -> list[Window]:
+    """The windows with the ends that still move cut off (:meth:`Stillness.trim`) and ``margin`` samples more
+    from the head; a window left shorter than ``min_len`` samples is dropped."""
     out = []
     for win in wins:
         s = win.slice
         a, b = still.trim(tau[s], {c: x[s] for c, x in ch.items()}, min_len)
+        a += margin if win.first > 0 else 0  # a run that starts at rest has no approach to cut
         if win.size - a - b >= min_len:
             out.append(Window(win.first + a, win.last - b, win.setpoint, win.quasi))
     return out
@@ -564,14 +566,16 @@ def search_windows(
     score = np.maximum(kin, ripple)
     min_len = min_samples(opt, dt)
     wins = [Window(a, b) for a, b in _runs(score <= 1.0) if b - a + 1 >= min_len]
-    wins = _rest_only(_merge_same(wins, tau, dl, still), tau, ch, still, min_len)
+    margin = int(round(opt.settle_margin_s / dt)) if still.settle is not None else 0
+    stretches = _merge_same(wins, tau, dl, still)  # what the ranges call still; the gaps between them moved
+    wins = _rest_only(stretches, tau, ch, still, min_len, margin)
     sp = None if setpoints is None or not len(setpoints) else np.asarray(setpoints, dtype=float)
     if sp is None:
         if tau_ref is not None and N:
             away = np.flatnonzero(np.max(np.abs(tau_ref - tau_ref[0]), axis=1) > opt.pretension_band)
             if away.size:
                 wins = [win for win in wins if win.last >= away[0] + w] or wins
-        wins = sorted(wins + _gap_quasi(wins, score, w, opt), key=lambda c: c.first)
+        wins = sorted(wins + _gap_quasi(stretches, score, w, opt), key=lambda c: c.first)
         return WindowSearch(wins, list(wins), 0, [], still.thresholds, still.ripple_tol, still.ends)
     dist = np.full((len(wins), sp.shape[0]), np.inf)
     for i, win in enumerate(wins):
