@@ -412,23 +412,24 @@ def test_the_detector_waits_for_the_settle_test_the_search_applies(robot):
     assert sum(early) > sum(settled)
 
 
-def test_a_window_the_settle_test_judged_loses_its_heads_margin_and_a_rest_from_the_start_keeps_its_head(robot):
+def test_a_window_the_settle_test_judged_loses_its_margins_and_a_rest_from_the_start_keeps_its_head(robot):
     """Issue 29: the hold's first samples carry the controller's tension transient under the load cells' noise,
-    so every window the settle test judged starts settle_margin_s (0.2 s, 2 samples at 10 Hz) later than the
-    test alone would start it; a window that starts with the run (no move before it) keeps its first sample,
-    and without the settle test no margin is cut."""
+    and a window's last sample the next move's start, so every window the settle test judged starts
+    settle_margin_s (0.5 s, 5 samples at 10 Hz) later and ends settle_tail_margin_s (0.1 s) earlier than the
+    test alone would make it; a window that starts with the run (no move before it) keeps its first sample, and
+    without the settle test no margin is cut."""
     rng = np.random.default_rng(5)
     sp = _setpoints(rng, 3)
     t, tau, ref, dl, dsig, roll, pitch = _run(rng, sp, noise=0.5)
     args = (robot, t, tau, dl, dsig, roll, pitch, ref, sp)
 
-    def firsts(**kw):
-        return [w.first for w in search_windows(*args, options=WindowOptions(**kw)).used]
+    def spans(**kw):
+        return [(w.first, w.last) for w in search_windows(*args, options=WindowOptions(**kw)).used]
 
-    bare, kept, off, off_margin = (firsts(settle_margin_s=0.0), firsts(), firsts(settle_test_p=0.0),
-                                   firsts(settle_test_p=0.0, settle_margin_s=0.5))
+    bare, kept = spans(settle_margin_s=0.0, settle_tail_margin_s=0.0), spans()
+    off, off_margin = spans(settle_test_p=0.0), spans(settle_test_p=0.0, settle_margin_s=1.0)
     assert len(bare) == len(kept) == 3 and off == off_margin
-    assert [b - a for a, b in zip(bare, kept, strict=True)] == [2, 2, 2]
+    assert [(c - a, b - d) for (a, b), (c, d) in zip(bare, kept, strict=True)] == [(5, 1)] * 3
     # a run that rests from its first sample: its window keeps that sample
     still = search_windows(robot, t[:100], tau[:100], dl[:100], dsig[:100], roll[:100], pitch[:100], ref[:100], None)
     assert still.found and still.found[0].first == 0

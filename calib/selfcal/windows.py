@@ -75,7 +75,10 @@ class WindowOptions:
     settle_test_p: float = 0.05
     # s cut from the head of every window the settle test judged (0: none): the approach's last samples, where
     # the hold's tensions still converge by 1-2 N under the load cells' noise of a sample (docs/windows.md)
-    settle_margin_s: float = 0.2
+    settle_margin_s: float = 0.5
+    # s cut from the tail of such a window (0: none): the next move's first samples, whose quintic leaves its hold
+    # value with zero speed and acceleration and moves the tensions by less than their noise at first
+    settle_tail_margin_s: float = 0.1
     # the tail too (off: on the real robot the next quintic's start; it moved the 27-pose run's estimate 4 mm)
     settle_tail: bool = False
 
@@ -436,14 +439,16 @@ def _merge_same(wins: list[Window], tau: np.ndarray, dl: np.ndarray, still: Stil
 
 
 def _rest_only(wins: list[Window], tau: np.ndarray, ch: dict[str, np.ndarray], still: Stillness,
-               min_len: int, margin: int = 0) -> list[Window]:
-    """The windows with the ends that still move cut off (:meth:`Stillness.trim`) and ``margin`` samples more
-    from the head; a window left shorter than ``min_len`` samples is dropped."""
+               min_len: int, margins: tuple[int, int] = (0, 0)) -> list[Window]:
+    """The windows with the ends that still move cut off (:meth:`Stillness.trim`) and ``margins`` samples more
+    from the head and the tail; a window left shorter than ``min_len`` samples is dropped."""
     out = []
     for win in wins:
         s = win.slice
         a, b = still.trim(tau[s], {c: x[s] for c, x in ch.items()}, min_len)
-        a += margin if win.first > 0 else 0  # a run that starts at rest has no approach to cut
+        # a run that starts (ends) at rest has no move before (after) that window to cut
+        a += margins[0] if win.first > 0 else 0
+        b += margins[1] if win.last < tau.shape[0] - 1 else 0
         if win.size - a - b >= min_len:
             out.append(Window(win.first + a, win.last - b, win.setpoint, win.quasi))
     return out
@@ -566,9 +571,10 @@ def search_windows(
     score = np.maximum(kin, ripple)
     min_len = min_samples(opt, dt)
     wins = [Window(a, b) for a, b in _runs(score <= 1.0) if b - a + 1 >= min_len]
-    margin = int(round(opt.settle_margin_s / dt)) if still.settle is not None else 0
+    margins = (0, 0) if still.settle is None else (int(round(opt.settle_margin_s / dt)),
+                                                    int(round(opt.settle_tail_margin_s / dt)))
     stretches = _merge_same(wins, tau, dl, still)  # what the ranges call still; the gaps between them moved
-    wins = _rest_only(stretches, tau, ch, still, min_len, margin)
+    wins = _rest_only(stretches, tau, ch, still, min_len, margins)
     sp = None if setpoints is None or not len(setpoints) else np.asarray(setpoints, dtype=float)
     if sp is None:
         if tau_ref is not None and N:
