@@ -335,6 +335,8 @@ def selection_verdict(sel) -> str:
         text += (f"FINDING: {_names(sel.finding)} predicts best ({sel.mode} score {sel.finding.score:.1f}) only "
                  f"with {bad}: a likely error in the robot description or the setup (check it); nothing that "
                  f"explains less is recommended in its place. ")
+        if sel.finding.spread is not None:
+            text += finding_agreement(sel.finding) + " "
     if sel.selected:
         text += f"recommended: {','.join(sel.selected)} (by {sel.mode} prediction)"
     elif sel.finding is None:
@@ -342,6 +344,37 @@ def selection_verdict(sel) -> str:
     else:
         text += "recommended: nothing"
     return text
+
+
+def finding_agreement(t) -> str:
+    """Whether the runs agree on a finding's out-of-range effects (each run fitted alone), with each run's
+    value and 1-sigma of every parameter out of its range: runs that agree are consistent with one fixed
+    property of the robot as set up, runs that disagree point to a model error each run absorbs its own way
+    (issue 28). A per-run value at its parameter's hard bound is marked: its 1-sigma measures nothing."""
+    from calib.runselect import CONSISTENT_P, finding_params
+
+    sp = t.spread
+    robot = t.fit.runs[0].rows.robot
+    _, names = finding_params(t, robot)
+    bounds = {f"{e.name}.{s.name}": (s.lower, s.upper) for e in t.fit.shared for s in e.params(robot)}
+    out = {v.param for v in t.implausible}
+    parts = []
+    for j, name in enumerate(names):
+        if name not in out:
+            continue
+        lo, hi = bounds.get(name, (-np.inf, np.inf))
+        vals = [f"{x:.3g} ± {math.sqrt(max(c, 0.0)):.2g}" + (" (at its bound)" if np.isclose(x, lo) or np.isclose(x, hi)
+                                                               else "")
+                for x, c in zip(sp.values[:, j], sp.cov[:, j, j], strict=True)]
+        parts.append(f"{name.split('.', 1)[1]} " + ", ".join(vals))
+    if sp.p >= CONSISTENT_P:
+        what = (f"the runs do not disagree on them ({_spread(sp)}): consistent with one fixed property of the "
+                "robot as it is set up (its description, a sensor's calibration or mounting), to be checked on it")
+    else:
+        what = (f"the runs disagree on them ({_spread(sp)}): not one property of the robot, a model error each "
+                "run's fit absorbs its own way")
+    return f"Its out-of-range effects fitted on each run alone ({', '.join(sp.runs)}): {what}; per run: " \
+           + "; ".join(parts) + "."
 
 
 def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
@@ -360,7 +393,8 @@ def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
                      "window_chi2": chi2, "window_dof": dof, "window_p": p})
     return _json_safe({
         "runs": list(paths), "mode": sel.mode, "selected": sel.selected,
-        "finding": None if sel.finding is None else trial(sel.finding),
+        "finding": None if sel.finding is None else {**trial(sel.finding), "runs_agree": None if sel.finding.spread
+                                                     is None else _spread_json(sel.finding)},
         "verdict": selection_verdict(sel), "base": trial(sel.base), "final": trial(sel.final),
         "steps": [{"options": [trial(t) for t in st["options"]],
                    "chosen": None if st["chosen"] is None else list(st["chosen"].names),
@@ -369,6 +403,17 @@ def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
                                      "p": t.spread.p} for t in st.get("inconsistent", [])]} for st in sel.steps],
         "per_run": runs, "weights_rounds": sel.final.fit.history,
     })
+
+
+def _spread_json(t) -> dict[str, Any]:
+    """The runs' agreement on a finding's out-of-range effects: the consistency test and each run's values."""
+    from calib.runselect import CONSISTENT_P, finding_params
+
+    sp = t.spread
+    _, names = finding_params(t, t.fit.runs[0].rows.robot)
+    return {"chi2": sp.chi2, "dof": sp.dof, "p": sp.p, "agree": bool(sp.p >= CONSISTENT_P), "runs": sp.runs,
+            "values": {n: list(sp.values[:, j]) for j, n in enumerate(names)},
+            "sigma": {n: list(np.sqrt(np.clip(sp.cov[:, j, j], 0, None))) for j, n in enumerate(names)}}
 
 
 def _json_safe(v: Any) -> Any:

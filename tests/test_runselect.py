@@ -66,3 +66,42 @@ def test_pair_pool_keeps_the_best_plausible_single():
     singles[1] = _trial("b", 11.0, True)
     assert [t.names[0] for t in pair_pool(singles)] == ["a", "b", "c"]
     assert [t.names[0] for t in pair_pool([_trial("a", 2.0, False), _trial("b", 1.0, False)])] == ["b", "a"]
+
+
+def test_the_runs_agreement_on_a_finding_names_the_cell_gains_each_run_shows(irma_data, tmp_path):
+    """The three real runs (parsed, targets) fitted with cable_elasticity, tension_offset, tension_gain: the
+    gains leave +-3 %; each run alone gives load cell 3 a gain of +20 % or more (0.31, 0.48, 0.34 on the runs'
+    own weights, docs/effects.md), and the runs agree on the four gains: the finding's words say so with
+    every run's values, and say the opposite when the runs disagree."""
+    from dataclasses import replace
+
+    from acquisition.diagnose_report import _spread_json, finding_agreement
+    from acquisition.importers import import_irma
+    from acquisition.runlog import read_run
+    from calib.effects import make_effects
+    from calib.multirun import fit_runs
+    from calib.runrows import run_rows
+    from calib.runselect import _implausible, finding_params
+    from calib.spread import spread
+
+    items = []
+    for name, targets in (("sc_8_final", "sc_control_target_8_final.mat"),
+                          ("sc_8_medium_a", "sc_control_target_8.mat"),
+                          ("sc_27_medium_a", "sc_control_target_27.mat")):
+        import_irma(irma_data / f"{name}_parsed.mat", tmp_path / name, targets=irma_data / targets)
+        items.append((name, run_rows(read_run(tmp_path / name))))
+    names = ("cable_elasticity", "tension_offset", "tension_gain")
+    fit = fit_runs(items, make_effects(list(names)))
+    t = Trial(names, 9, fit, fit.chi2, implausible=_implausible(fit))
+    cols, labels = finding_params(t, items[0][1].robot)
+    # the offsets (o_2, o_3, o_4 beyond 2 % of full scale with the gains) and the gains leave their ranges
+    assert labels == [f"tension_{k}.{k[0]}_{i}" for k in ("offset", "gain") for i in range(1, 5)]
+    assert cols == list(range(1, 9))  # after the compliance
+    t.spread = spread(fit, cols)
+    assert np.all(t.spread.values[:, labels.index("tension_gain.g_3")] > 0.2)  # cell 3 on every run
+    assert t.spread.p >= 0.01
+    words = finding_agreement(t)
+    assert "do not disagree" in words and "g_3 " in words and "sc_27_medium_a" in words
+    assert _spread_json(t)["agree"] is True and len(_spread_json(t)["values"]["tension_gain.g_3"]) == 3
+    t.spread = replace(t.spread, p=1e-4)
+    assert "the runs disagree on them" in finding_agreement(t)
