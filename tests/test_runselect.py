@@ -68,21 +68,20 @@ def test_pair_pool_keeps_the_best_plausible_single():
     assert [t.names[0] for t in pair_pool([_trial("a", 2.0, False), _trial("b", 1.0, False)])] == ["b", "a"]
 
 
-def test_the_runs_agreement_on_a_finding_names_the_cell_gains_each_run_shows(irma_data, tmp_path):
-    """The three real runs (parsed, targets) fitted with cable_elasticity, tension_offset, tension_gain: the
-    gains leave +-3 %; each run alone gives load cell 3 a gain of +20 % or more (0.31, 0.48, 0.34 on the runs'
-    own weights, docs/effects.md), and the runs agree on the four gains: the finding's words say so with
-    every run's values, and say the opposite when the runs disagree."""
+def test_a_finding_on_the_real_runs_says_the_runs_agree_on_cell_3s_gain(irma_data, tmp_path):
+    """The three real runs (parsed, targets), the selection among cable_elasticity, tension_offset,
+    tension_gain, pulley_friction: it keeps cable_elasticity, tension_offset and stops at the finding
+    tension_gain (load cell 3 about +30 %, beyond +-3 %); each run alone gives cell 3 a gain above 20 %
+    (0.31, 0.49, 0.34; docs/effects.md), the runs agree on the gains, and the verdict says so with every
+    run's value (and says the opposite when the runs disagree)."""
     from dataclasses import replace
 
-    from acquisition.diagnose_report import _spread_json, finding_agreement
+    from acquisition.diagnose_report import selection_json, selection_verdict
     from acquisition.importers import import_irma
     from acquisition.runlog import read_run
     from calib.effects import make_effects
-    from calib.multirun import fit_runs
     from calib.runrows import run_rows
-    from calib.runselect import _implausible, finding_params
-    from calib.spread import spread
+    from calib.runselect import Judge, finding_params, select
 
     items = []
     for name, targets in (("sc_8_final", "sc_control_target_8_final.mat"),
@@ -90,18 +89,18 @@ def test_the_runs_agreement_on_a_finding_names_the_cell_gains_each_run_shows(irm
                           ("sc_27_medium_a", "sc_control_target_27.mat")):
         import_irma(irma_data / f"{name}_parsed.mat", tmp_path / name, targets=irma_data / targets)
         items.append((name, run_rows(read_run(tmp_path / name))))
-    names = ("cable_elasticity", "tension_offset", "tension_gain")
-    fit = fit_runs(items, make_effects(list(names)))
-    t = Trial(names, 9, fit, fit.chi2, implausible=_implausible(fit))
+    sel = select(Judge(items, make_effects), ["cable_elasticity", "tension_offset", "tension_gain",
+                                               "pulley_friction"], 3)
+    assert sel.selected == ["cable_elasticity", "tension_offset"]
+    t = sel.finding
+    assert t is not None and t.names[-1] == "tension_gain" and t.spread is not None
     cols, labels = finding_params(t, items[0][1].robot)
-    # the offsets (o_2, o_3, o_4 beyond 2 % of full scale with the gains) and the gains leave their ranges
-    assert labels == [f"tension_{k}.{k[0]}_{i}" for k in ("offset", "gain") for i in range(1, 5)]
-    assert cols == list(range(1, 9))  # after the compliance
-    t.spread = spread(fit, cols)
+    assert labels == [f"tension_gain.g_{i}" for i in range(1, 5)] and len(cols) == 4
     assert np.all(t.spread.values[:, labels.index("tension_gain.g_3")] > 0.2)  # cell 3 on every run
     assert t.spread.p >= 0.01
-    words = finding_agreement(t)
-    assert "do not disagree" in words and "g_3 " in words and "sc_27_medium_a" in words
-    assert _spread_json(t)["agree"] is True and len(_spread_json(t)["values"]["tension_gain.g_3"]) == 3
+    words = selection_verdict(sel)
+    assert words.startswith("FINDING: ") and "do not disagree" in words and "g_3 " in words
+    agree = selection_json(sel, ["a", "b", "c"])["finding"]["runs_agree"]
+    assert agree["agree"] is True and len(agree["values"]["tension_gain.g_3"]) == 3
     t.spread = replace(t.spread, p=1e-4)
-    assert "the runs disagree on them" in finding_agreement(t)
+    assert "the runs disagree on them" in selection_verdict(sel)
