@@ -348,25 +348,36 @@ def selection_verdict(sel) -> str:
 
 def finding_agreement(t) -> str:
     """Whether the runs agree on a finding's out-of-range effects (each run fitted alone), with each run's
-    value and 1-sigma of every parameter out of its range: runs that agree are consistent with one fixed
-    property of the robot as set up, runs that disagree point to a model error each run absorbs its own way
-    (issue 28). A per-run value at its parameter's hard bound is marked: its 1-sigma measures nothing."""
-    from calib.runselect import CONSISTENT_P, finding_params
+    value of every parameter out of its range (and its 1-sigma where it is a fitted parameter, not a
+    reported one such as a pulley's offset): runs that agree are consistent with one fixed property of the
+    robot as set up, runs that disagree point to a model error each run absorbs its own way (issue 28). A
+    per-run value at its parameter's hard bound is marked: its 1-sigma measures nothing."""
+    from calib.runselect import CONSISTENT_P
 
     sp = t.spread
     robot = t.fit.runs[0].rows.robot
-    _, names = finding_params(t, robot)
-    bounds = {f"{e.name}.{s.name}": (s.lower, s.upper) for e in t.fit.shared for s in e.params(robot)}
-    out = {v.param for v in t.implausible}
-    parts = []
-    for j, name in enumerate(names):
-        if name not in out:
+    bad = {v.param for v in t.implausible}
+    parts, pos = [], 0
+    for e in t.fit.shared:
+        specs = e.params(robot)
+        if not any(n.startswith(e.name + ".") for n in bad):
             continue
-        lo, hi = bounds.get(name, (-np.inf, np.inf))
-        vals = [f"{x:.3g} ± {math.sqrt(max(c, 0.0)):.2g}" + (" (at its bound)" if np.isclose(x, lo) or np.isclose(x, hi)
-                                                               else "")
-                for x, c in zip(sp.values[:, j], sp.cov[:, j, j], strict=True)]
-        parts.append(f"{name.split('.', 1)[1]} " + ", ".join(vals))
+        block, var = sp.values[:, pos:pos + len(specs)], sp.cov[:, range(pos, pos + len(specs)),
+                                                                   range(pos, pos + len(specs))]
+        pos += len(specs)
+        reps = [e.report(robot, v) for v in block]
+        own = {s.name: j for j, s in enumerate(specs)}
+        for name in sorted(n.split(".", 1)[1] for n in bad if n.startswith(e.name + ".")):
+            vals = []
+            for r, rep in enumerate(reps):
+                text = f"{rep.get(name, float('nan')):.3g}"
+                if name in own:
+                    j, s = own[name], specs[own[name]]
+                    text += f" ± {math.sqrt(max(var[r, j], 0.0)):.2g}"
+                    if np.isclose(block[r, j], s.lower) or np.isclose(block[r, j], s.upper):
+                        text += " (at its bound)"
+                vals.append(text)
+            parts.append(f"{name} " + ", ".join(vals))
     if sp.p >= CONSISTENT_P:
         what = (f"the runs do not disagree on them ({_spread(sp)}): consistent with one fixed property of the "
                 "robot as it is set up (its description, a sensor's calibration or mounting), to be checked on it")

@@ -104,3 +104,33 @@ def test_a_finding_on_the_real_runs_says_the_runs_agree_on_cell_3s_gain(irma_dat
     assert agree["agree"] is True and len(agree["values"]["tension_gain.g_3"]) == 3
     t.spread = replace(t.spread, p=1e-4)
     assert "the runs disagree on them" in selection_verdict(sel)
+
+
+def test_a_findings_reported_parameters_are_listed_per_run_without_a_sigma():
+    """pulley_position is fitted in deformation modes and reported as per-pulley offsets: the finding's words
+    list each run's offset that left its range (from the run's own mode values), without a 1-sigma (it is
+    not a fitted parameter); a fitted parameter at its hard bound is marked."""
+    from acquisition.diagnose_report import finding_agreement
+    from calib.effects.builtin import PulleyPosition, TensionGain
+    from calib.multirun import JointFit, RunFit
+    from calib.robot import load_robot
+    from calib.runrows import RunRows
+    from calib.spread import Spread
+
+    robot = load_robot("irma4u")
+    pp, tg = PulleyPosition(), TensionGain()
+    modes = np.random.default_rng(1).normal(0.0, 0.03, (3, 3 * robot.n - 4))
+    gains = np.array([[0.0, 0.0, 0.5, 0.0], [0.0, 0.0, 0.31, 0.0], [0.0, 0.0, 0.29, 0.0]])  # 0.5: g's bound
+    rows = RunRows(robot, None, {}, "estimate", None)
+    runs = [RunFit(f"run{i}", rows, None, np.zeros(6), np.zeros((0, 6)), {}) for i in range(3)]
+    q = modes.shape[1] + 4
+    fit = JointFit([pp, tg], np.zeros(q), np.eye(q), runs, 0.0, True, 0)
+    dx1 = [pp.report(robot, m)["dx_1"] for m in modes]
+    t = Trial(("pulley_position", "tension_gain"), q, fit, 0.0,
+              implausible=[Implausible("pulley_position.dx_1", dx1[0], "m", -0.03, 0.03),
+                           Implausible("tension_gain.g_3", 0.37, "1", -0.03, 0.03)])
+    t.spread = Spread(["a", "b", "c"], np.hstack([modes, gains]), np.stack([np.eye(q) * 1e-4] * 3), 5.0, 20, 0.99,
+                      np.zeros(q))
+    words = finding_agreement(t)
+    assert "dx_1 " + ", ".join(f"{v:.3g}" for v in dx1) + ";" in words
+    assert "g_3 0.5 ± 0.01 (at its bound), 0.31 ± 0.01, 0.29 ± 0.01." in words
