@@ -171,7 +171,7 @@ def test_cdpr_devices_read_ahrs_from_an_independent_xbus_device(pty_pair):
     # each line is the newest frame after the previous line's (Ahrs.wait_for): consecutive on an idle machine,
     # but a loaded one may deliver two frames between the CLI's waits, and the seq then shows the one skipped
     seqs = [r["seq"] for r in rows]
-    assert seqs[0] >= 258 and all(0 < b - a <= 3 for a, b in zip(seqs, seqs[1:])), seqs
+    assert seqs[0] >= 258 and all(0 < b - a <= 3 for a, b in zip(seqs, seqs[1:], strict=False)), seqs
 
 
 def test_usage_and_operation_errors(pty_pair):
