@@ -53,7 +53,9 @@ _ERROR_AT = 2048  # byte offset of the error message
 _PAGE = 4096
 CHILD_POLL = 2e-3  # s the child polls for the next command before blocking (a lockstep SYNC comes sooner)
 PARENT_POLL = 1e-3  # s the parent polls for the state before blocking
-ANSWER_TIMEOUT = 30.0  # s without an answer from a living child before the link gives up
+# s without an answer from a living child before the link gives up; the time the child spends stopped (SIGSTOP,
+# a debugger) does not count: a stopped plant is late, not broken, and a lockstep run waits for it
+ANSWER_TIMEOUT = 30.0
 
 
 class PlantView:
@@ -371,7 +373,7 @@ class ChildPlantLink:
         silent."""
         waited = 0.0
         while not sem.acquire(True, 0.1):
-            waited += 0.1
+            waited += 0.0 if _stopped(self.pid) else 0.1
             if not self.alive():
                 self._error = (f"the simulated plant's process (pid {self.pid}) ended "
                                f"({_describe(self._exit)}) without sending {what}")
@@ -411,6 +413,16 @@ class ChildPlantLink:
 def _reason(exc: Exception) -> str:
     """The message a failure of the core is raised with (a ``SimulationError`` keeps its own)."""
     return str(exc) if isinstance(exc, SimulationError) else f"{type(exc).__name__}: {exc}"
+
+
+def _stopped(pid: int) -> bool:
+    """Whether process ``pid`` is stopped (by a signal or a tracer; Linux's /proc, else False)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2:][:1] in (b"T", b"t")
 
 
 def _describe(status: int | None) -> str:
