@@ -56,7 +56,8 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
         for _ in range(REFINE):
             spans = [(ref_win.slice, res.theta[:6])] + [
                 (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
-            noise = pose_free_noise(model, sig, spans, ref, res.theta, base).noise
+            pose_free = pose_free_noise(model, sig, spans, ref, res.theta, base)
+            noise = pose_free.noise
             model, theta = _with_reference_noise(robot, model, res.theta, noise.sigma, meas.windows, ref_win.size)
             problem = Problem(model, meas, noise.sigma)
             res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
@@ -68,7 +69,7 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
         within, floor = noise.sigma, sensor_noise(robot)
         for _ in range(VCE_ROUNDS_ROWS):
             shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses, PER_CABLE),
-                                    floor, within)
+                                    floor, within, pose_free.quantisation)
             if shrunk is None:
                 break
             model, theta = _with_reference_noise(robot, model, res.theta, reference_sigma(shrunk, within),
