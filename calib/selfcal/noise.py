@@ -17,7 +17,9 @@ estimate pools every still window:
 - the variance of the mean of N samples of that AR(1) process is gamma0 f(rho, N) / N with
   f = 1 + 2 sum_k (1 - k/N) rho^k (the effective sample size is N / f);
 - a reading whose second differences are mostly zero sits on its counts (encoders of a still platform): its
-  window mean is then uncertain by the resolution alone;
+  window mean is then uncertain by the resolution alone; at a solution each window mean of the lengths and
+  swivel angles also keeps its quantisation error, sized from the window's own readings
+  (:func:`quantisation_variance`, Widrow's quantisation of an average: the within-window scatter cannot see it);
 - the floor is the sensor's resolution (quantisation step / sqrt 12): a reading that does not move is
   uncertain by that much however long it is averaged.
 
