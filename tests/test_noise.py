@@ -298,3 +298,18 @@ def test_quantisation_error_of_a_window_mean_matches_monte_carlo(motion):
         assert predicted < 1e-6 * step**2 and observed < step**2 / 12 / 100
     else:
         assert 1.3 < predicted / observed < 3.5, (predicted, observed)
+
+
+def test_variance_components_never_shrink_a_channel_below_its_quantisation_error():
+    """A group whose rows scatter a quarter of what its sigma says is halved, but a channel whose window means
+    keep a quantisation error (``lower``) stops there, and one already below it is not raised."""
+    from calib.selfcal.noise import rescaled_sigma
+
+    sigma = {"tension": np.full(4, 0.02), "length": np.full(4, 1e-6), "swivel": np.full(4, 8e-6),
+             "orientation": np.full(3, 1e-4)}
+    factors = {c: (0.25, 20.0) for c in ("tension", "length", "swivel", "tilt", "yaw")}
+    lower = {"swivel": np.array([6e-6, 2e-6, 6e-6, 9e-6]), "length": np.full(4, 1e-8)}
+    out = rescaled_sigma(sigma, factors, lower=lower)
+    assert out["tension"] == pytest.approx(np.full(4, 0.01))
+    assert out["length"] == pytest.approx(np.full(4, 5e-7))
+    assert out["swivel"] == pytest.approx([6e-6, 4e-6, 6e-6, 8e-6])
