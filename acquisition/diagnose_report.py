@@ -335,6 +335,8 @@ def selection_verdict(sel) -> str:
         text += (f"FINDING: {_names(sel.finding)} predicts best ({sel.mode} score {sel.finding.score:.1f}) only "
                  f"with {bad}: a likely error in the robot description or the setup (check it); nothing that "
                  f"explains less is recommended in its place. ")
+        if sel.finding.spread is not None:
+            text += finding_agreement(sel.finding) + " "
     if sel.selected:
         text += f"recommended: {','.join(sel.selected)} (by {sel.mode} prediction)"
     elif sel.finding is None:
@@ -342,6 +344,48 @@ def selection_verdict(sel) -> str:
     else:
         text += "recommended: nothing"
     return text
+
+
+def finding_agreement(t) -> str:
+    """Whether the runs agree on a finding's out-of-range effects (each run fitted alone), with each run's
+    value of every parameter out of its range (and its 1-sigma where it is a fitted parameter, not a
+    reported one such as a pulley's offset): runs that agree are consistent with one fixed property of the
+    robot as set up, runs that disagree point to a model error each run absorbs its own way (issue 28). A
+    per-run value at its parameter's hard bound is marked: its 1-sigma measures nothing."""
+    from calib.runselect import CONSISTENT_P
+
+    sp = t.spread
+    robot = t.fit.runs[0].rows.robot
+    bad = {v.param for v in t.implausible}
+    parts, pos = [], 0
+    for e in t.fit.shared:
+        specs = e.params(robot)
+        if not any(n.startswith(e.name + ".") for n in bad):
+            continue
+        block, var = sp.values[:, pos:pos + len(specs)], sp.cov[:, range(pos, pos + len(specs)),
+                                                                   range(pos, pos + len(specs))]
+        pos += len(specs)
+        reps = [e.report(robot, v) for v in block]
+        own = {s.name: j for j, s in enumerate(specs)}
+        for name in sorted(n.split(".", 1)[1] for n in bad if n.startswith(e.name + ".")):
+            vals = []
+            for r, rep in enumerate(reps):
+                text = f"{rep.get(name, float('nan')):.3g}"
+                if name in own:
+                    j, s = own[name], specs[own[name]]
+                    text += f" ± {math.sqrt(max(var[r, j], 0.0)):.2g}"
+                    if np.isclose(block[r, j], s.lower) or np.isclose(block[r, j], s.upper):
+                        text += " (at its bound)"
+                vals.append(text)
+            parts.append(f"{name} " + ", ".join(vals))
+    if sp.p >= CONSISTENT_P:
+        what = (f"the runs do not disagree on them ({_spread(sp)}): consistent with one fixed property of the "
+                "robot as it is set up (its description, a sensor's calibration or mounting), to be checked on it")
+    else:
+        what = (f"the runs disagree on them ({_spread(sp)}): not one property of the robot, a model error each "
+                "run's fit absorbs its own way")
+    return f"Its out-of-range effects fitted on each run alone ({', '.join(sp.runs)}): {what}; per run: " \
+           + "; ".join(parts) + "."
 
 
 def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
@@ -360,7 +404,8 @@ def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
                      "window_chi2": chi2, "window_dof": dof, "window_p": p})
     return _json_safe({
         "runs": list(paths), "mode": sel.mode, "selected": sel.selected,
-        "finding": None if sel.finding is None else trial(sel.finding),
+        "finding": None if sel.finding is None else {**trial(sel.finding), "runs_agree": None if sel.finding.spread
+                                                     is None else _spread_json(sel.finding)},
         "verdict": selection_verdict(sel), "base": trial(sel.base), "final": trial(sel.final),
         "steps": [{"options": [trial(t) for t in st["options"]],
                    "chosen": None if st["chosen"] is None else list(st["chosen"].names),
@@ -369,6 +414,17 @@ def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
                                      "p": t.spread.p} for t in st.get("inconsistent", [])]} for st in sel.steps],
         "per_run": runs, "weights_rounds": sel.final.fit.history,
     })
+
+
+def _spread_json(t) -> dict[str, Any]:
+    """The runs' agreement on a finding's out-of-range effects: the consistency test and each run's values."""
+    from calib.runselect import CONSISTENT_P, finding_params
+
+    sp = t.spread
+    _, names = finding_params(t, t.fit.runs[0].rows.robot)
+    return {"chi2": sp.chi2, "dof": sp.dof, "p": sp.p, "agree": bool(sp.p >= CONSISTENT_P), "runs": sp.runs,
+            "values": {n: list(sp.values[:, j]) for j, n in enumerate(names)},
+            "sigma": {n: list(np.sqrt(np.clip(sp.cov[:, j, j], 0, None))) for j, n in enumerate(names)}}
 
 
 def _json_safe(v: Any) -> Any:

@@ -131,11 +131,15 @@ class Arrow:
     def covariance(self) -> tuple[np.ndarray, int] | None:
         """The shared block of N's inverse (scaled columns) and N's rank from the inverse of the Schur
         complement on [shared, own_1, ...]; None when a pose block or it is singular (the caller's SVD decides)."""
-        M, _, _ = self._reduced(0.0, pins=False)
-        for a in [*self.U, M[None]]:
+        def singular(a: np.ndarray) -> bool:
             ev = np.linalg.eigvalsh(a)
-            if a.size and np.any(ev[..., 0] <= SINGULAR * np.maximum(ev[..., -1], 1e-300)):
-                return None
+            return bool(a.size and np.any(ev[..., 0] <= SINGULAR * np.maximum(ev[..., -1], 1e-300)))
+
+        if any(singular(U) for U in self.U):  # before the reduction, which inverts them undamped
+            return None
+        M, _, _ = self._reduced(0.0, pins=False)
+        if singular(M[None]):
+            return None
         q = self.q
         cov = np.linalg.solve(M, np.eye(M.shape[0])[:, :q])[:q] if q else np.zeros((0, 0))
         return cov, int(self.scale.shape[0])

@@ -21,7 +21,10 @@ option by prediction is taken, unless one with fewer parameters predicts within 
 left-out runs (poses). When the best option by prediction has a value outside its plausible range, that is
 a finding (and so is an effect whose values together are that far from their plausible box:
 :func:`box_chi2`), not a reason to take the next one: the selection stops there and says so (a likely
-error in the robot description or the setup, with the value found).
+error in the robot description or the setup, with the value found). With several runs the finding's
+out-of-range effects are also fitted on each run alone (:func:`calib.spread.spread`): runs that agree on
+them point to a fixed property of the robot as set up (a description or calibration error to check on it),
+runs that disagree to a model error that each run's fit absorbs differently.
 """
 
 from __future__ import annotations
@@ -73,7 +76,8 @@ class Trial:
     score: float | None = None
     folds: list[dict[str, Any]] = field(default_factory=list)
     implausible: list[Implausible] = field(default_factory=list)
-    spread: Spread | None = None  # the runs' agreement on the effects it adds (several runs, when chosen)
+    spread: Spread | None = None  # the runs' agreement on the effects it adds (when chosen) or on its
+    # implausible effects (when it is the finding); several runs only
 
     @property
     def plausible(self) -> bool:
@@ -276,6 +280,20 @@ def _choose(judge: Judge, ok: list[Trial], current: Trial, step: dict[str, Any])
     return None
 
 
+def finding_params(t: Trial, robot) -> tuple[list[int], list[str]]:
+    """The shared columns and "effect.param" names of every effect of ``t`` with a value out of its plausible
+    range: what the runs' agreement on a finding is judged on (:func:`calib.spread.spread`)."""
+    bad = {v.param.split(".", 1)[0] for v in t.implausible}
+    cols, names, q = [], [], 0
+    for e in t.fit.shared:
+        specs = e.params(robot)
+        if e.name in bad:
+            cols += range(q, q + len(specs))
+            names += [f"{e.name}.{s.name}" for s in specs]
+        q += len(specs)
+    return cols, names
+
+
 def pair_pool(singles: Sequence[Trial]) -> list[Trial]:
     """The singles whose pairs are judged: the best PAIR_POOL by prediction, and the best plausible one if
     it is not among them (an implausible single may be taking a plausible one's part: the pair tells)."""
@@ -315,6 +333,8 @@ def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Sel
         if not best.plausible and current.score - best.score > MIN_GAIN and (
                 not ok or min(t.score for t in ok) > best.score + margin):
             finding = best  # the option that predicts clearly best is out of its range: a finding, stop here
+            if len(judge.items) >= 2:  # is it one value on every run (the robot as set up) or not?
+                finding.spread = spread(finding.fit, finding_params(finding, judge.items[0][1].robot)[0])
             break
         chosen = _choose(judge, ok, current, step)
         if chosen is None:

@@ -123,12 +123,15 @@ class PortReader:
             return b""
 
     def until(self, done: Callable[[], bool], timeout: float) -> bool:
-        """Polled reader: poll until ``done()`` (True) or ``timeout`` s have passed (False)."""
+        """Polled reader: poll until ``done()`` (True) or ``timeout`` s have passed (False). The port is read
+        once more when the time is up: bytes already waiting count, however long this thread was kept from
+        running (a loaded machine), so that the answer depends on what arrived, not on when it was looked at."""
         deadline = time.monotonic() + timeout
         while not done():
             left = deadline - time.monotonic()
             if left <= 0:
-                return False
+                self.poll()
+                return done()
             self.poll(left)
         return True
 

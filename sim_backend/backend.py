@@ -18,7 +18,10 @@ the CAN nodes, in a child process on a machine with two cores (``sim_backend.pla
    acts from the SYNC after it arrives, as on a CiA 402 drive, so the torque computed from the readings of
    SYNC ``count`` acts from SYNC ``count + 1`` on), then the serial and cable faults due at the next SYNC
    are injected and its load-cell line is made;
-4. every node transmits its TPDOs (``on_sync``).
+4. every node transmits its TPDOs (``on_sync``);
+5. the handler returns once the plant core has confirmed that the serial samples of step 3 are on their lines
+   (``PlantLink.sent``): the master, reading its serial ports after the SYNC, finds this SYNC's samples
+   whether the plant's process ran at once or a second later (a loaded machine).
 
 The simulated clock is the physics time, exactly ``count * control_period`` at SYNC ``count`` (0 at
 power-on); the load-cell line written at SYNC ``count`` has device sequence ``count - 1``, the AHRS samples
@@ -358,6 +361,9 @@ class SimBackend:
                     node.last_sync_count = count
                 else:
                     node.on_sync(count, counter)
+            # the SYNC's serial samples are on their lines before the master's send returns: its reads find
+            # them however late the plant's process ran (lockstep, not a race against a wall-time timeout)
+            self._link.sent(count)
             self._record()
             return self.sync_count
 

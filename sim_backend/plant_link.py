@@ -10,14 +10,18 @@ from the readings of SYNC n acts from SYNC n + 1 on. The simulated prototype kee
   the faults due at t_{n+1} and makes the load-cell line of t_{n+1} (written at SYNC n + 1);
 * the state at t_{n+1} is published to the view at SYNC n + 1.
 
-Nothing the core does at SYNC n is needed before SYNC n + 1, so on a machine with two cores the core runs in
-a child process (:class:`ChildPlantLink`, forked, with its serial emulators' threads): its physics step
+Nothing the core's step at SYNC n makes is needed before SYNC n + 1, so on a machine with two cores the core runs
+in a child process (:class:`ChildPlantLink`, forked, with its serial emulators' threads): its physics step
 overlaps the master's work on tick n. The two processes share one page (commands in, state out) and hand
-it over with two POSIX semaphores, whose atomic operations order the page's reads and writes; the waiting
+it over with POSIX semaphores, whose atomic operations order the page's reads and writes; the waiting
 side first polls its semaphore (the other side answers within microseconds in a lockstep run), then
-blocks. :class:`InProcessPlantLink` makes the same calls in the same order in this process: both links
-give the same bytes on every wire for the same seed. An exception of the core is raised by the next
-:meth:`collect` in both, and again at every later one.
+blocks. The serial samples of SYNC n are needed at SYNC n: the child confirms each emit once its bytes are
+on the lines (a third semaphore), and the SYNC handler waits for that confirmation (:meth:`PlantLink.sent`)
+after its CAN nodes have answered, so that the master's reads after the SYNC find them however late the
+child ran (a loaded machine, a stopped process): a lockstep run never depends on timing. Nothing waits on
+wall time but the link's own guard against a child that died or hung. :class:`InProcessPlantLink` makes the
+same calls in the same order in this process: both links give the same bytes on every wire for the same seed.
+An exception of the core is raised by the next :meth:`collect` in both, and again at every later one.
 """
 
 from __future__ import annotations
@@ -49,7 +53,9 @@ _ERROR_AT = 2048  # byte offset of the error message
 _PAGE = 4096
 CHILD_POLL = 2e-3  # s the child polls for the next command before blocking (a lockstep SYNC comes sooner)
 PARENT_POLL = 1e-3  # s the parent polls for the state before blocking
-ANSWER_TIMEOUT = 30.0  # s without an answer from a living child before the link gives up
+# s without an answer from a living child before the link gives up; the time the child spends stopped (SIGSTOP,
+# a debugger) does not count: a stopped plant is late, not broken, and a lockstep run waits for it
+ANSWER_TIMEOUT = 30.0
 
 
 class PlantView:
@@ -193,6 +199,11 @@ class PlantLink(Protocol):
     def emit(self, count: int) -> None:
         """SYNC ``count``: the core's :meth:`PlantCore.emit` (returns at once)."""
 
+    def sent(self, count: int) -> None:
+        """Return once the serial samples of the last :meth:`emit` (SYNC ``count``) are on their lines: a
+        driver reading its port after this finds them. A child that died or hung leaves the reason for the
+        next :meth:`collect` and returns."""
+
     def advance(self, count: int, torques, brakes) -> None:
         """The core's :meth:`PlantCore.advance` with the commands of SYNC ``count`` (returns at once); at
         power-on (``count`` 0) without an emit before it."""
@@ -219,6 +230,9 @@ class InProcessPlantLink:
                 self.core.emit(count)
             except Exception as exc:  # as the child reports it: raised at the next collect
                 self._error = _reason(exc)
+
+    def sent(self, count: int) -> None:
+        """Nothing to wait for: :meth:`emit` wrote the samples."""
 
     def advance(self, count: int, torques, brakes) -> None:
         if self._error is None:
@@ -266,10 +280,12 @@ class ChildPlantLink:
         _EMIT.pack_into(self._page, 0, -1)
         ctx = multiprocessing.get_context("fork")
         self._to_child = ctx.Semaphore(0)
-        self._to_parent = ctx.Semaphore(0)
+        self._to_parent = ctx.Semaphore(0)  # the state (or the error) after an advance
+        self._emitted = ctx.Semaphore(0)  # a SYNC's serial samples are on their lines
         self._error: str | None = None
         self._closed = False
         self._waiting = False  # a command is out and its answer not yet collected
+        self._unsent: int | None = None  # the SYNC whose emit is out and not yet confirmed
         self._exit: int | None = None  # the child's wait status once reaped
         self.waited = 0.0  # s the parent spent waiting for the child's answers (beyond a first look)
         parent = os.getpid()
@@ -279,8 +295,8 @@ class ChildPlantLink:
             code = 1
             try:
                 _close_fds_but(keep)
-                _child_main(core, self._page, self._to_child, self._to_parent, parent, self._command,
-                            self._state)
+                _child_main(core, self._page, (self._to_child, self._to_parent, self._emitted), parent,
+                            self._command, self._state)
                 code = 0
             except BaseException:
                 with contextlib.suppress(BaseException):
@@ -293,8 +309,19 @@ class ChildPlantLink:
             return
         if self._waiting:  # the previous answer was never collected: take it now, in order
             self._receive()
+        if self._unsent is not None:  # nor the last emit's confirmation: one confirmation per emit
+            self.sent(self._unsent)
+        if self._error is not None:
+            return
         _EMIT.pack_into(self._page, 0, count)
+        self._unsent = count
         self._to_child.release()
+
+    def sent(self, count: int) -> None:
+        if self._unsent != count or self._error is not None or self._closed:
+            return
+        self._unsent = None
+        self._await(self._emitted, f"the serial samples of SYNC {count}")
 
     def advance(self, count: int, torques, brakes) -> None:
         if self._error is not None or self._closed:
@@ -306,20 +333,25 @@ class ChildPlantLink:
         self._waiting = True
         self._to_child.release()
 
+    def _await(self, sem, what: str) -> bool:
+        """Take ``sem`` (the child's answer: ``what``), polling first, then blocking; False (with the reason in
+        ``_error``) if the child died or fell silent."""
+        if sem.acquire(False):
+            return True
+        start = time.perf_counter()
+        end = start + PARENT_POLL
+        try:
+            while not sem.acquire(False):
+                if time.perf_counter() > end:
+                    return self._block(sem, what)
+        finally:
+            self.waited += time.perf_counter() - start
+        return True
+
     def _receive(self) -> None:
         self._waiting = False
-        sem = self._to_parent
-        if not sem.acquire(False):
-            start = time.perf_counter()
-            end = start + PARENT_POLL
-            try:
-                while not sem.acquire(False):
-                    if time.perf_counter() > end:
-                        if not self._block(sem):
-                            return
-                        break
-            finally:
-                self.waited += time.perf_counter() - start
+        if not self._await(self._to_parent, "the state of the next SYNC"):
+            return
         block = self._state.unpack_from(self._page, _STATE_AT)  # status, then the state
         if block[0] != _OK:
             (size,) = struct.unpack_from("<q", self._page, _ERROR_AT)
@@ -336,17 +368,19 @@ class ChildPlantLink:
             self._exit = status
         return False
 
-    def _block(self, sem) -> bool:
-        """Wait for the child's answer; False (with the reason in ``_error``) if it died or fell silent."""
+    def _block(self, sem, what: str) -> bool:
+        """Wait for the child's answer (``what``); False (with the reason in ``_error``) if it died or fell
+        silent."""
         waited = 0.0
         while not sem.acquire(True, 0.1):
-            waited += 0.1
+            waited += 0.0 if _stopped(self.pid) else 0.1
             if not self.alive():
                 self._error = (f"the simulated plant's process (pid {self.pid}) ended "
-                               f"({_describe(self._exit)}) without answering SYNC")
+                               f"({_describe(self._exit)}) without sending {what}")
                 return False
             if waited >= ANSWER_TIMEOUT:
-                self._error = f"the simulated plant's process (pid {self.pid}) gave no answer in {waited:.0f} s"
+                self._error = (f"the simulated plant's process (pid {self.pid}) did not send {what} in "
+                               f"{waited:.0f} s")
                 return False
         return True
 
@@ -381,6 +415,16 @@ def _reason(exc: Exception) -> str:
     return str(exc) if isinstance(exc, SimulationError) else f"{type(exc).__name__}: {exc}"
 
 
+def _stopped(pid: int) -> bool:
+    """Whether process ``pid`` is stopped (by a signal or a tracer; Linux's /proc, else False)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2:][:1] in (b"T", b"t")
+
+
 def _describe(status: int | None) -> str:
     if status is None:
         return "status unknown"
@@ -399,10 +443,12 @@ def _close_fds_but(keep: list[int]) -> None:
     os.closerange(lo, os.sysconf("SC_OPEN_MAX"))  # one close_range call on Linux
 
 
-def _child_main(core: PlantCore, page: mmap.mmap, to_child, to_parent, parent: int, command: struct.Struct,
+def _child_main(core: PlantCore, page: mmap.mmap, sems: tuple, parent: int, command: struct.Struct,
                 state: struct.Struct) -> None:
-    """The child's loop: wait for a message; a new emit count sends that SYNC's serial samples, otherwise the
-    command block is read: advance the core and post the state (or the error), or stop."""
+    """The child's loop: wait for a message; a new emit count sends that SYNC's serial samples and confirms
+    them, otherwise the command block is read: advance the core and post the state (or the error), or stop.
+    ``sems``: (to the child, the state to the parent, the samples sent)."""
+    to_child, to_parent, sent = sems
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the run and closes us
     sys.setswitchinterval(1e-4)  # the serial devices' threads get the interpreter soon while this one polls
     core.start()
@@ -425,6 +471,7 @@ def _child_main(core: PlantCore, page: mmap.mmap, to_child, to_parent, parent: i
                     except Exception as exc:  # reported with the answer to the SYNC's commands
                         failed = True
                         fail(exc)
+                sent.release()  # the bytes are in the lines' buffers (or the failure is on the page)
                 continue
             op, count = _HEADER.unpack_from(page, _COMMAND_AT)
             if op == _OP_STOP:

@@ -168,8 +168,10 @@ def test_cdpr_devices_read_ahrs_from_an_independent_xbus_device(pty_pair):
     for r in rows:
         assert (r["roll"], r["pitch"], r["yaw"]) == pytest.approx(
             (math.radians(1.0), math.radians(-2.5), math.radians(90.0)), rel=1e-6)
+    # each line is the newest frame after the previous line's (Ahrs.wait_for): consecutive on an idle machine,
+    # but a loaded one may deliver two frames between the CLI's waits, and the seq then shows the one skipped
     seqs = [r["seq"] for r in rows]
-    assert seqs == list(range(seqs[0], seqs[0] + 4)) and seqs[0] >= 258
+    assert seqs[0] >= 258 and all(0 < b - a <= 3 for a, b in zip(seqs, seqs[1:], strict=False)), seqs
 
 
 def test_usage_and_operation_errors(pty_pair):

@@ -5,6 +5,7 @@ problem's own, the point-load tensions against one tension model per point mass.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from calib import multirun
 from calib.effects import EffectModel, make_effects
@@ -180,3 +181,17 @@ def test_the_geodesic_acceleration_solves_the_same_damped_system_for_the_second_
     dense = -np.linalg.solve(Nf + lam * np.diag(np.diag(Nf)), g[free])
     assert np.all(held[:q] == 0.0)
     np.testing.assert_allclose(held[free], dense, rtol=1e-8, atol=1e-10 * np.abs(dense).max())
+
+
+def test_a_singular_pose_block_leaves_the_covariance_to_the_dense_svd():
+    """A pose whose block of the normal matrix is singular (on the real runs a fit can reach poses whose six
+    unit columns are parallel: rank 1, eigenvalues 6 and 0) makes Arrow.covariance return None, for the
+    caller's SVD, instead of inverting the block undamped and raising."""
+    runs, q = _runs(np.random.default_rng(4))
+    blocks = [residuals(rf.problem, rf.theta, rf.poses) for rf in runs]
+    arrow = Arrow.of(runs, blocks, q, False)
+    arrow.U[0] = arrow.U[0].copy()
+    arrow.U[0][1] = np.ones((6, 6))
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.inv(arrow.U[0][1])  # what the reduction would do with it undamped
+    assert arrow.covariance() is None

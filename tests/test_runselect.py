@@ -66,3 +66,71 @@ def test_pair_pool_keeps_the_best_plausible_single():
     singles[1] = _trial("b", 11.0, True)
     assert [t.names[0] for t in pair_pool(singles)] == ["a", "b", "c"]
     assert [t.names[0] for t in pair_pool([_trial("a", 2.0, False), _trial("b", 1.0, False)])] == ["b", "a"]
+
+
+def test_a_finding_on_the_real_runs_says_the_runs_agree_on_cell_3s_gain(irma_data, tmp_path):
+    """The three real runs (parsed, targets), the selection among cable_elasticity, tension_offset,
+    tension_gain, pulley_friction: it keeps cable_elasticity, tension_offset and stops at the finding
+    tension_gain (load cell 3 about +30 %, beyond +-3 %); each run alone gives cell 3 a gain above 20 %
+    (0.31, 0.49, 0.34; docs/effects.md), the runs agree on the gains, and the verdict says so with every
+    run's value (and says the opposite when the runs disagree)."""
+    from dataclasses import replace
+
+    from acquisition.diagnose_report import selection_json, selection_verdict
+    from acquisition.importers import import_irma
+    from acquisition.runlog import read_run
+    from calib.effects import make_effects
+    from calib.runrows import run_rows
+    from calib.runselect import Judge, finding_params, select
+
+    items = []
+    for name, targets in (("sc_8_final", "sc_control_target_8_final.mat"),
+                          ("sc_8_medium_a", "sc_control_target_8.mat"),
+                          ("sc_27_medium_a", "sc_control_target_27.mat")):
+        import_irma(irma_data / f"{name}_parsed.mat", tmp_path / name, targets=irma_data / targets)
+        items.append((name, run_rows(read_run(tmp_path / name))))
+    sel = select(Judge(items, make_effects), ["cable_elasticity", "tension_offset", "tension_gain",
+                                               "pulley_friction"], 3)
+    assert sel.selected == ["cable_elasticity", "tension_offset"]
+    t = sel.finding
+    assert t is not None and t.names[-1] == "tension_gain" and t.spread is not None
+    cols, labels = finding_params(t, items[0][1].robot)
+    assert labels == [f"tension_gain.g_{i}" for i in range(1, 5)] and len(cols) == 4
+    assert np.all(t.spread.values[:, labels.index("tension_gain.g_3")] > 0.2)  # cell 3 on every run
+    assert t.spread.p >= 0.01
+    words = selection_verdict(sel)
+    assert words.startswith("FINDING: ") and "do not disagree" in words and "g_3 " in words
+    agree = selection_json(sel, ["a", "b", "c"])["finding"]["runs_agree"]
+    assert agree["agree"] is True and len(agree["values"]["tension_gain.g_3"]) == 3
+    t.spread = replace(t.spread, p=1e-4)
+    assert "the runs disagree on them" in selection_verdict(sel)
+
+
+def test_a_findings_reported_parameters_are_listed_per_run_without_a_sigma():
+    """pulley_position is fitted in deformation modes and reported as per-pulley offsets: the finding's words
+    list each run's offset that left its range (from the run's own mode values), without a 1-sigma (it is
+    not a fitted parameter); a fitted parameter at its hard bound is marked."""
+    from acquisition.diagnose_report import finding_agreement
+    from calib.effects.builtin import PulleyPosition, TensionGain
+    from calib.multirun import JointFit, RunFit
+    from calib.robot import load_robot
+    from calib.runrows import RunRows
+    from calib.spread import Spread
+
+    robot = load_robot("irma4u")
+    pp, tg = PulleyPosition(), TensionGain()
+    modes = np.random.default_rng(1).normal(0.0, 0.03, (3, 3 * robot.n - 4))
+    gains = np.array([[0.0, 0.0, 0.5, 0.0], [0.0, 0.0, 0.31, 0.0], [0.0, 0.0, 0.29, 0.0]])  # 0.5: g's bound
+    rows = RunRows(robot, None, {}, "estimate", None)
+    runs = [RunFit(f"run{i}", rows, None, np.zeros(6), np.zeros((0, 6)), {}) for i in range(3)]
+    q = modes.shape[1] + 4
+    fit = JointFit([pp, tg], np.zeros(q), np.eye(q), runs, 0.0, True, 0)
+    dx1 = [pp.report(robot, m)["dx_1"] for m in modes]
+    t = Trial(("pulley_position", "tension_gain"), q, fit, 0.0,
+              implausible=[Implausible("pulley_position.dx_1", dx1[0], "m", -0.03, 0.03),
+                           Implausible("tension_gain.g_3", 0.37, "1", -0.03, 0.03)])
+    t.spread = Spread(["a", "b", "c"], np.hstack([modes, gains]), np.stack([np.eye(q) * 1e-4] * 3), 5.0, 20, 0.99,
+                      np.zeros(q))
+    words = finding_agreement(t)
+    assert "dx_1 " + ", ".join(f"{v:.3g}" for v in dx1) + ";" in words
+    assert "g_3 0.5 ± 0.01 (at its bound), 0.31 ± 0.01, 0.29 ± 0.01." in words

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import threading
 
 import can
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 from calib.robot import load_robot
 from drivers.interfaces import DeviceError
 from drivers.open import open_devices
+from sim_backend import plant_link
 from sim_backend.backend import SimBackend, power_on_state
 from sim_backend.can_drive_emulator import SimulatedNode
 from sim_backend.config import SimConfigError, sim_config_from_dict
@@ -226,6 +228,34 @@ def test_the_plant_process_dies_loudly_and_holds_no_pipe_of_its_parent():
         os.close(r)
         if w >= 0:
             os.close(w)
+
+
+@pytest.mark.skipif(not child_process_possible(), reason="the plant's child process needs fork and two cores")
+def test_a_sync_returns_with_its_serial_samples_on_the_lines_however_late_the_plant_runs(monkeypatch):
+    # the plant's process stopped right after answering a SYNC (a loaded machine's worst case, made sure):
+    # the next SYNC's send returns only once the process has run again and written that SYNC's samples, so the
+    # master's look at its ports right after the send (no waiting) finds them; before, the send returned at
+    # once and the line came whenever the process ran again. A stopped plant is late, not silent: the link's
+    # guard against a hung child does not count the time it is stopped
+    monkeypatch.setattr(plant_link, "ANSWER_TIMEOUT", 0.2)
+    with SimBackend(ROBOT, None, seed=1, control_period=PERIOD, plant_process=True, ahrs_rate=200.0) as sim:
+        devices = open_devices(sim.devices, LPR, clock=lambda: sim.time, control_period=PERIOD, polled=True)
+        try:
+            for _ in range(3):
+                devices.sync.send_sync()
+            pid = sim.plant_pid
+            seen = []
+            for stop in (0.0, 0.5, 0.0, 0.5):
+                sim._link.collect()  # the plant has answered the last SYNC: it now waits for the next one
+                if stop:
+                    os.kill(pid, signal.SIGSTOP)
+                    threading.Timer(stop, os.kill, (pid, signal.SIGCONT)).start()
+                c = devices.sync.send_sync()
+                lc, ahrs = devices.loadcells.latest(), devices.ahrs.latest()  # one non-blocking read each
+                seen.append((c, lc.device_seq, round(ahrs.sample_time_fine * 1e-4 / PERIOD)))
+            assert seen == [(c, c - 1, c) for c, _, _ in seen]  # the line of SYNC c has sequence c - 1
+        finally:
+            devices.close()
 
 
 def test_load_cell_offset_gain_and_ahrs_tilt_reach_the_drivers():

@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -17,7 +18,9 @@ import yaml
 import sim_backend.backend
 from acquisition.cli import main
 from acquisition.runlog import read_run
+from acquisition.startup import StartupConfig
 from sim_backend.config import example_path
+from sim_backend.plant_link import ChildPlantLink, child_process_possible
 
 
 def _angle_errors_deg(a, b):
@@ -177,15 +180,28 @@ def test_each_simulated_fault_ends_in_a_safe_stop(tmp_path, capsys, name, kind, 
     assert run.tau_ref[stop][-1].max() < run.tau_ref[stop][0].max() + 1e-9
 
 
-def test_same_seed_same_run_log_byte_for_byte(tmp_path, capsys, monkeypatch):
+def test_same_seed_same_run_log_byte_for_byte_however_late_the_plant_runs(tmp_path, capsys, monkeypatch):
     # a cable slips early, while the platform settles under tau0: the stop comes before the run log would
-    # start, so the samples seen so far are written with the event. The second run has the simulated plant
-    # in the routine's own process instead of its child process: the same bytes either way
+    # start, so the samples seen so far are written with the event. In the first run the simulated plant's
+    # child process is stopped for longer than the loop waits for a device (a loaded machine's worst case,
+    # made sure: right after it answered SYNC 499); the second has the plant in the routine's own process,
+    # undisturbed: the same bytes either way (before the fix the loop went on with the last tick's load cells)
     cfg = tmp_path / "early_slack.yaml"
     cfg.write_text("faults:\n  - {kind: cable_slack, t: 6.0, cable: 2, length: 0.05}\n")
+    stalled, emit = [], ChildPlantLink.emit
+
+    def stalling_emit(link, count):
+        if count == 500:
+            os.kill(link.pid, signal.SIGSTOP)
+            threading.Timer(StartupConfig.device_timeout + 0.3, os.kill, (link.pid, signal.SIGCONT)).start()
+            stalled.append(count)
+        emit(link, count)
+
+    monkeypatch.setattr(ChildPlantLink, "emit", stalling_emit)
     logs = []
     for k in range(2):
         if k == 1:
+            assert stalled == ([500] if child_process_possible() else [])
             monkeypatch.setattr(sim_backend.backend, "child_process_possible", lambda: False)
         out = tmp_path / f"run{k}"
         code = main(["startup", "--backend", "sim", "--seed", "3", "--out", str(out), "--sim-config", str(cfg)])
