@@ -94,7 +94,8 @@ def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust:
     for _ in range(REFINE):
         spans = [(ref_win.slice, res.theta[:6])] + [
             (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
-        noise = pose_free_noise(model, sig, spans, ref, res.theta, base).noise
+        pose_free = pose_free_noise(model, sig, spans, ref, res.theta, base)
+        noise = pose_free.noise
         sigma = judged_noise(problem, res.theta, res.poses, noise.sigma, sensor_noise(robot)) if robust \
             else noise.sigma
         model, theta = _with_reference_noise(robot, model, res.theta, sigma, meas.windows, ref_win.size)
@@ -108,7 +109,7 @@ def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust:
     within, floor = noise.sigma, sensor_noise(robot)
     for _ in range(VCE_ROUNDS_ROWS):
         shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses, PER_CABLE),
-                                floor, within)
+                                floor, within, pose_free.quantisation)
         if shrunk is None:
             break
         model, theta = _with_reference_noise(robot, model, res.theta, reference_sigma(shrunk, within),
