@@ -77,4 +77,6 @@ def test_one_real_run_sees_its_length_scale_only_from_about_one_percent(irma_dat
     assert 1.2 < ls.reason.numbers["detect_factor"] < 2.0  # measured 1.50
     # measured 0.94, 1.10, 0.77, 1.51 % (0.95, 1.13, 0.77, 1.53 % before issue 29's windows at rest)
     assert np.all((np.abs(k) > 0.005) & (np.abs(k) < 0.02)), k
-    assert "only from 1.5 times its expected change (k_1 = 0.00935" in ls.decision
+    # the decision prints the same figures (the digits follow the windows and the noise model: not pinned here)
+    assert f"only from {ls.reason.numbers['detect_factor']:.2g} times its expected change (k_1 = {k[0]:.4g}" \
+        in ls.decision, ls.decision
