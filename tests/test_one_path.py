@@ -18,6 +18,8 @@ ONE_JOB = {
     "sim_backend/physics.py": ("the simulated prototype's physics (dynamics, cables, sensors' truth)", 720),
     "sim_backend/can_drive_emulator.py": ("one emulated CiA 402 winch drive on the simulated CAN bus", 660),
     "calib/multirun.py": ("the joint fit of several runs sharing robot effects (issue 28, being extended)", 640),
+    "sim_backend/plant_link.py": ("the lockstep link between the loop and the simulated plant, in process or in "
+                                  "a child process", 560),
 }
 # modules of the startup's path below the command line: they must not import acquisition.cli
 BELOW_CLI = ("acquisition.session", "acquisition.plans", "acquisition.study", "acquisition.study_report",
