@@ -5,8 +5,19 @@ radius_i * tau, where radius_i = -length_per_motor_rev_i / (2 pi) is the signed 
 the cable pulls the drum towards paying out, so the motor must push the other way. The controller works in
 tension units and converts at the end:
 
-    u = tau_ref + kp (tau_ref - tau_meas) + I,    dI/dt = ki (tau_ref - tau_meas)   (N)
-    torque = rate_limit(clip(radius u, torque_min, torque_max))                     (N m)
+    u = tau_ref + kp e + I,    e = tau_ref - tau_meas,    dI/dt = ki e  if |e_f| > deadband, else -I / T_leak  (N)
+    e_f = tau_ref - m,    T_f dm/dt = tau_meas - m             (the dead band judges a low-passed reading)
+    torque = rate_limit(clip(radius u, torque_min, torque_max))                                   (N m)
+
+The dead band judges the tension reading through a first-order low-pass of ``integral_filter`` s (the
+reference unfiltered); the integral, once on, integrates the raw error (no lag in the loop). A winch its
+friction holds still does not follow the command, so with the band on the raw reading the load cells' noise
+excursions beyond it (1 N per tick against 1.5 N: 13 % of the ticks) pumped the integral in a random walk
+until the winch broke free and stuck elsewhere (stick-slip hunting in a hold, issue 29); filtered, that noise
+is sigma sqrt(dt / 2 T_f) (0.16 N for 1 N at 200 Hz), and only a sustained error switches the integral on.
+Inside the dead band the integral leaks away in ``integral_leak`` s: what it learnt against the sliding
+friction of a move would otherwise keep a stopped winch's net torque at the edge of its friction band, where
+the proportional term's share of the noise breaks it free again and again.
 
 Anti-windup by conditional integration (the integral is frozen while the command is held by the bounds or
 the rate limit and the error would push it further) and a bound on the integral itself. Cables only pull:
@@ -40,11 +51,17 @@ class ControllerConfig:
     max_command: float = 400.0  # N, highest tension command
     max_command_rate: float = 1500.0  # N/s, rate limit of the torque command expressed in tension
     integral_deadband: float = 1.5  # N, errors smaller than this are not integrated (no friction hunting)
+    # s, time constant of the low-pass on the reading the integral's dead band judges (0: the raw reading);
+    # 0.1 s makes 1 N of per-tick cell noise 0.16 N at 200 Hz, well inside the dead band
+    integral_filter: float = 0.1
+    # s, while the filtered error is inside the dead band the integral decays with this time constant (0: held)
+    integral_leak: float = 1.0
 
     def __post_init__(self) -> None:
         if not 50.0 <= self.rate <= 2000.0:
             raise ValueError(f"controller rate must be within 50..2000 Hz, got {self.rate!r}.")
-        for name in ("kp", "ki", "integral_limit", "min_command", "max_command_rate"):
+        for name in ("kp", "ki", "integral_limit", "min_command", "max_command_rate", "integral_filter",
+                     "integral_leak"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"controller field '{name}' must be non-negative, got {getattr(self, name)!r}.")
         if self.max_command <= self.min_command:
@@ -81,6 +98,7 @@ class TensionController:
         self.n = len(r)
         self._radius = r.tolist()
         self._integral = [0.0] * self.n  # N
+        self._filtered = [math.nan] * self.n  # N, the low-passed reading the integral sees (NaN: none yet)
         self._command = [0.0] * self.n  # last tension-equivalent command, N
         self._feedback = [True] * self.n  # channels whose load cell is trusted
         self._saturated = [False] * self.n
@@ -113,6 +131,7 @@ class TensionController:
     def reset(self, command: np.ndarray | None = None) -> None:
         """Zero the integral; the rate limit starts from ``command`` (N, tension-equivalent) or zero."""
         self._integral = [0.0] * self.n
+        self._filtered = [math.nan] * self.n
         self._command = [0.0] * self.n if command is None else np.broadcast_to(
             np.asarray(command, dtype=float), (self.n,)).tolist()
 
@@ -128,6 +147,9 @@ class TensionController:
         kp, ki, lo, hi, band, lim_i = (c.kp, c.ki, c.min_command, c.max_command, c.integral_deadband,
                                        c.integral_limit)
         step = c.max_command_rate * dt
+        gain = 1.0 if c.integral_filter <= 0.0 else dt / (c.integral_filter + dt)  # backward-Euler low-pass
+        filtered = self._filtered
+        keep = 1.0 if c.integral_leak <= 0.0 else c.integral_leak / (c.integral_leak + dt)
         ref = np.asarray(tau_ref, dtype=float).tolist()
         meas = np.asarray(tau_meas, dtype=float).tolist()
         integral, command, feedback = self._integral, self._command, self._feedback
@@ -145,7 +167,11 @@ class TensionController:
             limited = a if bounded < a else b if bounded > b else bounded
             sat = (limited < raw and err > 0) or (limited > raw and err < 0)
             saturated[i] = sat
-            v = integral[i] + ki * err * dt if not sat and fb and abs(err) > band else integral[i]
+            m = filtered[i]
+            m = filtered[i] = meas[i] if m != m else m + gain * (meas[i] - m)  # m != m: NaN, the first reading
+            ef = ref[i] - m if fb else 0.0
+            v = (integral[i] + ki * err * dt if abs(ef) > band else keep * integral[i]) if not sat and fb \
+                else integral[i]
             integral[i] = -lim_i if v < -lim_i else lim_i if v > lim_i else v
             command[i] = limited
             torque[i] = radius * limited

@@ -68,7 +68,7 @@ class EquilibriumDetector:
         self._refreshing: Future | None = None
         self.sample_period = float(sample_period)
         # the offline ends test, on here even where the offline search leaves it off (the recordings' default),
-        # a sway's wander allowed over the settle_s block it judges
+        # a sway's wander allowed over the settle_s block it judges; the settle test is the search's, as it is
         given = self.config.options
         opt = replace(given, ends_p=given.ends_p or given.settle_p,
                       ends_reach_s=max(given.ends_reach_s, 0.5 * given.settle_s))

@@ -75,5 +75,6 @@ def test_one_real_run_sees_its_length_scale_only_from_about_one_percent(irma_dat
     assert ls.reason.code == "score_not_significant"
     k = np.array([v for v, _ in ls.reason.numbers["detectable"].values()])
     assert 1.2 < ls.reason.numbers["detect_factor"] < 2.0  # measured 1.50
-    assert np.all((np.abs(k) > 0.005) & (np.abs(k) < 0.02)), k  # measured 0.95, 1.13, 0.77, 1.53 %
-    assert "only from 1.5 times its expected change (k_1 = 0.0095" in ls.decision
+    # measured 0.94, 1.10, 0.77, 1.51 % (0.95, 1.13, 0.77, 1.53 % before issue 29's windows at rest)
+    assert np.all((np.abs(k) > 0.005) & (np.abs(k) < 0.02)), k
+    assert "only from 1.5 times its expected change (k_1 = 0.00935" in ls.decision

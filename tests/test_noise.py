@@ -274,3 +274,42 @@ def test_the_reference_prior_follows_each_cables_sigma():
     again = ReferenceNoise(**prior.sd)
     sd = [s.prior for s in again.params(ROBOT)]
     np.testing.assert_allclose(sd, [8e-7] * 4 + [2e-6, 4e-6, 4e-6, 8e-6] + [4e-4])
+
+
+@pytest.mark.parametrize("motion", [0.0, 0.1, 0.25, 1.5])  # std of the motion in quantisation steps
+def test_quantisation_error_of_a_window_mean_matches_monte_carlo(motion):
+    """Widrow's quantisation of an average, sized from the windows' own readings: over 8 windows of 300 samples
+    of a Gaussian motion about a mean placed anywhere within a step (a run's windows), the predicted variance
+    matches the observed mean squared error of the window means over 400 such runs (still: step^2 / 12, not
+    averaged away; a motion over several steps: averaged away; in between, one window's variance is a noisy
+    figure of the motion and over-states the error, never under-states it)."""
+    from calib.selfcal.noise import quantisation_variance
+
+    rng = np.random.default_rng(29)
+    step = 9.6e-5  # rad, a 16-bit swivel encoder
+    x = (rng.uniform(0.0, 1.0, (1, 8, 400)) + motion * rng.standard_normal((300, 8, 400))) * step
+    readings = np.round(x / step) * step  # (samples, windows, runs)
+    observed = float(np.mean((readings.mean(0) - x.mean(0)) ** 2))
+    predicted = float(np.mean(quantisation_variance(list(readings.transpose(1, 0, 2)), step)))
+    if motion == 0.0:
+        assert predicted == pytest.approx(step**2 / 12, rel=1e-6)
+        assert observed == pytest.approx(step**2 / 12, rel=0.05)
+    elif motion >= 1.0:  # dithered: only the sampling of a white motion is left (step^2 / 12 / 300)
+        assert predicted < 1e-6 * step**2 and observed < step**2 / 12 / 100
+    else:
+        assert 1.3 < predicted / observed < 3.5, (predicted, observed)
+
+
+def test_variance_components_never_shrink_a_channel_below_its_quantisation_error():
+    """A group whose rows scatter a quarter of what its sigma says is halved, but a channel whose window means
+    keep a quantisation error (``lower``) stops there, and one already below it is not raised."""
+    from calib.selfcal.noise import rescaled_sigma
+
+    sigma = {"tension": np.full(4, 0.02), "length": np.full(4, 1e-6), "swivel": np.full(4, 8e-6),
+             "orientation": np.full(3, 1e-4)}
+    factors = {c: (0.25, 20.0) for c in ("tension", "length", "swivel", "tilt", "yaw")}
+    lower = {"swivel": np.array([6e-6, 2e-6, 6e-6, 9e-6]), "length": np.full(4, 1e-8)}
+    out = rescaled_sigma(sigma, factors, lower=lower)
+    assert out["tension"] == pytest.approx(np.full(4, 0.01))
+    assert out["length"] == pytest.approx(np.full(4, 5e-7))
+    assert out["swivel"] == pytest.approx([6e-6, 4e-6, 6e-6, 8e-6])

@@ -175,7 +175,9 @@ def test_windows_of_the_real_run_are_the_eight_equilibria(irma_data, robot):
     assert len(wins) == 8
     picked = _load_ws(irma_data)["meas_idx"] - 1  # the authors' hand-picked samples, one per equilibrium
     for w, s in zip(wins, picked, strict=True):
-        assert w.first - 10 <= s <= w.last + 10, (w, s)
+        # the settle test cuts a head still converging and its margin 0.5 s more (equilibrium 7: the authors
+        # picked 1084, the ranges start its window at 1089, the settle test at 1095, its margin at 1100)
+        assert w.first - 20 <= s <= w.last + 10, (w, s)
     assert sum(w.quasi for w in wins) == 1  # the 5th equilibrium: the platform never settled there
 
 

@@ -12,6 +12,7 @@ from calib.robot import Robot
 from calib.selfcal.guess import prepare
 from calib.selfcal.lm import levenberg_marquardt
 from calib.selfcal.noise import (
+    MISFIT_FACTOR,
     PER_CABLE,
     pose_free_noise,
     reference_sigma,
@@ -22,10 +23,12 @@ from calib.selfcal.noise import (
 from calib.selfcal.options import SolveOptions
 from calib.selfcal.problem import Problem
 from calib.selfcal.result import SelfCalFailure, Solution, compare_pose
-from calib.selfcal.rows import sensor_noise
+from calib.selfcal.rows import paper_noise, sensor_noise
 
 REFINE = 2  # estimate-noise solves: pose-free kinematic noise at the solution, then the solve again, twice
 VCE_ROUNDS_ROWS = 4  # then variance-component rounds on the window means (noise.rescaled_sigma; settles in 2-3)
+
+
 def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[str, np.ndarray],
                           windows: np.ndarray | None, ref_size: int):
     """The model with the reference window's noise for these sigmas (priors.ReferenceNoise.for_rows, in
@@ -39,6 +42,83 @@ def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[st
     return new, np.r_[theta[:n_kept], np.zeros(new.n_params - n_kept)]
 
 
+def _group_variance(sigma: dict[str, np.ndarray], group: str) -> float:
+    """The mean variance (SI^2) of a variance-component group's channels (``noise.VCE_GROUPS``: tilt and yaw
+    are the orientation's first two and its third)."""
+    parts = {"tilt": ("orientation", slice(0, 2)), "yaw": ("orientation", slice(2, 3))}
+    ch, sl = parts.get(group, (group, slice(None)))
+    return float(np.mean(np.asarray(sigma[ch], float)[sl] ** 2))
+
+
+def judged_noise(fitted: Problem, theta: np.ndarray, poses: np.ndarray, within: dict[str, np.ndarray],
+                 floor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The within-window sigmas ``within`` an estimate solve weighs its rows with next, judged first against
+    the scatter of the rows around the current fit (``fitted``, solved to ``theta``, ``poses`` with weights
+    the data did not set: the paper's, then the last judged ones): a group whose rows scatter about it by more
+    than sqrt(MISFIT_FACTOR) times its within-window sigma on enough degrees of freedom holds model error and
+    gets that scatter instead (:func:`noise.rescaled_sigma`, up only; the groups it cannot judge floored at
+    ``floor``, the sensors' specifications). Judged under the new weights instead, a group the model misses
+    but weighed by its tiny within-window scatter takes its rows' poses with it and shows no redundancy to
+    judge (sc_8_medium_a's lengths: 0.7 degrees of freedom at 35 um), and the solve follows its misfit."""
+    factors = variance_factors(fitted, theta, poses)
+    scaled = {c: (max(1.0, f * _group_variance(fitted.sigma, c) / max(_group_variance(within, c), 1e-300)), red)
+              for c, (f, red) in factors.items()}
+    return rescaled_sigma(within, scaled, floor) or within
+
+
+def _usable(problem: Problem, res) -> bool:
+    """Whether an estimate solve's end is a usable solution: its chi2 per degree of freedom within what
+    model error leaves after the variance components (at most MISFIT_FACTOR: a group beyond it is rescaled
+    to its scatter) and its initial pose's covariance finite."""
+    dof = max(problem.n_residuals - (problem.model.n_params + 6 * problem.meas.k), 1)
+    return 2.0 * res.cost / dof <= MISFIT_FACTOR and bool(np.all(np.isfinite(np.diag(res.cov_theta)[:6])))
+
+
+def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust: bool):
+    """The passes of an estimate solve from the prepared problem (weights: the run's within-window noise):
+    a first LM pass, REFINE passes on the pose-free noise at the solution, then VCE_ROUNDS_ROWS
+    variance-component rounds. ``robust``: the first pass weighs with the paper's eq. 18 (a documented robust
+    start, wide against every model error the real runs show) and each refine pass's within-window sigmas
+    are judged at the previous solution first (:func:`judged_noise`). Returns (LM result, problem, model)."""
+    model, meas, wins, ref, ref_sample = problem.model, problem.meas, pre.windows, pre.ref, pre.ref_sample
+    if robust:
+        problem = Problem(model, meas, paper_noise(robot))
+    res = levenberg_marquardt(problem, pre.theta0, pre.poses0, max_iter=max_iter)
+    if not res.converged:
+        return res, problem, model
+    # the kinematic channels' window-mean noise without the platform's motion (which the rows' poses
+    # absorb), estimated at the solution; a second pass at the better solution settles it
+    sig = pre.signals
+    base = window_mean_noise(robot, sig, wins)
+    ref_win = next(w for w in wins if w.first <= ref_sample <= w.last)
+    for _ in range(REFINE):
+        spans = [(ref_win.slice, res.theta[:6])] + [
+            (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
+        pose_free = pose_free_noise(model, sig, spans, ref, res.theta, base)
+        noise = pose_free.noise
+        sigma = judged_noise(problem, res.theta, res.poses, noise.sigma, sensor_noise(robot)) if robust \
+            else noise.sigma
+        model, theta = _with_reference_noise(robot, model, res.theta, sigma, meas.windows, ref_win.size)
+        problem = Problem(model, meas, sigma)
+        res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
+    # the within-window sigmas bound each group's noise of a mean from above (they include motion the
+    # means average out, e.g. the force control's ripple, and the share the rows' poses absorb): where
+    # the window means scatter less around the fit, variance components bring them down; up only where
+    # the model misses a group far beyond its noise (model error, noise.rescaled_sigma); the reference
+    # window's mean follows its channels down, never up (noise.reference_sigma)
+    within, floor = noise.sigma, sensor_noise(robot)
+    for _ in range(VCE_ROUNDS_ROWS):
+        shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses, PER_CABLE),
+                                floor, within, pose_free.quantisation)
+        if shrunk is None:
+            break
+        model, theta = _with_reference_noise(robot, model, res.theta, reference_sigma(shrunk, within),
+                                             meas.windows, ref_win.size)
+        problem = Problem(model, meas, shrunk)
+        res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
+    return res, problem, model
+
+
 def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
     """See :func:`calib.selfcal.solve`."""
     method, max_iter, reference_pose = opts.method, opts.max_iter, opts.reference_pose
@@ -46,35 +126,15 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
     problem, theta0, Z0, wins, search, ref = pre.problem, pre.theta0, pre.poses0, pre.windows, pre.search, pre.ref
     model, meas, ref_sample, source = problem.model, problem.meas, pre.ref_sample, pre.noise_source
     t_start, t_rows, t_guess = pre.marks
-    res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
-    if source == "estimate" and method == "tlse" and ref is not None and res.converged and max_iter > 0:
-        # the kinematic channels' window-mean noise without the platform's motion (which the rows' poses
-        # absorb), estimated at the solution; a second pass at the better solution settles it
-        sig = pre.signals
-        base = window_mean_noise(robot, sig, wins)
-        ref_win = next(w for w in wins if w.first <= ref_sample <= w.last)
-        for _ in range(REFINE):
-            spans = [(ref_win.slice, res.theta[:6])] + [
-                (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
-            noise = pose_free_noise(model, sig, spans, ref, res.theta, base).noise
-            model, theta = _with_reference_noise(robot, model, res.theta, noise.sigma, meas.windows, ref_win.size)
-            problem = Problem(model, meas, noise.sigma)
-            res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
-        # the within-window sigmas bound each group's noise of a mean from above (they include motion the
-        # means average out, e.g. the force control's ripple, and the share the rows' poses absorb): where
-        # the window means scatter less around the fit, variance components bring them down; up only where
-        # the model misses a group far beyond its noise (model error, noise.rescaled_sigma); the reference
-        # window's mean follows its channels down, never up (noise.reference_sigma)
-        within, floor = noise.sigma, sensor_noise(robot)
-        for _ in range(VCE_ROUNDS_ROWS):
-            shrunk = rescaled_sigma(problem.sigma, variance_factors(problem, res.theta, res.poses, PER_CABLE),
-                                    floor, within)
-            if shrunk is None:
-                break
-            model, theta = _with_reference_noise(robot, model, res.theta, reference_sigma(shrunk, within),
-                                                 meas.windows, ref_win.size)
-            problem = Problem(model, meas, shrunk)
-            res = levenberg_marquardt(problem, theta, res.poses, max_iter=max_iter)
+    estimate = source == "estimate" and method == "tlse" and ref is not None and max_iter > 0
+    if estimate:
+        res, problem, model = _estimate_passes(robot, pre, problem, max_iter, robust=False)
+        if res.converged and not _usable(problem, res):
+            # the within-window first pass fell into another minimum (sc_8_medium_a with its windows cut to
+            # their rest: 41 mm off, chi2/dof 165, the covariance not finite): again from the robust start
+            res, problem, model = _estimate_passes(robot, pre, pre.problem, max_iter, robust=True)
+    else:
+        res = levenberg_marquardt(problem, theta0, Z0, max_iter=max_iter)
     t_end = time.perf_counter()
     if max_iter == 0 and np.isfinite(res.cost):  # the guess is a solution already (a converged fit's)
         res.converged, res.message = True, "the given solution, not iterated"

@@ -17,7 +17,9 @@ estimate pools every still window:
 - the variance of the mean of N samples of that AR(1) process is gamma0 f(rho, N) / N with
   f = 1 + 2 sum_k (1 - k/N) rho^k (the effective sample size is N / f);
 - a reading whose second differences are mostly zero sits on its counts (encoders of a still platform): its
-  window mean is then uncertain by the resolution alone;
+  window mean is then uncertain by the resolution alone; at a solution each window mean of the lengths and
+  swivel angles also keeps its quantisation error, sized from the window's own readings
+  (:func:`quantisation_variance`, Widrow's quantisation of an average: the within-window scatter cannot see it);
 - the floor is the sensor's resolution (quantisation step / sqrt 12): a reading that does not move is
   uncertain by that much however long it is averaged.
 
@@ -39,6 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -193,12 +196,74 @@ VCE_ROUNDS = 4  # variance-component rounds of the per-sample pose fit (the sigm
 @dataclass(frozen=True)
 class PoseFreeNoise:
     """What :func:`pose_free_noise` estimates: per kinematic group the sigma of one sample's pose-free part
-    (``sample``, SI), its window-mean figures (``groups``, as :class:`ChannelNoise`) and the share of
-    (window, channel) readings that never left their count (``stuck``)."""
+    (``sample``, SI), its window-mean figures (``groups``, as :class:`ChannelNoise`), the share of
+    (window, channel) readings that never left their count (``stuck``) and per channel the quantisation
+    error of a window mean (``quantisation``: (n,) SI, :func:`quantisation_variance` averaged over the
+    windows), which no later rescaling may go below."""
 
     noise: WindowNoise
     sample: dict[str, float]
     stuck: dict[str, float]
+    quantisation: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+_MOTION_GRID = np.r_[0.0, np.geomspace(1e-3, 4.0, 240)]  # std of the motion in steps
+_HARMONICS = np.arange(1, 80)
+
+
+def _normal_cdf(x: np.ndarray) -> np.ndarray:
+    """The standard normal distribution function, vectorised without scipy (a solve imports none):
+    Abramowitz and Stegun 7.1.26 for erf, absolute error below 1.5e-7."""
+    z = np.abs(x) / math.sqrt(2.0)
+    t = 1.0 / (1.0 + 0.3275911 * z)
+    poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
+    erf = 1.0 - poly * np.exp(-z * z)
+    return 0.5 * (1.0 + np.sign(x) * erf)
+
+
+@lru_cache(maxsize=1)
+def _quantisation_tables() -> tuple[np.ndarray, np.ndarray]:
+    """For Gaussian motion of std s (steps, :data:`_MOTION_GRID`) about a mean placed uniformly within a step:
+    the expected variance of the quantised readings (steps^2) and Widrow's variance of the quantisation error
+    of their mean, sum_k |phi(2 pi k)|^2 / (2 pi^2 k^2) with phi the motion's characteristic function (steps^2;
+    1/12 for a still reading, 0 once the motion spans several steps)."""
+    offsets = (np.arange(128) + 0.5) / 128.0
+    cells = np.arange(-16, 17, dtype=float)
+    s = np.maximum(_MOTION_GRID, 1e-12)[:, None, None]
+    p = _normal_cdf((cells[None, None, :] + 0.5 - offsets[None, :, None]) / s) \
+        - _normal_cdf((cells[None, None, :] - 0.5 - offsets[None, :, None]) / s)  # (grid, offsets, cells)
+    mean = np.sum(p * cells, axis=2)
+    readings = np.mean(np.sum(p * cells**2, axis=2) - mean**2, axis=1)
+    k = _HARMONICS[None, :]
+    widrow = np.sum(np.exp(-((2.0 * np.pi * k * _MOTION_GRID[:, None]) ** 2)) / (2.0 * np.pi**2 * k**2), axis=1)
+    last = float(_HARMONICS[-1]) + 0.5  # the harmonics left out, as an integral (1/12 exactly for s = 0)
+    widrow += np.exp(-((2.0 * np.pi * last * _MOTION_GRID) ** 2)) / (2.0 * np.pi**2 * last)
+    return readings, widrow
+
+
+def quantisation_variance(windows: list[np.ndarray], step: float | np.ndarray) -> np.ndarray:
+    """Variance (SI^2) of the quantisation error of a window mean of a channel that counts in ``step`` (SI,
+    scalar or (c,)), per column of the windows' readings (``windows``: (N_w, c) arrays), averaged over the
+    windows: Widrow's quantisation of an average. A reading that sits on one count keeps up to half a step of
+    error however long it is averaged (step^2 / 12: no dither); one that visits several counts averages it
+    away as its motion spans more steps. Each window's motion is read from its own readings: the std s of a
+    Gaussian motion whose quantised readings have, in expectation over where its mean falls within a step,
+    the window's variance of the readings (windows differ: a hold at rest, a slow sway). Calibration
+    (tests/test_noise.py): exact for a still and a dithered reading; for a white motion of 0.1 and 0.25 steps
+    it over-states the error 1.5 and 3.2 times in variance (where the mean falls within its step sets one
+    window's variance as much as the motion does: a centred mean reads steady and errs little); on the
+    simulator's slow sway, whose ramps err more than a Gaussian motion of the same std, the swivel rows' sigma
+    is still 0.95-1.25 times narrower than their error against the truth (docs/windows.md)."""
+    if not windows:
+        return np.zeros(0)
+    q = np.broadcast_to(np.asarray(step, float), (windows[0].shape[1],))
+    var_readings, widrow = _quantisation_tables()
+    out = np.zeros(q.shape)
+    for x in windows:
+        r = np.var(np.asarray(x, float), axis=0) / np.where(q > 0, q, 1.0) ** 2
+        s = np.interp(r, var_readings, _MOTION_GRID)  # the expected variance grows with s
+        out += np.interp(s, _MOTION_GRID, widrow)
+    return np.where(q > 0, out / len(windows) * q**2, 0.0)
 
 
 def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, np.ndarray]],
@@ -248,8 +313,9 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
         per |= {c: math.sqrt(float(np.sum(e[:, s] ** 2) / max(float(np.sum(lev[:, s])), 1e-12)))
                 for c, s in cols.items() if c in KINEMATIC}
     raw = {"length": sig["dl"], "swivel": sig["dsigma"]}
+    step = {c: np.asarray(floor[c], float) * math.sqrt(12.0) for c in KINEMATIC}  # floor is step / sqrt 12
     groups = dict(base.groups)
-    stuck = {}
+    stuck, quant, sigma_out = {}, {}, dict(base.sigma)
     for c in KINEMATIC:
         s = cols[c]
         blocks = [e[owner == j, s] for j in range(len(spans))]
@@ -257,17 +323,16 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
         red = float(np.mean(lev[:, s]))
         gamma0 = gamma0 / max(red, 1e-12)  # the pose fit took 1 - red of each sample's variance
         f = ar1_factor(rho, nh)
-        q = float(np.max(floor[c]))
-        share = float(np.mean([np.ptp(raw[c][sl], axis=0) == 0.0 for sl, _ in spans]))
-        var_q = share * (q * math.sqrt(12.0)) ** 2 / 12.0  # q here is step / sqrt 12
-        mean = math.sqrt(gamma0 * f / nh + var_q)
-        stuck[c] = share
-        groups[c] = ChannelNoise(math.sqrt(gamma0), rho, nh / f, mean, q)
-    sigma_out = dict(base.sigma)
-    sigma_out["length"] = np.full(n, groups["length"].mean)
-    sigma_out["swivel"] = np.full(n, groups["swivel"].mean)
+        # the quantisation error of a window mean, from each window's readings (Widrow): the within-window
+        # scatter cannot see it (a reading on one count has none), yet it stays in the mean
+        var_q = quantisation_variance([raw[c][sl] for sl, _ in spans], step[c])
+        stuck[c] = float(np.mean([np.ptp(raw[c][sl], axis=0) == 0.0 for sl, _ in spans]))
+        quant[c] = np.sqrt(var_q)
+        mean = math.sqrt(gamma0 * f / nh + float(np.mean(var_q)))
+        groups[c] = ChannelNoise(math.sqrt(gamma0), rho, nh / f, mean, float(np.max(floor[c])))
+        sigma_out[c] = np.sqrt(gamma0 * f / nh + var_q)  # per cable: the group's noise, the cable's quantisation
     sigma_out["orientation"] = np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean])
-    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, stuck)
+    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, stuck, quant)
 
 
 VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")
@@ -348,8 +413,8 @@ def variance_factors(problem, theta: np.ndarray, poses: np.ndarray, per_cable: t
 
 
 def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float, float]],
-                   floor: dict[str, np.ndarray] | None = None, within: dict[str, np.ndarray] | None = None
-                   ) -> dict[str, np.ndarray] | None:
+                   floor: dict[str, np.ndarray] | None = None, within: dict[str, np.ndarray] | None = None,
+                   lower: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray] | None:
     """The sigmas rescaled by the groups' variance factors (groups with at least VCE_MIN_REDUNDANCY degrees
     of freedom): a group whose rows scatter less than its sigma says (factor < VCE_SETTLED) is scaled by
     sqrt(factor); a group whose rows scatter by more than sqrt(MISFIT_FACTOR) times its sigma is dominated by
@@ -365,7 +430,9 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     within-window figure (``within``). A sigma raised to a misfit in an earlier round holds model error, and
     a split would down-weight the cables the model misses most (issue 28's guard against model error: on the
     real sc_27_medium_a the swivel rows scatter ~2200x their within-window variance, cable 1's 2-4x the others').
-    None when nothing changes."""
+    No channel is brought below ``lower`` (the quantisation error of its window means,
+    :attr:`PoseFreeNoise.quantisation`): the rows' own poses absorb part of their scatter, never the error a
+    reading that does not dither keeps. None when nothing changes."""
     out = {c: np.array(v, float) for c, v in sigma.items()}
     changed = False
 
@@ -409,6 +476,8 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
             if np.max(np.abs(split - 1.0)) > 1.0 - VCE_SETTLED:
                 out[c] = out[c] * split
                 changed = True
+    for c, low in (lower or {}).items():
+        out[c] = np.maximum(out[c], np.minimum(np.asarray(low, float), sigma[c]))  # never below it, nor raised
     return out if changed else None
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from calib.chi2 import chi2_isf
 from calib.robot import Robot
 from calib.robust import median
+from calib.selfcal.settle import SettleTest, quiet_noise, sample_noise
 
 CHANNELS = ("length", "swivel", "tilt")
 
@@ -68,6 +69,18 @@ class WindowOptions:
     # ends test at settle_p (when ends_p is 0) finds resting end to end: a hold-time rule for new startups
     settle_s: float = 3.0
     settle_p: float = 1e-3
+    # the settle test (calib.selfcal.settle): blocks of settle_block_s, false-alarm probability settle_test_p per
+    # window at rest (0: off); one criterion, the same in the offline search and the online detector
+    settle_block_s: float = 0.5
+    settle_test_p: float = 0.05
+    # s cut from the head of every window the settle test judged (0: none): the approach's last samples, where
+    # the hold's tensions still converge by 1-2 N under the load cells' noise of a sample (docs/windows.md)
+    settle_margin_s: float = 0.5
+    # s cut from the tail of such a window (0: none): the next move's first samples, whose quintic leaves its hold
+    # value with zero speed and acceleration and moves the tensions by less than their noise at first
+    settle_tail_margin_s: float = 0.1
+    # the tail too (off: on the real robot the next quintic's start; it moved the 27-pose run's estimate 4 mm)
+    settle_tail: bool = False
 
 
 @dataclass(frozen=True)
@@ -129,31 +142,6 @@ def noise_floor(x: np.ndarray) -> np.ndarray:
     d = np.diff(x, axis=0)
     mad = median(np.abs(d - median(d, axis=0)), axis=0)
     return 1.4826 * mad / math.sqrt(2.0)
-
-
-def sample_noise(x: np.ndarray) -> np.ndarray:
-    """Robust white-noise standard deviation per column of x (N, c) from second differences (MAD): a smooth
-    motion leaves them near zero, white noise of sigma gives them sigma sqrt(6)."""
-    if x.shape[0] < 3:
-        return np.zeros(x.shape[1:])
-    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    return 1.4826 * median(np.abs(d2), axis=0) / math.sqrt(6.0)
-
-
-def quiet_noise(x: np.ndarray) -> np.ndarray:
-    """As :func:`sample_noise`, from the lower quartile of |second differences| instead of their median (a
-    Gaussian's |x| has its lower quartile at 0.3186 sigma): the noise of the quietest samples, which holds
-    while up to three quarters of a run still swing, as after every move of a lightly damped platform; a
-    reading on its counts most of the time falls back on the median's figure or its count / sqrt(12)."""
-    if x.shape[0] < 3:
-        return np.zeros(x.shape[1:])
-    d2 = np.abs(x[2:] - 2.0 * x[1:-1] + x[:-2])
-    quiet = np.quantile(d2, 0.25, axis=0) / 0.3186 / math.sqrt(6.0)
-    # a reading that mostly sits on its counts (an encoder of a still platform): its median, else its count
-    d1 = np.abs(np.diff(x, axis=0))
-    step = np.min(np.where(d1 > 0, d1, np.inf), axis=0)
-    step = np.where(np.isfinite(step), step / math.sqrt(12.0), 0.0)
-    return np.where(quiet > 0, quiet, np.maximum(sample_noise(x), step))
 
 
 def slow_drift(x: np.ndarray, w: int, rest: np.ndarray) -> np.ndarray:
@@ -323,6 +311,7 @@ class Stillness:
     thresholds: dict[str, np.ndarray]
     ripple_tol: float
     ends: EndsTest | None = None
+    settle: SettleTest | None = None
 
     @classmethod
     def of_samples(
@@ -345,7 +334,8 @@ class Stillness:
         thr = {c: np.maximum(noise[c], spread[c] + options.drift_factor * slow_drift(x, w, rest))
                for c, x in channels.items()}
         ends = EndsTest.of_samples(tau, channels, w, rest, options, act) if options.ends_p > 0 else None
-        return cls(w, thr, ripple_tol, ends)  # ends_p 0: no test, and none of its noise figures computed
+        settle = settle_test(tau, channels, w, options) if options.settle_test_p > 0 else None
+        return cls(w, thr, ripple_tol, ends, settle)  # p 0: no test, and none of its noise figures computed
 
     @classmethod
     def of_run(
@@ -373,12 +363,25 @@ class Stillness:
     def trim(self, tau: np.ndarray, channels: dict[str, np.ndarray], min_len: int = 2) -> tuple[int, int]:
         """Samples to cut from the start and the end of a still stretch (tensions (L, n), channels (L, c)) so
         that what is left rests (:meth:`EndsTest.trim`); (0, 0) without an ends test."""
-        return (0, 0) if self.ends is None else self.ends.trim(tau, channels, min_len)
+        a, b = (0, 0) if self.ends is None else self.ends.trim(tau, channels, min_len)
+        L = tau.shape[0]
+        if self.settle is None or L - a - b < min_len:
+            return a, b
+        c, d = self.settle.trim(tau[a : L - b], {k: x[a : L - b] for k, x in channels.items()}, min_len)
+        return a + c, b + d
 
     def still(self, tau: np.ndarray, channels: dict[str, np.ndarray]) -> bool:
         """Whether a block of ``span`` samples is still: both scores of :meth:`judge` <= 1."""
         kin, ripple = self.judge(tau, channels)
         return kin <= 1.0 and ripple <= 1.0
+
+
+def settle_test(tau: np.ndarray, channels: dict[str, np.ndarray], span: int, options: WindowOptions) -> SettleTest:
+    """The settle test of a run (:class:`calib.selfcal.settle.SettleTest`) with the options' block length,
+    false-alarm probability and encoder floors, for a span of ``span`` samples of ``options.span_s``."""
+    q = int(round(options.settle_block_s / (options.span_s / span)))
+    tols = {"length": options.length_tol, "swivel": options.swivel_tol}
+    return SettleTest.of_samples(tau, channels, q, options.settle_test_p, tols, options.settle_tail)
 
 
 def still_channels(dl: np.ndarray, dsigma: np.ndarray, roll: np.ndarray, pitch: np.ndarray) -> dict[str, np.ndarray]:
@@ -436,13 +439,16 @@ def _merge_same(wins: list[Window], tau: np.ndarray, dl: np.ndarray, still: Stil
 
 
 def _rest_only(wins: list[Window], tau: np.ndarray, ch: dict[str, np.ndarray], still: Stillness,
-               min_len: int) -> list[Window]:
-    """The windows with the ends that still move cut off (:meth:`Stillness.trim`); a window left shorter
-    than ``min_len`` samples is dropped."""
+               min_len: int, margins: tuple[int, int] = (0, 0)) -> list[Window]:
+    """The windows with the ends that still move cut off (:meth:`Stillness.trim`) and ``margins`` samples more
+    from the head and the tail; a window left shorter than ``min_len`` samples is dropped."""
     out = []
     for win in wins:
         s = win.slice
         a, b = still.trim(tau[s], {c: x[s] for c, x in ch.items()}, min_len)
+        # a run that starts (ends) at rest has no move before (after) that window to cut
+        a += margins[0] if win.first > 0 else 0
+        b += margins[1] if win.last < tau.shape[0] - 1 else 0
         if win.size - a - b >= min_len:
             out.append(Window(win.first + a, win.last - b, win.setpoint, win.quasi))
     return out
@@ -565,14 +571,17 @@ def search_windows(
     score = np.maximum(kin, ripple)
     min_len = min_samples(opt, dt)
     wins = [Window(a, b) for a, b in _runs(score <= 1.0) if b - a + 1 >= min_len]
-    wins = _rest_only(_merge_same(wins, tau, dl, still), tau, ch, still, min_len)
+    margins = (0, 0) if still.settle is None else (int(round(opt.settle_margin_s / dt)),
+                                                    int(round(opt.settle_tail_margin_s / dt)))
+    stretches = _merge_same(wins, tau, dl, still)  # what the ranges call still; the gaps between them moved
+    wins = _rest_only(stretches, tau, ch, still, min_len, margins)
     sp = None if setpoints is None or not len(setpoints) else np.asarray(setpoints, dtype=float)
     if sp is None:
         if tau_ref is not None and N:
             away = np.flatnonzero(np.max(np.abs(tau_ref - tau_ref[0]), axis=1) > opt.pretension_band)
             if away.size:
                 wins = [win for win in wins if win.last >= away[0] + w] or wins
-        wins = sorted(wins + _gap_quasi(wins, score, w, opt), key=lambda c: c.first)
+        wins = sorted(wins + _gap_quasi(stretches, score, w, opt), key=lambda c: c.first)
         return WindowSearch(wins, list(wins), 0, [], still.thresholds, still.ripple_tol, still.ends)
     dist = np.full((len(wins), sp.shape[0]), np.inf)
     for i, win in enumerate(wins):
