@@ -78,6 +78,10 @@ class DeviceConfig:
     loadcells: SerialConfig | None = None
     ahrs: AhrsConfig | None = None
     source: str = "<config>"  # the file it came from, for messages
+    # s a serial device's handshake answer (load-cell INFO, AHRS acknowledgement) is awaited: the real devices' 1 s;
+    # not a file field. The simulated prototype sets its plant's guard (its devices answer from a process that a
+    # loaded machine may run late, so a wall-time second there is a race, not a check)
+    answer_timeout: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {

@@ -112,7 +112,7 @@ def open_devices(config: DeviceConfig, length_per_motor_rev: Sequence[float], sw
     ahrs = None
     if config.ahrs is not None:
         ahrs_config = XsensConfig(config.ahrs.port, config.ahrs.baud, rate_hz=int(config.ahrs.rate),
-                                  stale_periods=stale_periods, polled=polled,
+                                  ack_timeout=config.answer_timeout, stale_periods=stale_periods, polled=polled,
                                   tap=serial_tap and serial_tap("ahrs"))
         problem = config_problem(ahrs_config)
         if problem:
@@ -122,6 +122,7 @@ def open_devices(config: DeviceConfig, length_per_motor_rev: Sequence[float], sw
     if config.loadcells is not None:
         loadcells = LoadCellDriver(LoadCellConfig(config.loadcells.port, config.loadcells.baud,
                                                   channels=len(config.drives), rate_hz=1.0 / control_period,
+                                                  info_timeout=config.answer_timeout,
                                                   stale_periods=stale_periods, polled=polled,
                                                   tap=serial_tap and serial_tap("loadcells")))
     bus = open_bus_from_config(config.can) if bus is None else bus

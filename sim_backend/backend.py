@@ -55,6 +55,7 @@ from sim_backend.config import SimConfig, SimConfigError, load_sim_config
 from sim_backend.loadcell_emulator import LoadCellEmulator
 from sim_backend.physics import CablePhysics, Sway, pose_of, snapshot_parts
 from sim_backend.plant_link import (
+    ANSWER_TIMEOUT,
     ChildPlantLink,
     InProcessPlantLink,
     PlantCore,
@@ -226,6 +227,9 @@ class SimBackend:
                 loadcells=SerialConfig(lc_path, 115200),
                 ahrs=AhrsConfig(ahrs_path, 115200, self.ahrs_rate),
                 source=f"<simulated prototype, seed {self.seed}>",
+                # the serial devices answer their handshakes from the plant's process (or its threads here),
+                # which a loaded machine may run seconds late: waited for as long as the link's own guard
+                answer_timeout=ANSWER_TIMEOUT,
             )
             self._record()
             self._network.subscribe(SYNC_COB_ID, self._on_sync)

@@ -19,6 +19,7 @@ import sim_backend.backend
 from acquisition.cli import main
 from acquisition.runlog import read_run
 from acquisition.startup import StartupConfig
+from drivers.loadcell import LoadCellDriver
 from sim_backend.config import example_path
 from sim_backend.plant_link import ChildPlantLink, child_process_possible
 
@@ -185,23 +186,41 @@ def test_same_seed_same_run_log_byte_for_byte_however_late_the_plant_runs(tmp_pa
     # start, so the samples seen so far are written with the event. In the first run the simulated plant's
     # child process is stopped for longer than the loop waits for a device (a loaded machine's worst case,
     # made sure: right after it answered SYNC 499); the second has the plant in the routine's own process,
-    # undisturbed: the same bytes either way (before the fix the loop went on with the last tick's load cells)
+    # undisturbed: the same bytes either way (before the fix the loop went on with the last tick's load cells).
+    # The child is also stopped as the load cells are asked for INFO, for longer than a real serial device's
+    # handshake answer is awaited (1 s): the simulated devices answer from that process, and once a loaded machine
+    # ran it that late the load cells "did not answer INFO within 1 s" and the startup stopped before its first SYNC
     cfg = tmp_path / "early_slack.yaml"
     cfg.write_text("faults:\n  - {kind: cable_slack, t: 6.0, cable: 2, length: 0.05}\n")
-    stalled, emit = [], ChildPlantLink.emit
+    stalled, links, emit, init, greet = [], [], ChildPlantLink.emit, ChildPlantLink.__init__, LoadCellDriver._greet
+    stall = StartupConfig.device_timeout + 0.3
+
+    def stop(link, at):
+        os.kill(link.pid, signal.SIGSTOP)
+        threading.Timer(stall, os.kill, (link.pid, signal.SIGCONT)).start()
+        stalled.append(at)
+
+    def stalling_init(link, core):
+        init(link, core)
+        links.append(link)
+
+    def stalling_greet(driver):
+        if links:
+            stop(links.pop(), "INFO")
+        greet(driver)
 
     def stalling_emit(link, count):
         if count == 500:
-            os.kill(link.pid, signal.SIGSTOP)
-            threading.Timer(StartupConfig.device_timeout + 0.3, os.kill, (link.pid, signal.SIGCONT)).start()
-            stalled.append(count)
+            stop(link, count)
         emit(link, count)
 
+    monkeypatch.setattr(ChildPlantLink, "__init__", stalling_init)
+    monkeypatch.setattr(LoadCellDriver, "_greet", stalling_greet)
     monkeypatch.setattr(ChildPlantLink, "emit", stalling_emit)
     logs = []
     for k in range(2):
         if k == 1:
-            assert stalled == ([500] if child_process_possible() else [])
+            assert stalled == (["INFO", 500] if child_process_possible() else [])
             monkeypatch.setattr(sim_backend.backend, "child_process_possible", lambda: False)
         out = tmp_path / f"run{k}"
         code = main(["startup", "--backend", "sim", "--seed", "3", "--out", str(out), "--sim-config", str(cfg)])
