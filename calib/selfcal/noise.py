@@ -196,14 +196,12 @@ VCE_ROUNDS = 4  # variance-component rounds of the per-sample pose fit (the sigm
 @dataclass(frozen=True)
 class PoseFreeNoise:
     """What :func:`pose_free_noise` estimates: per kinematic group the sigma of one sample's pose-free part
-    (``sample``, SI), its window-mean figures (``groups``, as :class:`ChannelNoise`), the share of
-    (window, channel) readings that never left their count (``stuck``) and per channel the quantisation
+    (``sample``, SI), its window-mean figures (``groups``, as :class:`ChannelNoise`) and per channel the quantisation
     error of a window mean (``quantisation``: (n,) SI, :func:`quantisation_variance` averaged over the
     windows), which no later rescaling may go below."""
 
     noise: WindowNoise
     sample: dict[str, float]
-    stuck: dict[str, float]
     quantisation: dict[str, np.ndarray] = field(default_factory=dict)
 
 
@@ -256,7 +254,7 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     raw = {"length": sig["dl"], "swivel": sig["dsigma"]}
     step = {c: np.asarray(floor[c], float) * math.sqrt(12.0) for c in KINEMATIC}  # floor is step / sqrt 12
     groups = dict(base.groups)
-    stuck, quant, sigma_out = {}, {}, dict(base.sigma)
+    quant, sigma_out = {}, dict(base.sigma)
     for c in KINEMATIC:
         s = cols[c]
         blocks = [e[owner == j, s] for j in range(len(spans))]
@@ -267,13 +265,12 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
         # the quantisation error of a window mean, from each window's readings (Widrow): the within-window
         # scatter cannot see it (a reading on one count has none), yet it stays in the mean
         var_q = quantisation_variance([raw[c][sl] for sl, _ in spans], step[c])
-        stuck[c] = float(np.mean([np.ptp(raw[c][sl], axis=0) == 0.0 for sl, _ in spans]))
         quant[c] = np.sqrt(var_q)
         mean = math.sqrt(gamma0 * f / nh + float(np.mean(var_q)))
         groups[c] = ChannelNoise(math.sqrt(gamma0), rho, nh / f, mean, float(np.max(floor[c])))
         sigma_out[c] = np.sqrt(gamma0 * f / nh + var_q)  # per cable: the group's noise, the cable's quantisation
     sigma_out["orientation"] = np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean])
-    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, stuck, quant)
+    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, quant)
 
 
 VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")
