@@ -15,6 +15,8 @@ from calib.selfcal.windows import Window, WindowOptions
 
 METHODS = ("tlse", "lse", "hybrid")
 NOISE = ("paper", "estimate", "sensors")
+# where an estimate solve (noise "estimate", method tlse) starts: see SolveOptions
+ESTIMATE_STARTS = ("within", "likelier")
 
 
 def default_noise(method: str) -> str:
@@ -35,6 +37,9 @@ class SolveOptions:
         (poses0 None: estimated from the readings given theta0). reference_pose: a known zeta_0 (6,) to
         compare with (Solution.reference: eps_p, eps_r of eq. 20, geodesic angle). max_iter: LM iterations
         (0: the guess is taken as the solution).
+    estimate_start: an estimate solve's start. 'within' (default): the within-window first pass, again from
+        the paper's weights when it ends unusable; 'likelier': both, the end whose weights make the rows more
+        likely (restricted likelihood), at twice the cost (docs/windows.md: what each does on the real runs).
     """
 
     method: str = "tlse"
@@ -47,12 +52,16 @@ class SolveOptions:
     guess: tuple[np.ndarray, np.ndarray] | None = None
     reference_pose: np.ndarray | None = None
     max_iter: int = 200
+    estimate_start: str = "within"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise SelfCalInputError(f"method '{self.method}' is not one of {', '.join(METHODS)}.")
         if int(self.stride) < 1:
             raise SelfCalInputError(f"stride {self.stride} must be a positive integer.")
+        if self.estimate_start not in ESTIMATE_STARTS:
+            raise SelfCalInputError(
+                f"estimate_start '{self.estimate_start}' is not one of {', '.join(ESTIMATE_STARTS)}.")
 
     @classmethod
     def of(cls, options: SolveOptions | None = None, **changes: Any) -> SolveOptions:
