@@ -23,9 +23,10 @@ def _fixed(sol) -> dict[str, np.ndarray]:
 def test_the_raw_estimate_moved_with_its_weights_not_with_its_rest_only_windows(irma_data, tmp_path):
     """The raw log of sc_8_final: with the windows' moving heads cut (the settle test and its margins) the
     estimate moved 3.2 mm (6.7 -> 8.4 mm from zeta_0_real), yet each weighting solved on both window sets puts
-    the pose within 0.3 mm of itself (0.27 / 0.29 mm): the window means' change moves little, the estimate's weights (its
-    variance components: the lengths' sigma 8.0 -> 5.7 mm) move it, 3.2 mm on either window set. The heads cut are motion: every cut
-    head's mean cable length stands over 0.2 mm (20 times the per-sample noise) from the kept window's mean."""
+    the pose within 0.3 mm of itself (0.27 / 0.29 mm): the window means' change moves little, the estimate's
+    weights (its variance components: the lengths' sigma 8.0 -> 5.7 mm) move it, 3.2 mm on either window set.
+    The heads cut are motion: every cut head's mean cable length stands over 0.2 mm (20 times the per-sample
+    noise) from the kept window's mean."""
     run = _import(irma_data, tmp_path, "sc_8_final.log")
     old = solve(run.robot, run, noise="estimate", window_options=WindowOptions(settle_test_p=0.0))
     new = solve(run.robot, run, noise="estimate")
