@@ -248,13 +248,14 @@ def scale_evidence(path: Path) -> str:
             f"threshold {family:.2g}; uncorrected 1 %: chi2 > {stats.chi2.isf(0.01, len(k)):.2f})")
 
 
-def gap_resolution(path: Path, have: list[str], other: list[str]) -> str:
+def gap_resolution(path: Path, have: list[str], other: list[str], prior: Path | None = None) -> str:
     """Can one run resolve reading A at all? The route that selected ``have`` solved with the other route's
     effects added (own weights): freeing the effects it lacks moves its initial position by C_pk C_kk^-1 k
     (the regression of the position on their values in the joint covariance), and that shift's own
     covariance is C_pk C_kk^-1 C_kp: its 1-sigma per axis, the shift's chi2 against it, and the probability
     that the two routes land within the target when the lacking effects are truly absent (Gaussian, 2e5
-    draws, seed 0). A target below that spread cannot be met by one run's evidence, whatever the rule."""
+    draws, seed 0). A target below that spread cannot be met by one run's evidence, whatever the rule.
+    ``prior``: a model file whose effects enter as priors (reading C: the route's model learned elsewhere)."""
     from scipy import stats
 
     from acquisition.cli.diagnose import _own_weights_solve  # noqa: PLC2701 (experiment: the solve's own step)
@@ -266,7 +267,15 @@ def gap_resolution(path: Path, have: list[str], other: list[str]) -> str:
     if not lack:
         return "  A's resolution: both routes select the same effects"
     run = read_run(path)
-    sol = _own_weights_solve(run_rows(run, "estimate"), run, make_effects([*have, *lack]), {"method": "tlse"})
+    learned = []
+    if prior is not None:  # a model's effects as priors (reading C): the others free beside them
+        from calib.effects import BUILTIN
+        from calib.robot_model import prior_effects, read_model
+
+        learned = prior_effects(read_model(prior), run.robot, BUILTIN, prior)
+        have = [n for n in have if n not in {e.name for e in learned}]
+    sol = _own_weights_solve(run_rows(run, "estimate"), run, [*learned, *make_effects([*have, *lack])],
+                             {"method": "tlse"})
     idx = [i for i, n in enumerate(sol.param_names) if n.split(".", 1)[0] in lack]
     cpk, ckk = sol.covariance[np.ix_(range(3), idx)], sol.covariance[np.ix_(idx, idx)]
     shift = cpk @ np.linalg.solve(ckk, sol.theta[idx])
@@ -389,7 +398,8 @@ def main() -> int:
         three = {k: [paths[k], *others[k]] for k in FILES}
         models = route_models(three, Path(tmp))
         c = learned_elsewhere(three, Path(tmp))
-        res_c = gap_resolution(paths["parsed"], c["parsed"]["names"], c["raw"]["names"])
+        res_c = gap_resolution(paths["parsed"], c["parsed"]["names"], c["raw"]["names"],
+                               Path(tmp) / "c_old_parsed.yaml")
         if args.decompose:
             for line in decompose(paths, selected) + same_set_lines(three, Path(tmp)):
                 print(line)
