@@ -14,7 +14,9 @@ selection), each with its distance to zeta_0_real (docs/effects.md, "Two imports
    (mean, rms, max of raw - parsed) and window by window (the windows of the parsed solve).
 2. Each import diagnosed alone (`cdpr diagnose RUN`, single-run selection) and solved as its verdict says
    (`cdpr solve RUN --noise estimate --effects ...`): the distance between the two initial positions.
-3. Each route's three runs diagnosed together, sc_8_final solved with the route's own model.
+3. Each route's three runs diagnosed together, sc_8_final solved with the route's own model (reading B).
+   Reading C (:func:`learned_elsewhere`): each route learns on its two other runs, sc_8_final diagnosed alone
+   with that model as priors and solved with what it selects; with its resolution (:func:`gap_resolution`).
 4. ``--decompose``: experiments only (not the product), what the distance is made of: the same solves with
    the base model's weights (the diagnosis's refits), the two imports with the same effects, the
    evidence one run holds for the parsed file's own length scale (Wald test of k against the diagnosis's
