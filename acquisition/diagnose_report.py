@@ -475,15 +475,10 @@ def format_selection(sel, paths: Sequence[str], model_out: Path | None = None) -
                        + "; ".join(",".join(n) for n in st["confused"]))
         for t in st.get("inconsistent", []):
             out.append(f"  set aside, the runs disagree on its value: {_names(t)} ({_spread(t.spread)})")
-        if st.get("extensions") and st.get("absorbed") is None:
-            out.append(f"  the finding judged with one more effect ({len(st['extensions'])} options, listed above): "
-                       "none is plausible, converged, with its out-of-range values inside their ranges and "
-                       "predicting better, so the finding stands")
-        if st.get("absorbed") is not None:
-            out.append(f"  {_names(st['absorbed'])} predicted best only out of its range ("
-                       + "; ".join(str(v) for v in st["absorbed"].implausible[:2]) + f"); with one more effect it "
-                       f"is in range and predicts better: {_names(st['chosen'])} (no finding: the value was the "
-                       "added effect's part)")
+        if st.get("extensions"):  # the finding judged with one more effect (calib.runselect.extend_finding)
+            out.append(f"  the finding judged with one more effect ({len(st['extensions'])} options above): " + (
+                f"{_names(st['chosen'])} brings it into range and predicts better (no finding)" if st.get("absorbed")
+                else "none is plausible, converged, with its values in range and predicting better: it stands"))
         if st["chosen"] is not None and st["chosen"].spread is not None:
             out.append(f"  the runs agree on the chosen's value: {_spread(st['chosen'].spread)}")
     out += ["", "per run: rms per channel, base -> with the selected effects (tension N, length mm, swivel deg, "
