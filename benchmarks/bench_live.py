@@ -27,7 +27,10 @@ Exits 1 unless every pair meets them.
 ``--unpaced``: the deterministic proxy (no target): the same startups in lockstep without sleeping, which
 shows the per-tick work (p99 and worst, the ticks of most work with the same breakdown).
 The machine's load average is printed with every figure: the lateness of a loop on a shared machine is that
-of its neighbours.
+of its neighbours. So each run also prints what does not depend on the load (:class:`ComponentCosts`): per
+process (the loop's, the plant's, the publisher's, the client's, the other children) and thread, the CPU as a
+share of a core and the wake-ups and preemptions per second over the loop's run, and the tap's CPU per tick
+in the loop's thread (:class:`TimedHook`). The client decodes every message as a viewer does.
 """
 
 from __future__ import annotations
