@@ -410,6 +410,7 @@ def selection_json(sel, paths: Sequence[str]) -> dict[str, Any]:
         "steps": [{"options": [trial(t) for t in st["options"]],
                    "chosen": None if st["chosen"] is None else list(st["chosen"].names),
                    "confused_with_chosen": [list(n) for n in st.get("confused", [])],
+                   "absorbed_finding": None if st.get("absorbed") is None else list(st["absorbed"].names),
                    "inconsistent": [{"effects": list(t.names), "chi2": t.spread.chi2, "dof": t.spread.dof,
                                      "p": t.spread.p} for t in st.get("inconsistent", [])]} for st in sel.steps],
         "per_run": runs, "weights_rounds": sel.final.fit.history,
@@ -474,6 +475,10 @@ def format_selection(sel, paths: Sequence[str], model_out: Path | None = None) -
                        + "; ".join(",".join(n) for n in st["confused"]))
         for t in st.get("inconsistent", []):
             out.append(f"  set aside, the runs disagree on its value: {_names(t)} ({_spread(t.spread)})")
+        if st.get("extensions"):  # the finding judged with one more effect (calib.runselect.extend_finding)
+            out.append(f"  the finding judged with one more effect ({len(st['extensions'])} options above): " + (
+                f"{_names(st['chosen'])} brings it into range and predicts better (no finding)" if st.get("absorbed")
+                else "none is plausible, converged, with its values in range and predicting better: it stands"))
         if st["chosen"] is not None and st["chosen"].spread is not None:
             out.append(f"  the runs agree on the chosen's value: {_spread(st['chosen'].spread)}")
     out += ["", "per run: rms per channel, base -> with the selected effects (tension N, length mm, swivel deg, "

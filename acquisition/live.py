@@ -45,8 +45,11 @@ from acquisition.scene import (
 from calib.robot import Robot
 
 SCENE_RATE = 20.0  # Hz, scene updates during a startup
-POLL = 0.002  # s the publisher sleeps when the ring is empty (watching the loop's process meanwhile)
-PUBLISHER_NICE = 10  # the publisher process's niceness above the loop's
+# the publisher's wait when the ring is empty, as a share of the interval between two scene updates (1 / SCENE_RATE
+# s): matched to what it shows, so it wakes about as often as it has something to publish (it drained the ring
+# at every 2 ms until 2026-11-27: 500 wake-ups/s, each one more chance that the loop's vCPU is busy or stolen)
+WAIT_SHARE = 1.0
+PUBLISHER_NICE = 19  # the publisher process's niceness (every thread it starts inherits it): the lowest
 START_TIMEOUT = 60.0  # s to wait for the publisher process to listen
 NEWS = 4  # windows, events and estimates per record at most (a record fits one slot of the ring, 4080 bytes)
 GHOST_ROWS = 16  # planned poses per record at most
@@ -277,6 +280,20 @@ class LivePublisher:
             if len(self.errors) < 10:
                 self.errors.append(f"{type(exc).__name__}: {exc}")
 
+    def warm_up(self) -> None:
+        """Import and run once, on a throwaway view, what publishing a record runs (the statics' first solve and
+        a Newton step, the scene's messages and their encoding: 12 ms of CPU the first time, 4 ms the next), so
+        that none of it falls in the loop's first seconds."""
+        n, tau = self.robot.n, np.full(self.robot.n, 0.5 * (self.robot.tau_min + self.robot.tau_max))
+        view, tracker = RunView(self.robot, None, self.view.slack, self.view.overload), PoseTracker(self.robot)
+        f = Frame(time.time_ns(), 0.0, tau, tau, np.zeros(n), np.zeros(n), 0.0, 0.0, 0.0, "warm_up", 0, 0, True)
+        for _ in range(2):
+            msgs = view.frame(f, tracker.update(tau)) + view.supervisor(f.t_ns, 0.0, "stopped", "warm-up")
+            msgs += view.window(f.t_ns, 0, 1, 0.0, 0.1, 0, "startup") + view.estimate(f.t_ns, 0, 0.0, [0.0] * 6,
+                                                                                      None, None)
+            for _, msg in msgs:
+                encode(msg)
+
     def finish(self) -> None:
         """The run is over: the supervisor's last word."""
         t_ns = time.time_ns()
@@ -317,13 +334,15 @@ class LivePublisher:
 
 
 def _serve(ring_name: str, alive, control, address: LiveAddress, robot: Robot, slack: float,
-           overload: float) -> None:
+           overload: float, wait: float) -> None:
     """The publisher process: the server on ``address``, then every record of the ring ``ring_name`` published
     until its end record or until the loop's process is gone (``alive``, the read end of a pipe the loop never
-    writes, reads end of file; or this process's parent changed); polls the ring every ``POLL`` s while it is
-    empty. ``control`` says where it listens (or why it cannot) and, at the end, what it published. Runs at a
-    lower priority than the loop (nice +10) and leaves SIGINT/SIGTERM to the routine (its safe stop is shown
-    to the end). Unlinks the ring if the loop's process is gone (else the loop does)."""
+    writes, reads end of file; or this process's parent changed); waits ``wait`` s (the interval between two
+    scene updates) whenever the ring is empty. Runs once what it publishes with (:meth:`LivePublisher.warm_up`)
+    before it says it listens. ``control`` says where it listens (or why it cannot) and, at the end, what it
+    published. Runs at the lowest priority (nice 19, which the SDK's threads inherit) and leaves SIGINT/SIGTERM
+    to the routine (its safe stop is shown to the end). Unlinks the ring if the loop's process is gone (else
+    the loop does)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -339,14 +358,15 @@ def _serve(ring_name: str, alive, control, address: LiveAddress, robot: Robot, s
     except OSError as exc:
         control.send(("error", str(exc)))
         return
-    control.send(("listening", server.host, server.port))
     pub = LivePublisher(server, robot, slack, overload)
+    pub.warm_up()
+    control.send(("listening", server.host, server.port))
     gone = False
     try:
         while True:
             data = ring.get()
-            if data is None:  # nothing yet: wait POLL s, unless the loop's process ends meanwhile
-                gone = alive.poll(POLL) or os.getppid() != parent
+            if data is None:  # nothing yet: wait, unless the loop's process ends meanwhile
+                gone = alive.poll(wait) or os.getppid() != parent
                 if gone:
                     break
                 continue
@@ -398,7 +418,8 @@ class LiveView:
             alive_r, alive_w = ctx.Pipe(duplex=False)
             control_r, control_w = ctx.Pipe(duplex=False)
             proc = ctx.Process(target=_serve, name="cdpr-live", daemon=True,
-                               args=(ring.name, alive_r, control_w, addr, robot, limits.slack, limits.overload))
+                               args=(ring.name, alive_r, control_w, addr, robot, limits.slack, limits.overload,
+                                     WAIT_SHARE / scene_rate))
             proc.start()
             alive_r.close()
             control_w.close()

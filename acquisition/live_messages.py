@@ -10,6 +10,7 @@ import numpy as np
 
 from acquisition.scene import SceneModel, log_message, number
 from calib.robot import Robot
+from calib.scene import quaternion
 
 
 @dataclass(frozen=True)
@@ -80,9 +81,10 @@ class RunView:
             out.append(("/log", log_message(f.t_ns, f"phase {f.phase}{where}")))
         if scene:
             label = f"{f.phase}" + (f" {f.setpoint}" if f.setpoint >= 0 else "")
-            out.append(("/scene", self.scene.update(f.t_ns, pose, f.tau, label, solved)))
+            q = quaternion(pose, self.robot.orientation)[0] if pose is not None and np.all(np.isfinite(pose)) else None
+            out.append(("/scene", self.scene.update(f.t_ns, pose, f.tau, label, solved, q)))
             if pose is not None:
-                out.append(("/tf", self.scene.transform(f.t_ns, pose)))
+                out.append(("/tf", self.scene.transform(f.t_ns, pose, q)))
         return out
 
     def supervisor(self, t_ns: int, t: float, state: str, stop: str | None, every_ns: int = 1_000_000_000

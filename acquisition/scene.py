@@ -138,10 +138,11 @@ class SceneModel:
         return cls(robot, g, float(robot.tau_min), float(robot.tau_max), size)
 
     def update(self, t_ns: int, pose: np.ndarray | None, tau: np.ndarray, label: str = "",
-               solved: np.ndarray | None = None):
+               solved: np.ndarray | None = None, q: np.ndarray | None = None):
         """A complete ``foxglove.SceneUpdate`` (every entity, so a late viewer or a seek sees the whole scene):
         the platform and its cables at ``pose`` (6,) (left out when None), cable colours from ``tau`` (n,) N;
-        ``solved`` (6,): the solve's initial pose, drawn as entity ``solution`` (platform and cables, green)."""
+        ``solved`` (6,): the solve's initial pose, drawn as entity ``solution`` (platform and cables, green);
+        ``q`` (4,): the platform's quaternion at ``pose`` if the caller has it (else computed)."""
         from foxglove.messages import (
             CubePrimitive,
             KeyValuePair,
@@ -179,7 +180,7 @@ class SceneModel:
                     type=LinePrimitiveLineType.LineList, thickness=4.0, scale_invariant=True,
                     points=[_point(p) for p in pts], colors=[_colour(c) for c in np.repeat(cols, 2, axis=0)])],
                 metadata=[KeyValuePair(key=f"tau_{i + 1}", value=f"{v:.2f}") for i, v in enumerate(tau)]))
-            q = quaternion(pose, robot.orientation)[0]
+            q = quaternion(pose, robot.orientation)[0] if q is None else q
             ring = np.r_[np.arange(robot.n), 0]
             entities.append(SceneEntity(
                 timestamp=stamp, frame_id=WORLD, id="platform",
@@ -224,11 +225,11 @@ class SceneModel:
                  for j, g in enumerate(self.ghosts)]
         return frame, pulleys, (cubes, texts)
 
-    def transform(self, t_ns: int, pose: np.ndarray):
-        """``foxglove.FrameTransform`` world -> platform at ``pose`` (6,)."""
+    def transform(self, t_ns: int, pose: np.ndarray, q: np.ndarray | None = None):
+        """``foxglove.FrameTransform`` world -> platform at ``pose`` (6,) (``q``: its quaternion, if known)."""
         from foxglove.messages import FrameTransform, Quaternion
 
-        q = quaternion(pose, self.robot.orientation)[0]
+        q = quaternion(pose, self.robot.orientation)[0] if q is None else q
         return FrameTransform(timestamp=_stamp(t_ns), parent_frame_id=WORLD, child_frame_id=PLATFORM,
                               translation=_vec(pose[:3]),
                               rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))

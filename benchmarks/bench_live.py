@@ -27,7 +27,10 @@ Exits 1 unless every pair meets them.
 ``--unpaced``: the deterministic proxy (no target): the same startups in lockstep without sleeping, which
 shows the per-tick work (p99 and worst, the ticks of most work with the same breakdown).
 The machine's load average is printed with every figure: the lateness of a loop on a shared machine is that
-of its neighbours.
+of its neighbours. So each run also prints what does not depend on the load (:class:`ComponentCosts`): per
+process (the loop's, the plant's, the publisher's, the client's, the other children) and thread, the CPU as a
+share of a core and the wake-ups and preemptions per second over the loop's run, and the tap's CPU per tick
+in the loop's thread (:class:`TimedHook`). The client decodes every message as a viewer does.
 """
 
 from __future__ import annotations
@@ -55,25 +58,39 @@ from calib.robot import load_robot
 from sim_backend.backend import SimBackend
 
 CLIENT = r"""
-import json, struct, sys, time
+import base64, json, struct, sys, time
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from websockets.sync.client import connect
 port = int(sys.argv[1])
 stamps, counts = [], {}
+
+def decoder(ch):
+    # what a viewer does with each message: JSON parsed, protobuf decoded with the schema the server advertised
+    if ch["encoding"] == "json":
+        return json.loads
+    pool = descriptor_pool.DescriptorPool()
+    for f in descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"])).file:
+        pool.Add(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"])).FromString
+
 with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
              open_timeout=60) as ws:
     channels = {}
     while len(channels) < 8:
         m = json.loads(ws.recv(timeout=60))
         if m["op"] == "advertise":
-            channels.update({c["id"]: c["topic"] for c in m["channels"]})
+            channels.update({c["id"]: c for c in m["channels"]})
     ids = sorted(channels)
+    decode = [decoder(channels[c]) for c in ids]
     ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": i, "channelId": c} for i, c in enumerate(ids)]}))
     print("subscribed", flush=True)
     try:
         while True:
             d = ws.recv(timeout=5)
             if isinstance(d, bytes):
-                topic = channels[ids[struct.unpack_from("<I", d, 1)[0]]]
+                sub = struct.unpack_from("<I", d, 1)[0]
+                decode[sub](d[13:])
+                topic = channels[ids[sub]]["topic"]
                 counts[topic] = counts.get(topic, 0) + 1
                 if topic == "/scene":
                     stamps.append(time.monotonic())
@@ -363,6 +380,113 @@ def causes(rows: np.ndarray, period: float, places: dict, paced: bool, count: in
     return out
 
 
+def _thread_stats(pid: int) -> dict[int, tuple[str, float, int, int, int, int]]:
+    """Every thread of process ``pid`` now: tid -> (name, CPU s, voluntary and involuntary context switches,
+    nice, scheduling policy) from /proc/PID/task/TID/{schedstat,status,stat}; {} once the process is gone."""
+    out = {}
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for tid in tids:
+        base = f"/proc/{pid}/task/{tid}"
+        try:
+            with open(f"{base}/schedstat") as f:
+                cpu = int(f.read().split()[0]) * 1e-9
+            with open(f"{base}/status") as f:
+                st = dict(line.split(":", 1) for line in f.read().splitlines() if ":" in line)
+            with open(f"{base}/stat") as f:
+                stat = f.read()
+        except (OSError, ValueError, IndexError):
+            continue
+        name = stat[stat.index("(") + 1:stat.rindex(")")]
+        rest = stat[stat.rindex(")") + 2:].split()  # from field 3 (state) on
+        out[int(tid)] = (name, cpu, int(st["voluntary_ctxt_switches"]), int(st["nonvoluntary_ctxt_switches"]),
+                         int(rest[16]), int(rest[38]))
+    return out
+
+
+_POLICIES = {0: "normal", 1: "FIFO", 2: "RR", 3: "batch", 5: "idle", 6: "deadline"}
+
+
+class ComponentCosts:
+    """What each process beside the loop costs the machine over the loop's run, figures that do not depend on
+    the load: CPU seconds per second and wake-ups (voluntary context switches: a sleep or a wait ended) and
+    preemptions (involuntary ones) per second, per process and per thread (/proc; Linux only). :meth:`start`
+    and :meth:`stop` around the loop; processes by label (the loop's, the plant's, the publisher's, the
+    client's) and every other child of this process (the witnesses, the shared memory's resource tracker)."""
+
+    def __init__(self, pids: dict[str, int | None]):
+        self.pids = {k: v for k, v in pids.items() if v is not None}
+        self._t0 = 0.0
+        self._a: dict[str, dict] = {}
+
+    def _children(self) -> dict[str, int]:
+        found = {}
+        me, known = os.getpid(), set(self.pids.values())
+        for d in os.listdir("/proc"):
+            if not d.isdigit() or int(d) in known:
+                continue
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    stat = f.read()
+            except OSError:
+                continue
+            rest = stat[stat.rindex(")") + 2:].split()
+            if int(rest[1]) == me:
+                found[f"{stat[stat.index('(') + 1:stat.rindex(')')]} {d}"] = int(d)
+        return found
+
+    def start(self) -> None:
+        self.pids |= self._children()
+        self._a = {k: _thread_stats(p) for k, p in self.pids.items()}
+        self._t0 = time.perf_counter()
+
+    def stop(self) -> dict:
+        """{label: {"cpu": CPU s/s, "vcs": wake-ups/s, "ics": preemptions/s, "threads": [(name, cpu, vcs, ics,
+        nice, policy)]}} over the run (a thread that ended meanwhile is not counted)."""
+        wall = time.perf_counter() - self._t0
+        out = {}
+        for label, pid in self.pids.items():
+            a, b = self._a.get(label, {}), _thread_stats(pid)
+            rows = []
+            for tid, (name, cpu, vcs, ics, nice, pol) in b.items():
+                _, cpu0, vcs0, ics0, _, _ = a.get(tid, (name, 0.0, 0, 0, 0, 0))
+                rows.append((name, (cpu - cpu0) / wall, (vcs - vcs0) / wall, (ics - ics0) / wall, nice,
+                             _POLICIES.get(pol, str(pol))))
+            out[label] = {"cpu": sum(r[1] for r in rows), "vcs": sum(r[2] for r in rows),
+                          "ics": sum(r[3] for r in rows), "threads": sorted(rows, key=lambda r: -r[1])}
+        return out
+
+
+class TimedHook:
+    """The routine's ``on_tick`` hook timed in the loop's thread (thread CPU and wall ns of every call that did
+    something, preallocated): what the live view's tap costs the loop per tick."""
+
+    def __init__(self, hook):
+        self.hook = hook
+        self.calls = 0
+        self.wall = np.zeros(1 << 16)
+        self.cpu = np.zeros(1 << 16)
+        self.n = 0
+
+    def __call__(self, snap) -> None:
+        w0, c0 = time.perf_counter_ns(), time.thread_time_ns()
+        self.hook(snap)
+        c1, w1 = time.thread_time_ns(), time.perf_counter_ns()
+        self.calls += 1
+        if self.n < len(self.wall):
+            self.wall[self.n], self.cpu[self.n] = (w1 - w0) * 1e-3, (c1 - c0) * 1e-3
+            self.n += 1
+
+    def summary(self) -> dict:
+        """us per call: mean, p99 and worst of wall and thread CPU time, and the sum per second is the caller's."""
+        w, c = self.wall[:self.n], self.cpu[:self.n]
+        return {"calls": self.calls, "wall_us": [float(w.mean()), float(np.percentile(w, 99)), float(w.max())],
+                "cpu_us": [float(c.mean()), float(np.percentile(c, 99)), float(c.max())],
+                "cpu_s": float(c.sum() * 1e-6)}
+
+
 def _pin_threads(cpus: set[int]) -> None:
     """Every thread of this process on ``cpus`` (a thread started later inherits its creator's)."""
     for tid in os.listdir("/proc/self/task"):
@@ -399,13 +523,20 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
             print(f"the simulated plant: {refused}", file=sys.stderr)
         rig = connect(sim.devices, robot, clock, lockstep=True, period=period)
         try:
-            routine = StartupRoutine(robot, rig, clock, plan, out, cfg, on_tick=view.hook)
+            hook = None if view.hook is None else TimedHook(view.hook)
+            routine = StartupRoutine(robot, rig, clock, plan, out, cfg, on_tick=hook)
             clock.routine = routine
             if affinity and len(cpus) > 1:
                 _pin_threads({max(cpus)})
+            costs = ComponentCosts({"loop's process": os.getpid(), "plant": sim.plant_pid,
+                                    "publisher": None if view.process is None else view.process.pid,
+                                    "client": None if client is None else client.pid})
+            costs.start()
             cpu0, wall0 = time.thread_time(), time.perf_counter()
             view.started(routine).run()
-            loop_cpu = (time.thread_time() - cpu0) / (time.perf_counter() - wall0)
+            run_wall = time.perf_counter() - wall0
+            loop_cpu = (time.thread_time() - cpu0) / run_wall
+            component = costs.stop()
         finally:
             view.close()
             rig.close()
@@ -421,7 +552,8 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
            "overruns": clock.overruns.count if paced else None, "late": late.tolist() if paced else None,
            "work_p99": np.percentile(work, 99, axis=0).tolist(), "work_max": work.max(axis=0).tolist(),
            "waited": [float(np.percentile(waited, 99)), float(waited.max())],
-           "collections": clock.probe.collections,
+           "collections": clock.probe.collections, "components": component,
+           "tap": None if hook is None else dict(hook.summary(), run_s=run_wall),
            "gc_ms": [float(1e3 * rows[:, C["gc"]].sum()), float(1e3 * rows[:, C["gc"]].max())],
            "worst": causes(rows, period, clock.probe.places, paced, witnesses=witnesses),
            "witness_stalls": {c: [int((v > 2.5e-3).sum()), float(1e3 * v.max()) if len(v) else 0.0]
@@ -470,6 +602,16 @@ def report(name: str, r: dict) -> None:
     if r.get("witness_stalls"):
         print("      the CPUs' witnesses (1 ms sleeps, one priority above the loop): wake-ups more than 2.5 ms late, "
               "worst: " + "; ".join(f"CPU {c} {n}, {w:.2f} ms" for c, (n, w) in r["witness_stalls"].items()))
+    for label, k in r.get("components", {}).items():
+        print(f"      {label:16s} CPU {100 * k['cpu']:5.2f} % of a core, wake-ups {k['vcs']:6.1f}/s, preemptions "
+              f"{k['ics']:5.1f}/s; " + "; ".join(
+                  f"{name} {100 * cpu:.2f} % {vcs:.0f}/s {ics:.1f}/s nice {nice} {pol}"
+                  for name, cpu, vcs, ics, nice, pol in k["threads"][:6] if cpu > 1e-4 or vcs > 0.5))
+    if r.get("tap"):
+        t = r["tap"]
+        print(f"      the tap in the loop's thread: {t['calls']} calls, CPU mean {t['cpu_us'][0]:.1f} us p99 "
+              f"{t['cpu_us'][1]:.1f} us worst {t['cpu_us'][2]:.1f} us (wall worst {t['wall_us'][2]:.1f} us), "
+              f"{100 * t['cpu_s'] / t['run_s']:.3f} % of a core")
     c = r["collections"]
     print(f"      collections during the run: generation 0/1/2 {c[0]}/{c[1]}/{c[2]}, {r['gc_ms'][0]:.1f} ms in all, "
           f"the longest tick's {r['gc_ms'][1]:.1f} ms")

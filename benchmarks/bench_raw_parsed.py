@@ -14,7 +14,9 @@ selection), each with its distance to zeta_0_real (docs/effects.md, "Two imports
    (mean, rms, max of raw - parsed) and window by window (the windows of the parsed solve).
 2. Each import diagnosed alone (`cdpr diagnose RUN`, single-run selection) and solved as its verdict says
    (`cdpr solve RUN --noise estimate --effects ...`): the distance between the two initial positions.
-3. Each route's three runs diagnosed together, sc_8_final solved with the route's own model.
+3. Each route's three runs diagnosed together, sc_8_final solved with the route's own model (reading B).
+   Reading C (:func:`learned_elsewhere`): each route learns on its two other runs, sc_8_final diagnosed alone
+   with that model as priors and solved with what it selects; with its resolution (:func:`gap_resolution`).
 4. ``--decompose``: experiments only (not the product), what the distance is made of: the same solves with
    the base model's weights (the diagnosis's refits), the two imports with the same effects, the
    evidence one run holds for the parsed file's own length scale (Wald test of k against the diagnosis's
@@ -152,6 +154,49 @@ def route_models(runs: dict[str, list[Path]], out: Path) -> dict[str, tuple[list
     return out_models
 
 
+def learned_elsewhere(runs: dict[str, list[Path]], out: Path) -> dict[str, dict]:
+    """Reading C, the issue's own workflow ("the robot learns its own model from its runs"): each route learns
+    its model on its OTHER two runs (`cdpr diagnose R2 R3 --max-effects 4 --model-out OLD`), then sc_8_final is
+    diagnosed alone with it as priors (`cdpr diagnose --model OLD R1 --model-out NEW`, the single-run selection's
+    default --max-effects) and solved with the effects that diagnosis selects, OLD's as priors: NEW's
+    ``runs[0]`` (the diagnosis's final fit). Also `cdpr solve R1 --model NEW` (which takes sc_8_final's own
+    values of NEW as priors on sc_8_final again). Per route: OLD's effects and finding, the selected effects,
+    the two initial positions and NEW's effect names."""
+    from calib.robot_model import read_model
+
+    res = {}
+    for kind, paths in runs.items():
+        old, new = out / f"c_old_{kind}.yaml", out / f"c_new_{kind}.yaml"
+        report = cli(["diagnose", *map(str, paths[1:]), "--max-effects", str(MAX_EFFECTS), "--model-out", str(old)])
+        finding = next((ln.split()[1] for ln in report.splitlines() if ln.startswith("FINDING: ")), "")
+        report1 = cli(["diagnose", "--model", str(old), str(paths[0]), "--model-out", str(new)])
+        finding1 = next((ln.split()[1] for ln in report1.splitlines() if ln.startswith("FINDING: ")), "")
+        m_old, m_new = read_model(old), read_model(new)
+        res[kind] = {"old": m_old.names, "old_finding": finding, "selected": m_new.selection.get("selected", []),
+                     "finding": finding1, "names": m_new.names,
+                     "pose": np.asarray(m_new.runs[0]["initial_pose"][:3], float),
+                     "solve": cli_solve(paths[0], [], new)}
+    return res
+
+
+def c_lines(c: dict[str, dict], z_real: np.ndarray, resolution: str) -> list[str]:
+    """Reading C's lines: per route what it learned and selected, distances; the gap and its resolution."""
+    lines = ["C. each route learns its model on its two other runs, sc_8_final diagnosed alone with it as priors "
+             "(cdpr diagnose --model OLD RUN --model-out NEW) and solved with the effects it selects:"]
+    for kind, r in c.items():
+        lines.append(f"  {kind:<6} learned {','.join(r['old']) or 'nothing'}"
+                     + (f" (finding {r['old_finding']})" if r["old_finding"] else "")
+                     + f"; sc_8_final selects {','.join(r['selected']) or 'nothing'}"
+                     + (f" (finding {r['finding']})" if r["finding"] else "")
+                     + f"; to zeta_0_real {1000 * np.linalg.norm(r['pose'] - z_real):.2f} mm, solve --model NEW "
+                     f"{1000 * np.linalg.norm(np.subtract(r['solve']['initial_pose'][:3], z_real)):.2f} mm")
+    d = float(np.linalg.norm(c["raw"]["pose"] - c["parsed"]["pose"]))
+    lines.append(f"  C. raw vs parsed: {1000 * d:.2f} mm: " + ("ok" if d <= TARGET else "MISS")
+                 + f" (solve --model NEW: {1000 * apart(c['raw']['solve'], c['parsed']['solve']):.2f} mm)")
+    lines.append(resolution.replace("A's resolution", "C's resolution"))
+    return lines
+
+
 SAME_SETS = (["cable_elasticity", "tension_offset", "length_scale"], ["tension_offset", "length_scale"])
 
 
@@ -205,13 +250,14 @@ def scale_evidence(path: Path) -> str:
             f"threshold {family:.2g}; uncorrected 1 %: chi2 > {stats.chi2.isf(0.01, len(k)):.2f})")
 
 
-def gap_resolution(path: Path, have: list[str], other: list[str]) -> str:
+def gap_resolution(path: Path, have: list[str], other: list[str], prior: Path | None = None) -> str:
     """Can one run resolve reading A at all? The route that selected ``have`` solved with the other route's
     effects added (own weights): freeing the effects it lacks moves its initial position by C_pk C_kk^-1 k
     (the regression of the position on their values in the joint covariance), and that shift's own
     covariance is C_pk C_kk^-1 C_kp: its 1-sigma per axis, the shift's chi2 against it, and the probability
     that the two routes land within the target when the lacking effects are truly absent (Gaussian, 2e5
-    draws, seed 0). A target below that spread cannot be met by one run's evidence, whatever the rule."""
+    draws, seed 0). A target below that spread cannot be met by one run's evidence, whatever the rule.
+    ``prior``: a model file whose effects enter as priors (reading C: the route's model learned elsewhere)."""
     from scipy import stats
 
     from acquisition.cli.diagnose import _own_weights_solve  # noqa: PLC2701 (experiment: the solve's own step)
@@ -223,7 +269,15 @@ def gap_resolution(path: Path, have: list[str], other: list[str]) -> str:
     if not lack:
         return "  A's resolution: both routes select the same effects"
     run = read_run(path)
-    sol = _own_weights_solve(run_rows(run, "estimate"), run, make_effects([*have, *lack]), {"method": "tlse"})
+    learned = []
+    if prior is not None:  # a model's effects as priors (reading C): the others free beside them
+        from calib.effects import BUILTIN
+        from calib.robot_model import prior_effects, read_model
+
+        learned = prior_effects(read_model(prior), run.robot, BUILTIN, prior)
+        have = [n for n in have if n not in {e.name for e in learned}]
+    sol = _own_weights_solve(run_rows(run, "estimate"), run, [*learned, *make_effects([*have, *lack])],
+                             {"method": "tlse"})
     idx = [i for i, n in enumerate(sol.param_names) if n.split(".", 1)[0] in lack]
     cpk, ckk = sol.covariance[np.ix_(range(3), idx)], sol.covariance[np.ix_(idx, idx)]
     shift = cpk @ np.linalg.solve(ckk, sol.theta[idx])
@@ -345,6 +399,9 @@ def main() -> int:
         resolution = gap_resolution(paths["parsed"], selected["parsed"], selected["raw"])
         three = {k: [paths[k], *others[k]] for k in FILES}
         models = route_models(three, Path(tmp))
+        c = learned_elsewhere(three, Path(tmp))
+        res_c = gap_resolution(paths["parsed"], c["parsed"]["names"], c["raw"]["names"],
+                               Path(tmp) / "c_old_parsed.yaml")
         if args.decompose:
             for line in decompose(paths, selected) + same_set_lines(three, Path(tmp)):
                 print(line)
@@ -364,6 +421,8 @@ def main() -> int:
         print(resolution_coverage(args.coverage))
     print(f"  B. each route's own three-run model, --model (reported): {1000 * d3:.2f} mm: "
           + ("ok" if d3 <= TARGET else "MISS"))
+    for line in c_lines(c, z_real, res_c):
+        print(line)
     return 0 if ok else 1
 
 

@@ -21,8 +21,10 @@ option by prediction is taken, unless one with fewer parameters predicts within 
 left-out runs (poses). When the best option by prediction has a value outside its plausible range, that is
 a finding (and so is an effect whose values together are that far from their plausible box:
 :func:`box_chi2`), not a reason to take the next one: the selection stops there and says so (a likely
-error in the robot description or the setup, with the value found). With several runs the finding's
-out-of-range effects are also fitted on each run alone (:func:`calib.spread.spread`): runs that agree on
+error in the robot description or the setup, with the value found), unless one more effect brings it into
+range and predicts better still (:func:`extend_finding`: its out-of-range value was that effect's part, as a
+transmission-ratio error read as cable compliance; the extension explains more, not less). With several runs
+the finding's out-of-range effects are also fitted on each run alone (:func:`calib.spread.spread`): runs that agree on
 them point to a fixed property of the robot as set up (a description or calibration error to check on it),
 runs that disagree to a model error that each run's fit absorbs differently.
 """
@@ -144,6 +146,16 @@ def _implausible(f: JointFit) -> list[Implausible]:
             if k and stats.chi2.sf(d2, k) < RANGE_P:
                 alone = outside
         out.extend(alone)
+        q += nq
+    return out
+
+
+def _outside(f: JointFit) -> list[str]:
+    """The "effect.param" names of the shared values outside their plausible range (by value, no sigma)."""
+    robot, out, q = f.runs[0].rows.robot, [], 0
+    for e in f.shared:
+        nq = len(e.params(robot))
+        out += [v.param for v in e.implausible(robot, f.values[q:q + nq])]
         q += nq
     return out
 
@@ -303,6 +315,30 @@ def pair_pool(singles: Sequence[Trial]) -> list[Trial]:
     return top if fair is None or any(t is fair for t in top) else [*top, fair]
 
 
+def extend_finding(judge: Judge, best: Trial, candidates: Sequence[str], current: Trial, max_effects: int,
+                   step: dict[str, Any]) -> list[Trial]:
+    """Is the implausible best option a description error, or an effect taking the part of one it lacks? It is
+    judged with each other candidate added (while ``max_effects`` leaves room; the extensions join the step's
+    options, ``step["extensions"]``): the plausible extensions whose fit converged with every value the finding
+    had out of range now inside its range (the value, not within Z_RANGE sigma of it: a 1-sigma that grew with
+    the added effect does not make a value physical), that predict better than it (by MIN_GAIN) and than the
+    current model on most left-out runs (poses). They explain more than the finding, so taking one recommends
+    nothing that explains less (what to build 8); none: the finding stands."""
+    if len(best.names) + 1 > max_effects:
+        return []
+    ext = [judge.judge(judge.fit([*best.names, c], best.fit)) for c in candidates if c not in best.names]
+    step["extensions"] = ext
+    step["options"] = [*step["options"], *ext]
+    return [t for t in ext if absorbs(t, best, current)]
+
+
+def absorbs(t: Trial, finding: Trial, current: Trial) -> bool:
+    """Does extension ``t`` of ``finding`` take its out-of-range values' part (:func:`extend_finding`)?"""
+    bad = {v.param for v in finding.implausible}
+    return (t.plausible and t.fit.converged and not bad & set(_outside(t.fit))
+            and t.score < finding.score - MIN_GAIN and _better_on_most(t, current))
+
+
 def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Selection:
     """Forward selection by prediction (module doc)."""
     base = judge.judge(judge.fit([]))
@@ -332,10 +368,14 @@ def select(judge: Judge, candidates: Sequence[str], max_effects: int = 3) -> Sel
         margin = max(MIN_GAIN, CONFUSED * (current.score - best.score))
         if not best.plausible and current.score - best.score > MIN_GAIN and (
                 not ok or min(t.score for t in ok) > best.score + margin):
-            finding = best  # the option that predicts clearly best is out of its range: a finding, stop here
-            if len(judge.items) >= 2:  # is it one value on every run (the robot as set up) or not?
-                finding.spread = spread(finding.fit, finding_params(finding, judge.items[0][1].robot)[0])
-            break
+            fair = extend_finding(judge, best, candidates, current, max_effects, step)
+            if not fair:
+                finding = best  # the option that predicts clearly best is out of its range: a finding, stop here
+                if len(judge.items) >= 2:  # is it one value on every run (the robot as set up) or not?
+                    finding.spread = spread(finding.fit, finding_params(finding, judge.items[0][1].robot)[0])
+                break
+            step["absorbed"] = best  # its out-of-range value was an effect it lacked: no finding, go on
+            ok = fair
         chosen = _choose(judge, ok, current, step)
         if chosen is None:
             break

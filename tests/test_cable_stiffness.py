@@ -88,3 +88,42 @@ def test_simulated_rows_of_an_elastic_robot_are_what_the_model_predicts():
     np.testing.assert_allclose(p.value, d.meas.dl, atol=1e-9)
     rigid = MeasurementModel(RIGID).predict(d.poses, theta, ("length",))["length"]
     assert np.abs(rigid.value - d.meas.dl).max() > 1e-3
+
+
+@pytest.mark.parametrize("make", [MeasurementModel, lambda r: EffectModel(r, [DeviceAccuracy()])])
+def test_a_held_tension_stretches_the_cable_whatever_the_pose(make):
+    """A force-controlled hold keeps the tensions while the platform sways (issue 29): with a held tension the
+    encoders count L(pose) / (1 + tau_held / EA), its pose derivative the geometry's alone (finite
+    differences), NaN rows keep the statics' tension; Problem hands Measurements.held_tau to the model in
+    both its evaluation and its per-row normal equations."""
+    from calib.selfcal.problem import Measurements, Problem
+
+    robot = _elastic()
+    model, rigid = make(robot), make(RIGID)
+    theta = model.initial_params(ZETA0)
+    tau = tension_model(robot, POSES, derivatives=False).tau
+    held = tau + np.array([[50.0, -80.0, 30.0, 0.0], [np.nan] * 4])  # row 2: the statics' own
+    free = model.predict(POSES, theta, ["length", "tension"])
+    p = model.predict(POSES, theta, ["length", "tension"], held_tension=held)
+    L = rigid.predict(POSES, theta, ["length"])["length"].value + rigid.absolute_readings(theta)["length"]
+    L0 = model.absolute_readings(theta)["length"]
+    np.testing.assert_allclose(p["length"].value[0], L[0] / (1 + held[0] / EA) - L0, atol=1e-12)
+    np.testing.assert_allclose(p["length"].value[1], free["length"].value[1], atol=1e-15)
+    assert abs(p["length"].value[0, 1] - free["length"].value[0, 1]) > 1e-4  # 80 N on 30 kN: 0.1 mm and more
+    np.testing.assert_allclose(p["tension"].value[0], held[0])
+    np.testing.assert_array_equal(p["tension"].d_pose[0], 0.0)
+    h = 1e-6
+    fd = np.stack([(model.predict(POSES + h * np.eye(6)[j], theta, ["length"], held_tension=held)["length"].value
+                    - p["length"].value) / h for j in range(6)], -1)
+    np.testing.assert_allclose(p["length"].d_pose, fd, atol=2e-6)
+    np.testing.assert_allclose(p["length"].d_pose[0], rigid.predict(POSES, theta, ["length"])["length"].d_pose[0]
+                               / (1 + held[0] / EA)[:, None], atol=1e-12)
+    n = robot.n
+    meas = Measurements(np.full((2, n), np.nan), np.zeros((2, n)), np.zeros((2, n)), np.zeros((2, 3)),
+                        np.full(n, np.nan), np.full(2, np.nan), held_tau=held)
+    prob = Problem(model, meas, {"tension": np.ones(n), "length": np.full(n, 1e-3), "swivel": np.full(n, 1e-3),
+                                 "orientation": np.full(3, 1e-3)})
+    (g, r, J, _), = prob.evaluate(theta, POSES).groups
+    np.testing.assert_allclose(r[:, g.slices["length"]], 1e3 * p["length"].value, atol=1e-9)
+    cost, U, b = prob.pose_normal_equations(theta, POSES[1:], np.array([1]))
+    np.testing.assert_allclose(U[0], J[1].T @ J[1], rtol=1e-10)

@@ -313,3 +313,52 @@ def test_variance_components_never_shrink_a_channel_below_its_quantisation_error
     assert out["tension"] == pytest.approx(np.full(4, 0.01))
     assert out["length"] == pytest.approx(np.full(4, 5e-7))
     assert out["swivel"] == pytest.approx([6e-6, 4e-6, 6e-6, 8e-6])
+
+
+def test_a_sway_at_held_tension_is_not_taken_for_length_noise():
+    """Force control holds the tensions while the platform sways (issue 29): the encoders count each sample's
+    geometric length unstretched by its window's tension. The per-sample pose fit of pose_free_noise models
+    that stretch at the window's tension, so a 1 mm sway of soft cables (EA 20 kN: the statics' tension at
+    a swaying pose moves by newtons, its stretch by tens of um) leaves the lengths' pose-free noise near
+    what the encoders add (0.1 um a sample; measured 0.81 um after the 4 rounds from the raw scatter of
+    1.4 mm); stretching each sample by the statics' tension at its own pose instead (the model before) made
+    it 23 um."""
+    from calib.robot import robot_from_dict
+    from calib.selfcal.model import MeasurementModel
+    from calib.selfcal.noise import pose_free_noise
+
+    data = ROBOT.to_dict()
+    for c in data["cables"]:
+        c["axial_stiffness"] = 2.0e4
+    robot = robot_from_dict(data, "<soft>")
+    model = MeasurementModel(robot)
+    rng = np.random.default_rng(3)
+    zeta0 = np.array([0.35, 0.35, 1.1, 0.0, 0.0, 0.0])
+    theta = model.initial_params(zeta0)
+    size, centres = 60, zeta0 + np.array([[dx, dy, dz, 0, 0, 0] for dx in (-0.1, 0.1) for dy in (-0.1, 0.1)
+                                          for dz in (-0.05, 0.05)])
+    t = np.arange(size) * 0.1
+    sway = np.stack([1e-3 * np.sin(2 * math.pi * t / p + ph) for p, ph in ((4.0, 0.0), (5.0, 1.0), (7.0, 2.0))], 1)
+    poses = np.concatenate([np.c_[c[:3] + sway, np.tile(c[3:], (size, 1)) + 1e-3 * sway] for c in centres])
+    owner = np.repeat(np.arange(len(centres)), size)
+    held = model.cable_tensions(theta, centres)[owner]
+    pr = model.predict(poses, theta, ("length", "swivel", "orientation"), held_tension=held)
+    n = robot.n
+    noise = {"length": 1e-7, "swivel": 2e-5, "orientation": 5e-4}
+    read = {c: pr[c].value + noise[c] * rng.standard_normal(pr[c].value.shape) for c in noise}
+    sig = {"tau": held + 0.05 * rng.standard_normal(held.shape), "dl": read["length"], "dsigma": read["swivel"],
+           "roll": read["orientation"][:, 0], "pitch": read["orientation"][:, 1], "dyaw": read["orientation"][:, 2]}
+    wins = [Window(j * size, (j + 1) * size - 1) for j in range(len(centres))]
+    spans = [(w.slice, c) for w, c in zip(wins, centres, strict=True)]
+    ref = {"dl": np.zeros(n), "dsigma": np.zeros(n), "ori": np.zeros(3)}
+    base = window_mean_noise(robot, sig, wins)
+
+    class Unheld(MeasurementModel):  # no tension held: the statics' at each sample's own pose
+        def cable_tensions(self, theta, poses):
+            return np.full((len(poses), n), np.nan)
+
+    held_fit = pose_free_noise(model, sig, spans, ref, theta, base)
+    unheld_fit = pose_free_noise(Unheld(robot), sig, spans, ref, theta, base)
+    assert base.groups["length"].sample > 1e-3  # the raw readings sway by a millimetre
+    assert held_fit.sample["length"] < 1.5e-6
+    assert unheld_fit.sample["length"] > 20 * held_fit.sample["length"]

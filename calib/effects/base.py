@@ -31,7 +31,7 @@ import numpy as np
 
 from calib.kinematics import convert_euler, inverse_kinematics, kinematic_jacobians
 from calib.robot import Robot
-from calib.selfcal.model import CHANNELS, ChannelPrediction, encoder_lengths, orientation_prediction
+from calib.selfcal.model import CHANNELS, ChannelPrediction, encoder_lengths, held_tensions, orientation_prediction
 from calib.statics import tension_model
 
 
@@ -214,9 +214,11 @@ def base_quantities(recompute, values: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return recompute(values) if base is None else base
 
 
-def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> Physical:
+def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True, held: np.ndarray | None = None
+             ) -> Physical:
     """L, swivel and modelled tensions with pose derivatives at poses (k, 6); theta columns zero (p). Without
-    ``tension`` the tensions and their derivatives are NaN (the statics skipped)."""
+    ``tension`` the tensions and their derivatives are NaN (the statics skipped). ``held`` (k, n) N: where
+    finite, the tension a cable is held at in place of the statics' (calib.selfcal.model.held_tensions)."""
     kin = inverse_kinematics(robot, poses)
     jac = kinematic_jacobians(robot, kin)
     k, n = kin.lengths.shape
@@ -225,6 +227,7 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True) -> P
         tau, dtau = tm.tau, tm.jacobian
     else:
         tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
+    tau, dtau = held_tensions(tau, dtau, held)
     z = np.zeros((k, n, p))
     ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention, kin.R, kin.H)
     L, dL = encoder_lengths(robot, kin.lengths, tau, jac.lengths, dtau)
@@ -322,10 +325,11 @@ class EffectModel:
         """Whether predicting ``channels`` needs the modelled tensions (the statics)."""
         return "tension" in channels or any(e.stage == "reading" and e.reads_tension for e in self.effects)
 
-    def _physical(self, theta: np.ndarray, poses: np.ndarray, tension: bool = True) -> tuple[Robot, Physical]:
+    def _physical(self, theta: np.ndarray, poses: np.ndarray, tension: bool = True,
+                  held: np.ndarray | None = None) -> tuple[Robot, Physical]:
         p = theta.shape[0]
         robot = self.true_robot(theta)
-        ph = physical(robot, poses, p, tension)
+        ph = physical(robot, poses, p, tension, held)
         ph.terms = {e.name: t for e in self.effects if e.stage == "reading"
                     and (t := e.pose_terms(robot, poses)) is not None}
         for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
@@ -340,8 +344,8 @@ class EffectModel:
                     if e2.stage == "robot":
                         r = e2.modify(r, np.asarray(th[sl2]))
                 kin = inverse_kinematics(r, poses)
-                tm = tension_model(r, kin=kin, derivatives=False)
-                return encoder_lengths(r, kin.lengths, tm.tau)[0], kin.swivel, tm.tau
+                tau = held_tensions(tension_model(r, kin=kin, derivatives=False).tau, None, held)[0]
+                return encoder_lengths(r, kin.lengths, tau)[0], kin.swivel, tau
 
             recompute.base = (ph.L, ph.sigma, ph.tau)  # at theta itself: computed above, the same way
             dL, ds, dt = e.physical_columns(robot, np.asarray(theta[sl]), poses, recompute)
@@ -354,21 +358,30 @@ class EffectModel:
         robot and its robot effects can compute them for all their poses at once, ``physical=``)."""
         return self._physical(np.asarray(theta, dtype=float), np.asarray(poses, dtype=float).reshape(-1, 6))
 
+    def cable_tensions(self, theta: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """The tensions (k, n) N the statics give the cables at poses (k, 6), the robot effects at theta."""
+        robot = self.true_robot(np.asarray(theta, float))
+        return tension_model(robot, kin=inverse_kinematics(robot, np.asarray(poses, float)), derivatives=False).tau
+
     def predict(
         self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None,
         approach: np.ndarray | None = None, physical: tuple[Robot, Physical] | None = None,
+        held_tension: np.ndarray | None = None,
     ) -> dict[str, ChannelPrediction]:
         """Predicted readings of ``channels`` at poses (k, 6) for theta (p,), effects included; ``times`` (k,)
         s after the reference sample, for the effects that depend on time; ``approach`` (k, n, 4) the
         directions of cable motion, load change and swivel turn before each row and the reference's swivel
         turn (:class:`Context`), for the effects that depend on them;
-        ``physical``: ``self.physical(theta, [poses; zeta_0])`` if already computed."""
+        ``physical``: ``self.physical(theta, [poses; zeta_0])`` if already computed; ``held_tension`` (k, n) N:
+        where finite, the tension a row's cable is held at in place of the statics' at its pose
+        (calib.selfcal.model.held_tensions; ignored with ``physical``)."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)
         k = z.shape[0]
         # the poses and zeta_0 in one call (everything is per pose): the model's geometry and statics once
         if physical is None:
-            physical = self._physical(theta, np.vstack([z, theta[None, :6]]), self.needs_tension(channels))
+            held = None if held_tension is None else np.vstack([held_tension, np.full((1, self.robot.n), np.nan)])
+            physical = self._physical(theta, np.vstack([z, theta[None, :6]]), self.needs_tension(channels), held)
         robot, both = physical
         at, ref = physical_rows(both, slice(0, k)), physical_rows(both, slice(k, k + 1))
         for name in ("L", "sigma", "tau"):  # the reference pose is zeta_0 itself: fold d/dpose into theta

@@ -35,6 +35,18 @@ def encoder_lengths(robot: Robot, L: np.ndarray, tau: np.ndarray, dL: np.ndarray
     return L / den, dL / den[..., None] - (L * c / den**2)[..., None] * dtau
 
 
+def held_tensions(tau: np.ndarray, dtau: np.ndarray | None, held: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The cables' tensions (k, n) N and their pose derivatives (k, n, 6) where a row's tensions are held:
+    ``held`` (k, n) N where finite, the modelled tau and dtau elsewhere (None: tau everywhere). A force-
+    controlled hold keeps each cable at its tension while the platform sways about its equilibrium: the
+    sway moves the pose at that tension, so a held tension does not follow the row's pose (derivative 0)."""
+    if held is None:
+        return tau, dtau
+    h = np.isfinite(held)
+    return np.where(h, held, tau), None if dtau is None else np.where(h[..., None], 0.0, dtau)
+
+
 def channel_width(name: str, n: int) -> int:
     """Number of scalar readings of a channel for n cables."""
     if name not in CHANNELS:
@@ -106,12 +118,19 @@ class MeasurementModel:
         (effects with a prior, e.g. a device's accuracy class, add them)."""
         return np.zeros(0, dtype=int), np.zeros(0), np.zeros(0)
 
+    def cable_tensions(self, theta: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """The tensions (k, n) N the statics give the cables at poses (k, 6) (theta: no robot effects here)."""
+        return tension_model(self.robot, kin=inverse_kinematics(self.robot, np.asarray(poses, float)),
+                             derivatives=False).tau
+
     def predict(
         self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None,
-        approach: np.ndarray | None = None,
+        approach: np.ndarray | None = None, held_tension: np.ndarray | None = None,
     ) -> dict[str, ChannelPrediction]:
         """Predicted readings of ``channels`` at poses (k, 6) for global parameters theta (p,) (the rigid model
-        depends neither on the rows' ``times`` nor on the directions of ``approach``, (k, n, 2))."""
+        depends neither on the rows' ``times`` nor on the directions of ``approach``, (k, n, 2)).
+        ``held_tension`` (k, n) N: where finite, the tension a row's cable is held at in place of the statics'
+        at its pose (:func:`held_tensions`), in its tension and in the stretch its encoder counts."""
         robot = self.robot
         z = np.asarray(poses, dtype=float)
         k, n, p = z.shape[0], robot.n, theta.shape[0]
@@ -124,9 +143,10 @@ class MeasurementModel:
             jac0 = kinematic_jacobians(robot, kin0)
         elastic = "length" in channels and bool(np.any(robot.compliance))
         tm = tension_model(robot, kin=kin, jac=jac) if "tension" in channels or elastic else None
+        tau, dtau = held_tensions(tm.tau, tm.jacobian, held_tension) if tm is not None else (None, None)
         for name in channels:
             if name == "tension":
-                out[name] = ChannelPrediction(tm.tau, tm.jacobian, np.zeros((k, n, p)))
+                out[name] = ChannelPrediction(tau, dtau, np.zeros((k, n, p)))
             elif name in ("length", "swivel"):
                 cur = kin.lengths if name == "length" else kin.swivel
                 ref = kin0.lengths if name == "length" else kin0.swivel
@@ -134,7 +154,7 @@ class MeasurementModel:
                 dref = jac0.lengths if name == "length" else jac0.swivel
                 if name == "length" and elastic:  # the encoders count the unstretched lengths
                     tm0 = tension_model(robot, kin=kin0, jac=jac0)
-                    cur, dcur = encoder_lengths(robot, cur, tm.tau, dcur, tm.jacobian)
+                    cur, dcur = encoder_lengths(robot, cur, tau, dcur, dtau)
                     ref, dref = encoder_lengths(robot, ref, tm0.tau, dref, tm0.jacobian)
                 val = cur - ref
                 if name == "swivel":

@@ -214,7 +214,10 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     reading follows the pose, and that motion is absorbed by each row's own pose, so it is not noise of the
     row. Each sample of each still window gets its own pose (the measurement model ``model`` at the solved
     ``theta``, started from its window's pose; ``spans``: (window slice, pose (6,)) pairs, ``ref``: the
-    reference window's means the rows are relative to); the per-group sigma of a sample's remainder is
+    reference window's means the rows are relative to), its cables held at the window's tension (the
+    model's ``cable_tensions`` at the window's pose: the sway of a force-controlled hold moves the pose at
+    that tension, it does not stretch the cables by the statics' tension of each swaying pose); the per-group
+    sigma of a sample's remainder is
     estimated by variance components (Helmert: sum of squared residuals over the sum of the redundancy
     numbers 1 - h_ii of the whitened pose fit, re-weighted ``rounds`` times); the remainders' lag-1
     correlation in each window gives the AR(1) factor of their window mean, as in :func:`window_mean_noise`.
@@ -229,9 +232,15 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     idx = np.concatenate([np.arange(s.start, s.stop) for s, _ in spans])
     owner = np.concatenate([np.full(s.stop - s.start, j) for j, (s, _) in enumerate(spans)])
     ori = np.stack([sig["roll"], sig["pitch"], sig["dyaw"] - ref["ori"][2]], 1)[idx]
+    Z = np.array([z for _, z in spans], float)
+    # force control holds each cable's tension through a window while the platform sways: a sample's cables
+    # stretch under its window's tension (the statics' at the window's pose, as its row models it), not
+    # under the tension the statics would give the sample's swaying pose
+    held = model.cable_tensions(theta, Z)[owner] if hasattr(model, "cable_tensions") else None
     meas = Measurements(np.full((idx.size, n), np.nan), sig["dl"][idx] - ref["dl"],
-                        sig["dsigma"][idx] - ref["dsigma"], ori, np.full(n, np.nan), np.full(2, np.nan))
-    Z = np.array([z for _, z in spans], float)[owner]
+                        sig["dsigma"][idx] - ref["dsigma"], ori, np.full(n, np.nan), np.full(2, np.nan),
+                        held_tau=held)
+    Z = Z[owner]
     floor = resolution_floor(robot)
     g = base.groups
     per = {"length": max(g["length"].sample, floor["length"].max()),  # per-sample sigmas to start from

@@ -34,7 +34,9 @@ class Measurements:
     reference sample. swivel_approach (k, n) and ref_swivel_approach (n,): the way each swivel angle last
     turned (+1 its reading grew, -1 fell). None (the default, e.g. rows of old callers) means unknown
     everywhere: the direction-dependent effects (pulley friction, load-cell hysteresis, swivel friction) then
-    see no direction.
+    see no direction. held_tau (k, n) N: where finite, the tension each row's cable is held at (a sample of a
+    force-controlled hold: the platform sways at that tension), which the model uses in place of the statics'
+    at the row's pose (calib.selfcal.model.held_tensions); None: the statics' everywhere.
     """
 
     tau: np.ndarray
@@ -52,6 +54,7 @@ class Measurements:
     ref_load_approach: np.ndarray | None = None
     swivel_approach: np.ndarray | None = None
     ref_swivel_approach: np.ndarray | None = None
+    held_tau: np.ndarray | None = None
 
     @property
     def k(self) -> int:
@@ -190,6 +193,15 @@ class Problem:
                for a in parts]
         return {"approach": np.stack(out, axis=-1)}
 
+    def _held(self, rows: np.ndarray, joint: bool = False) -> dict[str, np.ndarray]:
+        """``{"held_tension": (m, n)}`` for the rows (the reference row's, NaN, first when ``joint``) where
+        the readings hold tensions (:attr:`Measurements.held_tau`); empty otherwise."""
+        h = self.meas.held_tau
+        if h is None:
+            return {}
+        h = np.asarray(h, float)[rows]
+        return {"held_tension": np.vstack([np.full((1, h.shape[1]), np.nan), h]) if joint else h}
+
     @functools.cached_property
     def observed(self) -> Observed:
         """Where the observed entries are (fixed by the weights): their order and labels (:class:`Observed`)."""
@@ -288,7 +300,7 @@ class Problem:
                 joint_done = True
                 times = None if times is None else np.r_[0.0, times]
                 extra = self._joint_approach(self._approach(None), extra, g.idx.size)
-            out.append((joint, times, extra))
+            out.append((joint, times, extra | self._held(g.idx, joint)))
         return out
 
     def _joint_approach(self, ref: dict, rows: dict, m: int) -> dict[str, np.ndarray]:
@@ -314,7 +326,7 @@ class Problem:
                 continue
             pos = self._row_place[rows[sel]]
             pred = self.model.predict(poses[sel], theta, g.channels, self._times(rows[sel]),
-                                      **self._approach(rows[sel]))
+                                      **self._approach(rows[sel]), **self._held(rows[sel]))
             w = g.weight[pos]
             r = w * (np.concatenate([pred[c].value for c in g.channels], 1) - g.reading[pos])
             J = w[..., None] * np.concatenate([pred[c].d_pose for c in g.channels], 1)
