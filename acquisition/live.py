@@ -333,6 +333,21 @@ class LivePublisher:
             self.scenes += topic == "/scene"
 
 
+def _lowest_priority() -> None:
+    """This process at nice PUBLISHER_NICE, every thread it has already (on Linux, niceness is per thread:
+    e.g. the BLAS pool numpy's import started, left at the parent's niceness by ``os.nice``) and every thread
+    it starts later (they inherit it). Where lowering is not allowed it stays at the loop's priority, still in
+    a process of its own."""
+    try:
+        os.nice(PUBLISHER_NICE)
+        tasks = os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else []
+        for tid in map(int, tasks):
+            if os.getpriority(os.PRIO_PROCESS, tid) < PUBLISHER_NICE:
+                os.setpriority(os.PRIO_PROCESS, tid, PUBLISHER_NICE)
+    except OSError:
+        pass
+
+
 def _serve(ring_name: str, alive, control, address: LiveAddress, robot: Robot, slack: float,
            overload: float, wait: float) -> None:
     """The publisher process: the server on ``address``, then every record of the ring ``ring_name`` published
@@ -347,10 +362,7 @@ def _serve(ring_name: str, alive, control, address: LiveAddress, robot: Robot, s
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    try:
-        os.nice(PUBLISHER_NICE)
-    except OSError:  # not allowed: the same priority as the loop, still in a process of its own
-        pass
+    _lowest_priority()
     parent = os.getppid()
     try:
         ring = ShmRing.attach(ring_name)

@@ -217,8 +217,7 @@ def base_quantities(recompute, values: np.ndarray) -> tuple[np.ndarray, np.ndarr
 def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True, held: np.ndarray | None = None
              ) -> Physical:
     """L, swivel and modelled tensions with pose derivatives at poses (k, 6); theta columns zero (p). Without
-    ``tension`` the tensions and their derivatives are NaN (the statics skipped). ``held`` (k, n) N: where
-    finite, the tension a cable is held at in place of the statics' (calib.selfcal.model.held_tensions)."""
+    ``tension`` the tensions and derivatives are NaN (no statics). ``held``: calib.selfcal.model.held_tensions."""
     kin = inverse_kinematics(robot, poses)
     jac = kinematic_jacobians(robot, kin)
     k, n = kin.lengths.shape
@@ -373,8 +372,7 @@ class EffectModel:
         directions of cable motion, load change and swivel turn before each row and the reference's swivel
         turn (:class:`Context`), for the effects that depend on them;
         ``physical``: ``self.physical(theta, [poses; zeta_0])`` if already computed; ``held_tension`` (k, n) N:
-        where finite, the tension a row's cable is held at in place of the statics' at its pose
-        (calib.selfcal.model.held_tensions; ignored with ``physical``)."""
+        where finite, a row's cable's held tension (calib.selfcal.model.held_tensions; not with ``physical``)."""
         z = np.asarray(poses, dtype=float).reshape(-1, 6)
         theta = np.asarray(theta, dtype=float)
         k = z.shape[0]

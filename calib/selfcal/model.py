@@ -47,6 +47,11 @@ def held_tensions(tau: np.ndarray, dtau: np.ndarray | None, held: np.ndarray | N
     return np.where(h, held, tau), None if dtau is None else np.where(h[..., None], 0.0, dtau)
 
 
+def statics_tensions(robot: Robot, poses: np.ndarray) -> np.ndarray:
+    """The tensions (k, n) N the rigid statics give the cables of ``robot`` at poses (k, 6)."""
+    return tension_model(robot, kin=inverse_kinematics(robot, np.asarray(poses, float)), derivatives=False).tau
+
+
 def channel_width(name: str, n: int) -> int:
     """Number of scalar readings of a channel for n cables."""
     if name not in CHANNELS:
@@ -120,8 +125,7 @@ class MeasurementModel:
 
     def cable_tensions(self, theta: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """The tensions (k, n) N the statics give the cables at poses (k, 6) (theta: no robot effects here)."""
-        return tension_model(self.robot, kin=inverse_kinematics(self.robot, np.asarray(poses, float)),
-                             derivatives=False).tau
+        return statics_tensions(self.robot, poses)
 
     def predict(
         self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None,
