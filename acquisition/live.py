@@ -17,6 +17,7 @@ threads send them; a client that is slow, connects or vanishes only changes what
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import math
@@ -334,18 +335,12 @@ class LivePublisher:
 
 
 def _lowest_priority() -> None:
-    """This process at nice PUBLISHER_NICE, every thread it has already (on Linux, niceness is per thread:
-    e.g. the BLAS pool numpy's import started, left at the parent's niceness by ``os.nice``) and every thread
-    it starts later (they inherit it). Where lowering is not allowed it stays at the loop's priority, still in
-    a process of its own."""
-    try:
+    """Every thread of this process at nice PUBLISHER_NICE: Linux's niceness is per thread, and numpy's BLAS
+    pool starts at import, before ``os.nice``; the threads started later inherit it. Not allowed: unchanged."""
+    with contextlib.suppress(OSError):  # e.g. a sandbox that forbids it, or a thread gone meanwhile
         os.nice(PUBLISHER_NICE)
-        tasks = os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else []
-        for tid in map(int, tasks):
-            if os.getpriority(os.PRIO_PROCESS, tid) < PUBLISHER_NICE:
-                os.setpriority(os.PRIO_PROCESS, tid, PUBLISHER_NICE)
-    except OSError:
-        pass
+        for tid in map(int, os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else []):
+            os.setpriority(os.PRIO_PROCESS, tid, max(PUBLISHER_NICE, os.getpriority(os.PRIO_PROCESS, tid)))
 
 
 def _serve(ring_name: str, alive, control, address: LiveAddress, robot: Robot, slack: float,
