@@ -236,7 +236,7 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     # force control holds each cable's tension through a window while the platform sways: a sample's cables
     # stretch under its window's tension (the statics' at the window's pose, as its row models it), not
     # under the tension the statics would give the sample's swaying pose
-    held = model.cable_tensions(theta, Z)[owner] if hasattr(model, "cable_tensions") else None
+    held = model.cable_tensions(theta, Z)[owner]
     meas = Measurements(np.full((idx.size, n), np.nan), sig["dl"][idx] - ref["dl"],
                         sig["dsigma"][idx] - ref["dsigma"], ori, np.full(n, np.nan), np.full(2, np.nan),
                         held_tau=held)
