@@ -195,3 +195,29 @@ def test_a_singular_pose_block_leaves_the_covariance_to_the_dense_svd():
     with pytest.raises(np.linalg.LinAlgError):
         np.linalg.inv(arrow.U[0][1])  # what the reduction would do with it undamped
     assert arrow.covariance() is None
+
+
+def test_an_evaluation_without_jacobian_skips_the_robot_effects_columns_and_keeps_the_residuals():
+    """multirun's geodesic trial point needs residuals only: EffectModel.physical(columns=False) leaves the robot
+    effects' theta columns (finite differences: a model call per parameter) zero, and the residuals of
+    every run are bitwise those of the evaluation with its Jacobian (pulley_position: 8 columns)."""
+    rng = np.random.default_rng(6)
+    shared = make_effects(["tension_offset", "pulley_position"])  # one robot: the same instances, values
+    values = np.r_[rng.normal(0.0, 3.0, 4), 0.004 * rng.standard_normal(8)]
+    runs = []
+    for j in range(2):
+        zeta0 = np.r_[POSES[j, :3], 0.01, -0.02, 0.03]
+        poses = POSES[j + 1:] + 0.002 * rng.standard_normal((POSES.shape[0] - j - 1, 6))
+        prob = Problem(EffectModel(ROBOT, shared), _problem(zeta0, poses, [], rng).meas, SIGMA)
+        runs.append(RunFit(f"r{j}", None, prob, np.r_[zeta0 + 1e-3, values], poses.copy(), SIGMA))
+    q = values.size
+    assert multirun.one_robot(runs, shared)
+    full, c_full = multirun._evaluate(runs, q, batch=True, jacobian=True)
+    bare, c_bare = multirun._evaluate(runs, q, batch=True, jacobian=False)
+    assert c_full == c_bare
+    for a, b in zip(full, bare, strict=True):
+        np.testing.assert_array_equal(a.r, b.r)
+        assert np.abs(a.A[:, -8:]).max() > 1.0  # the columns the evaluation with its Jacobian has
+    z = np.vstack([runs[0].theta[None, :6], runs[0].poses])
+    _, ph = runs[0].problem.model.physical(runs[0].theta, z, columns=False)
+    assert not ph.tL.any() and not ph.ttau.any()

@@ -325,14 +325,14 @@ class EffectModel:
         return "tension" in channels or any(e.stage == "reading" and e.reads_tension for e in self.effects)
 
     def _physical(self, theta: np.ndarray, poses: np.ndarray, tension: bool = True,
-                  held: np.ndarray | None = None) -> tuple[Robot, Physical]:
+                  held: np.ndarray | None = None, columns: bool = True) -> tuple[Robot, Physical]:
         p = theta.shape[0]
         robot = self.true_robot(theta)
         ph = physical(robot, poses, p, tension, held)
         ph.terms = {e.name: t for e in self.effects if e.stage == "reading"
                     and (t := e.pose_terms(robot, poses)) is not None}
         for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
-            if e.stage != "robot":
+            if e.stage != "robot" or not columns:  # no columns: the robot effects' theta columns stay zero
                 continue
 
             def recompute(vals, idx=idx, sl=sl):
@@ -351,11 +351,11 @@ class EffectModel:
             ph.tL[..., sl], ph.tsigma[..., sl], ph.ttau[..., sl] = dL, ds, dt
         return robot, ph
 
-    def physical(self, theta: np.ndarray, poses: np.ndarray) -> tuple[Robot, Physical]:
+    def physical(self, theta: np.ndarray, poses: np.ndarray, columns: bool = True) -> tuple[Robot, Physical]:
         """The robot with the robot effects at theta applied, and the physical quantities at poses (k, 6) with
-        their theta columns (p,): what ``predict`` computes for its poses and zeta_0 (problems that share the
-        robot and its robot effects can compute them for all their poses at once, ``physical=``)."""
-        return self._physical(np.asarray(theta, dtype=float), np.asarray(poses, dtype=float).reshape(-1, 6))
+        their theta columns (p,; ``columns`` False: the robot effects' left zero, the values the same): what
+        ``predict`` computes for its poses and zeta_0 (problems sharing the robot and its effects: ``physical=``)."""
+        return self._physical(np.asarray(theta, float), np.asarray(poses, float).reshape(-1, 6), columns=columns)
 
     def cable_tensions(self, theta: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """The tensions (k, n) N the statics give the cables at poses (k, 6), the robot effects at theta."""
