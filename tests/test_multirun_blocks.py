@@ -221,3 +221,57 @@ def test_an_evaluation_without_jacobian_skips_the_robot_effects_columns_and_keep
     z = np.vstack([runs[0].theta[None, :6], runs[0].poses])
     _, ph = runs[0].problem.model.physical(runs[0].theta, z, columns=False)
     assert not ph.tL.any() and not ph.ttau.any()
+
+
+def _dense_leave_one_run_out(runs: list[RunFit], q: int, floor) -> list[float]:
+    """The fold scores from the dense joint normal equations (the plain computation the blocks replace)."""
+    from calib.multirun import score_of
+
+    blocks = [rf.residuals() for rf in runs]
+    r, A, cols = stack(runs, q, blocks=blocks)
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    As = A / scale
+    N, g = As.T @ As, As.T @ r
+    bounds = np.cumsum([0] + [b.r.shape[0] for b in blocks])
+    out = []
+    for j, res in enumerate(blocks):
+        rows = slice(bounds[j], bounds[j + 1])
+        own = np.r_[np.arange(cols[j][0].start, cols[j][0].stop), np.arange(cols[j][1].start, cols[j][1].stop)]
+        keep = np.setdiff1d(np.arange(A.shape[1]), own)
+        Aj, rj = As[rows], r[rows]
+        Nt = (N - Aj.T @ Aj)[np.ix_(keep, keep)]
+        delta = -np.linalg.solve(Nt + 1e-9 * np.diag(np.maximum(np.diag(Nt), 1e-12)), (g - Aj.T @ rj)[keep])
+        e = rj + Aj[:, :q] @ delta[:q]
+        step, *_ = np.linalg.lstsq(Aj[:, own], e, rcond=1e-10)
+        e = e - Aj[:, own] @ step
+        unit = np.where(res.r != 0, res.si / np.where(res.r != 0, res.r, 1.0), 0.0)
+        out.append(score_of(e * unit, res.channel, floor))
+    return out
+
+
+def test_leave_one_run_out_by_blocks_is_the_dense_computation():
+    """runselect.leave_one_run_out reduces each run's normal matrix to the shared columns once; its fold scores
+    equal those of the dense joint normal equations less the left-out run's rows (three runs sharing
+    cable_sag and tension offsets, theta away from the readings' so that the folds differ)."""
+    from calib.multirun import JointFit
+    from calib.runselect import leave_one_run_out
+    from calib.selfcal import sensor_noise
+
+    rng = np.random.default_rng(8)
+    shared = make_effects(["tension_offset", "cable_sag"])
+    values = np.r_[rng.normal(0.0, 2.0, 4), 0.03]
+    runs = []
+    for j in range(3):
+        zeta0 = np.r_[POSES[j, :3], 0.01, -0.02, 0.03]
+        poses = POSES[j + 1:] + 0.002 * rng.standard_normal((POSES.shape[0] - j - 1, 6))
+        prob = Problem(EffectModel(ROBOT, shared), _problem(zeta0, poses, [], rng).meas, SIGMA)
+        runs.append(RunFit(f"r{j}", None, prob, np.r_[zeta0 + 1e-3, values], poses.copy(), SIGMA))
+    q, floor = values.size, sensor_noise(ROBOT)
+    fit = JointFit(shared, values, np.eye(q), runs, 0.0, True, 0)
+    total, folds = leave_one_run_out(fit, floor)
+    ref = _dense_leave_one_run_out(runs, q, floor)
+    np.testing.assert_allclose([f["score"] for f in folds], ref, rtol=1e-9)
+    assert total == pytest.approx(sum(ref), rel=1e-9)
+    assert np.ptp(ref) > 1.0  # the folds see different runs
+    assert [f["run"] for f in folds] == ["r0", "r1", "r2"] and all(f["J"] > 0 for f in folds)
