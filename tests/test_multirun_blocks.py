@@ -197,30 +197,46 @@ def test_a_singular_pose_block_leaves_the_covariance_to_the_dense_svd():
     assert arrow.covariance() is None
 
 
-def test_an_evaluation_without_jacobian_skips_the_robot_effects_columns_and_keeps_the_residuals():
-    """multirun's geodesic trial point needs residuals only: EffectModel.physical(columns=False) leaves the robot
-    effects' theta columns (finite differences: a model call per parameter) zero, and the residuals of
-    every run are bitwise those of the evaluation with its Jacobian (pulley_position: 8 columns)."""
-    rng = np.random.default_rng(6)
-    shared = make_effects(["tension_offset", "pulley_position"])  # one robot: the same instances, values
-    values = np.r_[rng.normal(0.0, 3.0, 4), 0.004 * rng.standard_normal(8)]
+def _shared_runs(names: list[str], rng, values: np.ndarray | None = None) -> tuple[list[RunFit], list, int]:
+    """Three runs of one robot: the effects ``names`` shared (the same instances, last in every model) at
+    ``values`` (None: absent + 0.5 typical size, within bounds), noisy rigid-model readings."""
+    shared = make_effects(names)
+    specs = [sp for e in shared for sp in e.params(ROBOT)]
+    if values is None:
+        values = np.clip([sp.absent + 0.5 * sp.scale for sp in specs], [sp.lower for sp in specs],
+                         [sp.upper for sp in specs])
     runs = []
-    for j in range(2):
+    for j in range(3):
         zeta0 = np.r_[POSES[j, :3], 0.01, -0.02, 0.03]
         poses = POSES[j + 1:] + 0.002 * rng.standard_normal((POSES.shape[0] - j - 1, 6))
         prob = Problem(EffectModel(ROBOT, shared), _problem(zeta0, poses, [], rng).meas, SIGMA)
         runs.append(RunFit(f"r{j}", None, prob, np.r_[zeta0 + 1e-3, values], poses.copy(), SIGMA))
-    q = values.size
-    assert multirun.one_robot(runs, shared)
-    full, c_full = multirun._evaluate(runs, q, batch=True, jacobian=True)
-    bare, c_bare = multirun._evaluate(runs, q, batch=True, jacobian=False)
-    assert c_full == c_bare
-    for a, b in zip(full, bare, strict=True):
-        np.testing.assert_array_equal(a.r, b.r)
-        assert np.abs(a.A[:, -8:]).max() > 1.0  # the columns the evaluation with its Jacobian has
+    return runs, shared, len(specs)
+
+
+def test_an_evaluation_without_jacobian_has_the_same_residuals_for_every_effect():
+    """multirun's geodesic trial point needs residuals only: EffectModel.physical(columns=False) computes no
+    derivative (kinematic Jacobians, the statics' pose derivatives, the robot effects' finite-difference theta
+    columns: a model call per parameter), and with every effect of the library the residuals are bitwise
+    those of the evaluation with its Jacobian."""
+    from calib.effects import available_effects
+
+    for name in available_effects():
+        runs, shared, q = _shared_runs(["tension_offset", name] if name != "tension_offset" else [name],
+                                       np.random.default_rng(6))
+        assert multirun.one_robot(runs, shared)
+        full, c_full = multirun._evaluate(runs, q, batch=True, jacobian=True)
+        bare, c_bare = multirun._evaluate(runs, q, batch=True, jacobian=False)
+        assert c_full == c_bare, name
+        for a, b in zip(full, bare, strict=True):
+            np.testing.assert_array_equal(a.r, b.r, err_msg=name)
+            assert np.abs(a.A).max() > 1.0  # the Jacobian the other evaluation has
+    runs, _, _ = _shared_runs(["pulley_position"], np.random.default_rng(6))
     z = np.vstack([runs[0].theta[None, :6], runs[0].poses])
     _, ph = runs[0].problem.model.physical(runs[0].theta, z, columns=False)
-    assert not ph.tL.any() and not ph.ttau.any()
+    assert not ph.tL.any() and not ph.ttau.any() and not ph.dL.any() and not ph.dtau.any()
+    _, ph = runs[0].problem.model.physical(runs[0].theta, z)
+    assert ph.tL.any() and ph.ttau.any() and ph.dL.any() and ph.dtau.any()
 
 
 def _dense_leave_one_run_out(runs: list[RunFit], q: int, floor) -> list[float]:
@@ -259,14 +275,8 @@ def test_leave_one_run_out_by_blocks_is_the_dense_computation():
     from calib.selfcal import sensor_noise
 
     rng = np.random.default_rng(8)
-    shared = make_effects(["tension_offset", "cable_sag"])
     values = np.r_[rng.normal(0.0, 2.0, 4), 0.03]
-    runs = []
-    for j in range(3):
-        zeta0 = np.r_[POSES[j, :3], 0.01, -0.02, 0.03]
-        poses = POSES[j + 1:] + 0.002 * rng.standard_normal((POSES.shape[0] - j - 1, 6))
-        prob = Problem(EffectModel(ROBOT, shared), _problem(zeta0, poses, [], rng).meas, SIGMA)
-        runs.append(RunFit(f"r{j}", None, prob, np.r_[zeta0 + 1e-3, values], poses.copy(), SIGMA))
+    runs, shared, _ = _shared_runs(["tension_offset", "cable_sag"], rng, values)
     q, floor = values.size, sensor_noise(ROBOT)
     fit = JointFit(shared, values, np.eye(q), runs, 0.0, True, 0)
     total, folds = leave_one_run_out(fit, floor)
