@@ -218,12 +218,14 @@ def test_an_evaluation_without_jacobian_has_the_same_residuals_for_every_effect(
     """multirun's geodesic trial point needs residuals only: EffectModel.physical(columns=False) computes no
     derivative (kinematic Jacobians, the statics' pose derivatives, the robot effects' finite-difference theta
     columns: a model call per parameter), and with every effect of the library the residuals are bitwise
-    those of the evaluation with its Jacobian."""
+    those of the evaluation with its Jacobian (the swivel entry with robot effects too)."""
     from calib.effects import available_effects
 
-    for name in available_effects():
-        runs, shared, q = _shared_runs(["tension_offset", name] if name != "tension_offset" else [name],
-                                       np.random.default_rng(6))
+    sets = [["tension_offset", name] if name != "tension_offset" else [name] for name in available_effects()]
+    for names in [*sets, ["swivel_entry", "swivel_tilt"], ["swivel_entry", "pulley_position"]]:
+        # (the swivel entry's columns follow the robot effects' geometry: Context.robot_at, None without them)
+        runs, shared, q = _shared_runs(names, np.random.default_rng(6))
+        name = ",".join(names)
         assert multirun.one_robot(runs, shared)
         full, c_full = multirun._evaluate(runs, q, batch=True, jacobian=True)
         bare, c_bare = multirun._evaluate(runs, q, batch=True, jacobian=False)

@@ -89,6 +89,7 @@ class Physical:
     ahrs: np.ndarray | None = None  # (k, 3) the orientations in the AHRS's convention, rad
     dahrs: np.ndarray | None = None  # (k, 3, 3) their derivatives with respect to the poses' angles
     terms: dict | None = None  # effect name -> its per-pose terms (``Effect.pose_terms``), all rows at once
+    derivatives: bool = True  # False: the derivatives are zero (computed for residuals only, no Jacobian)
 
 
 @dataclass
@@ -101,7 +102,7 @@ class Context:
     the way its tension last changed (+1 rising, -1 falling), [..., 2] the way its swivel last turned (+1 up),
     [..., 3] the way it last turned before the reference sample; 0 or None: unknown (older callers pass the
     first two only). ``robot_cols``: the theta columns of the robot effects, and ``robot_at(theta)`` the robot
-    with them at theta, for a reading effect whose edit depends on the geometry they change."""
+    with them at theta, for a reading effect whose edit depends on the geometry they change (None: no columns)."""
 
     robot: Robot
     poses: np.ndarray
@@ -230,7 +231,7 @@ def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True, held
     z = np.zeros((k, n, p))
     ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention, kin.R, kin.H)
     L, dL = encoder_lengths(robot, kin.lengths, tau, dL, dtau)
-    return Physical(L, kin.swivel, tau, dL, ds, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
+    return Physical(L, kin.swivel, tau, dL, ds, dtau, z, z.copy(), z.copy(), ahrs, dahrs, derivatives=derivatives)
 
 
 def _dataclass_rows(d, rows: slice):
@@ -244,7 +245,7 @@ def physical_rows(ph: Physical, rows: slice) -> Physical:
     return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
                     ph.tL[rows], ph.tsigma[rows], ph.ttau[rows], ph.ahrs[rows] if a else None,
                     ph.dahrs[rows] if a else None,
-                    None if t is None else {n: _dataclass_rows(v, rows) for n, v in t.items()})
+                    None if t is None else {n: _dataclass_rows(v, rows) for n, v in t.items()}, ph.derivatives)
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -396,12 +397,11 @@ class EffectModel:
                 out[name] = orientation_prediction(robot, z, theta, (at.ahrs, at.dahrs, ref.ahrs, ref.dahrs))
             else:
                 raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
-        readers = sorted(
-            (i for i, e in enumerate(self.effects) if e.stage == "reading"), key=lambda i: self.effects[i].order
-        )
+        readers = sorted((i for i, e in enumerate(self.effects) if e.stage == "reading"),
+                         key=lambda i: self.effects[i].order)
         for i in readers:
             ctx = Context(robot, z, theta, self.slices[i], at, ref, times, approach, self._robot_cols,
-                          self.true_robot)
+                          self.true_robot if both.derivatives else None)  # no derivatives: no robot_at columns
             self.effects[i].transform(ctx, np.asarray(theta[self.slices[i]]), out)
         return out
 
