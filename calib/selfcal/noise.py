@@ -296,6 +296,7 @@ MISFIT_MIN_REDUNDANCY = 5.0
 # only a group whose level is a noise's, not a model error's). grid2 (about 3 degrees of freedom a cable) pools
 # on most runs; the real runs, whose swivel rows sit hundreds of times above their noise, are not split
 PER_CABLE: tuple[str, ...] = ("swivel",)
+_GROUP_SLICE = {"tilt": ("orientation", slice(0, 2)), "yaw": ("orientation", slice(2, 3))}  # group -> channel rows
 NOISE_LEVEL = 0.01  # a group's rows scatter as noise while its factor x redundancy is inside this two-sided chi2 band
 VCE_SETTLED = 0.98  # a factor above this is 1: nothing left to shrink
 # a factor above this: the group's rows scatter around the fit by more than ~3 times the noise of a window mean
@@ -394,14 +395,21 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     groups = {c: v for c, v in factors.items() if "." not in c}
     misfit = any(red >= MISFIT_MIN_REDUNDANCY and f > MISFIT_FACTOR for f, red in groups.values())
     for c, (f, red) in groups.items():
+        ch, sl = _GROUP_SLICE.get(c, (c, slice(None)))
         if red < VCE_MIN_REDUNDANCY or (f > MISFIT_FACTOR and red < MISFIT_MIN_REDUNDANCY):
             if misfit and floor is not None:
-                ch, sl = ("orientation", slice(0, 2)) if c == "tilt" else ("orientation", slice(2, 3)) \
-                    if c == "yaw" else (c, slice(None))
                 low = out[ch][sl] < np.asarray(floor[ch], float)[sl]
                 if low.any():
                     out[ch][sl] = np.maximum(out[ch][sl], np.asarray(floor[ch], float)[sl])
                     changed = True
+            continue
+        if within is not None and np.any(sigma[ch][sl] > math.sqrt(MISFIT_FACTOR) * np.asarray(within[ch], float)[sl]):
+            # a level raised to a model error's in an earlier round follows its rows' scatter both ways (Helmert's
+            # fixed point, sigma^2 = ssq / r): sized first at a poorly fitted pose, it is re-sized at each better
+            # one instead of staying where the first round put it (the dead band below is for noise levels)
+            if abs(f - 1.0) > 1.0 - VCE_SETTLED:
+                out[ch][sl] = np.maximum(out[ch][sl] * math.sqrt(f), np.asarray(within[ch], float)[sl])
+                changed = True
             continue
         if not VCE_SETTLED <= f <= MISFIT_FACTOR:
             scale(c, math.sqrt(max(f, 1e-6)))
@@ -426,6 +434,11 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     for c, low in (lower or {}).items():
         out[c] = np.maximum(out[c], np.minimum(np.asarray(low, float), sigma[c]))  # never below it, nor raised
     return out if changed else None
+
+
+def sigma_change(old: dict[str, np.ndarray], new: dict[str, np.ndarray]) -> float:
+    """The largest relative change of any channel's sigma from ``old`` to ``new`` (|new / old - 1|)."""
+    return max(float(np.max(np.abs(np.asarray(new[c], float) / np.asarray(old[c], float) - 1.0))) for c in old)
 
 
 def _digamma(x: float) -> float:
