@@ -74,6 +74,8 @@ def test_a_re_cut_of_the_windows_leaves_the_estimate_where_it_was(irma_data, tmp
             assert again.chi2 / again.dof < 1.2  # 1.10 / 1.11
 
 
-def test_an_unknown_estimate_start_is_named():
+def test_an_unknown_estimate_start_or_rounds_is_named():
     with pytest.raises(SelfCalInputError, match="estimate_start 'best' is not one of within, likelier"):
         SolveOptions(estimate_start="best")
+    with pytest.raises(SelfCalInputError, match="estimate_rounds 'all' is not one of settle, first"):
+        SolveOptions(estimate_rounds="all")

@@ -362,7 +362,7 @@ def variance_factors(problem, theta: np.ndarray, poses: np.ndarray, per_cable: t
 
 def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float, float]],
                    floor: dict[str, np.ndarray] | None = None, within: dict[str, np.ndarray] | None = None,
-                   lower: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray] | None:
+                   lower: dict[str, np.ndarray] | None = None, follow: bool = True) -> dict[str, np.ndarray] | None:
     """The sigmas rescaled by the groups' variance factors (groups with at least VCE_MIN_REDUNDANCY degrees
     of freedom): a group whose rows scatter less than its sigma says (factor < VCE_SETTLED) is scaled by
     sqrt(factor); a group whose rows scatter by more than sqrt(MISFIT_FACTOR) times its sigma is dominated by
@@ -380,7 +380,9 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     real sc_27_medium_a the swivel rows scatter ~2200x their within-window variance, cable 1's 2-4x the others').
     No channel is brought below ``lower`` (the quantisation error of its window means,
     :attr:`PoseFreeNoise.quantisation`): the rows' own poses absorb part of their scatter, never the error a
-    reading that does not dither keeps. None when nothing changes."""
+    reading that does not dither keeps. A level raised to model error in an earlier round (above
+    sqrt(MISFIT_FACTOR) times ``within``) follows its rows' scatter both ways, floored at ``within``, unless
+    ``follow`` is off (then it keeps the dead band of a noise level). None when nothing changes."""
     out = {c: np.array(v, float) for c, v in sigma.items()}
     changed = False
 
@@ -403,7 +405,8 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
                     out[ch][sl] = np.maximum(out[ch][sl], np.asarray(floor[ch], float)[sl])
                     changed = True
             continue
-        if within is not None and np.any(sigma[ch][sl] > math.sqrt(MISFIT_FACTOR) * np.asarray(within[ch], float)[sl]):
+        if follow and within is not None and \
+                np.any(sigma[ch][sl] > math.sqrt(MISFIT_FACTOR) * np.asarray(within[ch], float)[sl]):
             # a level raised to a model error's in an earlier round follows its rows' scatter both ways (Helmert's
             # fixed point, sigma^2 = ssq / r): sized first at a poorly fitted pose, it is re-sized at each better
             # one instead of staying where the first round put it (the dead band below is for noise levels)
