@@ -29,10 +29,11 @@ from calib.selfcal.result import SelfCalFailure, Solution, compare_pose
 from calib.selfcal.rows import paper_noise, sensor_noise
 
 REFINE = 2  # estimate-noise solves: pose-free kinematic noise at the solution, then the solve again, twice
-# then variance-component rounds on the window means (noise.rescaled_sigma) until nothing changes: 2-3 on the
-# simulated runs; 10-12 on the real sc_8_medium_a, whose length sigma, raised to a model error's in the first
-# round, comes down by a factor of 0.6-0.8 a round (at 4 rounds, 7.1 -> 3.5 mm, the pose stopped 10 mm away from
-# where the rounds settle, at 1.46 mm: the "third minimum" of issue 28); the cap only guards against a cycle
+# then variance-component rounds on the window means (noise.rescaled_sigma) until they settle: 2-3 on the
+# simulated runs; 3-8 on the real ones, whose levels raised to model error in the first round (sized at a pose
+# fitted at chi2/dof 2000-9000) follow their scatter to Helmert's fixed point (sc_8_medium_a's lengths 7.1 ->
+# 1.4 mm; stopped at 4 rounds the pose was 10 mm off: the "third minimum" of issue 28; docs/windows.md,
+# "Rounds that settle at one weighting"); the cap only guards against a cycle
 VCE_ROUNDS_ROWS = 20
 # the rounds have settled when no group's sigma would change by more than SETTLE_SIGMA (relative) and the last
 # round moved the initial position by less than SETTLE_POSE of its 1-sigma on every axis: a Helmert walk that
@@ -158,8 +159,9 @@ def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust:
     # the within-window sigmas bound each group's noise of a mean from above (they include motion the
     # means average out, e.g. the force control's ripple, and the share the rows' poses absorb): where
     # the window means scatter less around the fit, variance components bring them down; up only where
-    # the model misses a group far beyond its noise (model error, noise.rescaled_sigma); the reference
-    # window's mean follows its channels down, never up (noise.reference_sigma)
+    # the model misses a group far beyond its noise (model error, noise.rescaled_sigma), and a level so
+    # raised then follows its scatter both ways ('settle'); the reference window's mean follows its
+    # channels down, never up (noise.reference_sigma)
     within, floor = noise.sigma, sensor_noise(robot)
     moved = np.inf  # the last round's move of the initial position, in its own 1-sigma
     for _ in range(VCE_ROUNDS_ROWS):
