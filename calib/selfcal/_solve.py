@@ -13,6 +13,7 @@ from calib.robot import Robot
 from calib.selfcal.guess import prepare
 from calib.selfcal.lm import levenberg_marquardt
 from calib.selfcal.noise import (
+    _GROUP_SLICE,
     MISFIT_FACTOR,
     NOISE_LEVEL,
     PER_CABLE,
@@ -58,8 +59,7 @@ def _with_reference_noise(robot: Robot, model, theta: np.ndarray, sigma: dict[st
 def _group_variance(sigma: dict[str, np.ndarray], group: str) -> float:
     """The mean variance (SI^2) of a variance-component group's channels (``noise.VCE_GROUPS``: tilt and yaw
     are the orientation's first two and its third)."""
-    parts = {"tilt": ("orientation", slice(0, 2)), "yaw": ("orientation", slice(2, 3))}
-    ch, sl = parts.get(group, (group, slice(None)))
+    ch, sl = _GROUP_SLICE.get(group, (group, slice(None)))
     return float(np.mean(np.asarray(sigma[ch], float)[sl] ** 2))
 
 
