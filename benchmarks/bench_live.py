@@ -537,6 +537,7 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
             run_wall = time.perf_counter() - wall0
             loop_cpu = (time.thread_time() - cpu0) / run_wall
             component = costs.stop()
+            plant_timing = sim.plant_timing()
         finally:
             view.close()
             rig.close()
@@ -552,7 +553,7 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
            "overruns": clock.overruns.count if paced else None, "late": late.tolist() if paced else None,
            "work_p99": np.percentile(work, 99, axis=0).tolist(), "work_max": work.max(axis=0).tolist(),
            "waited": [float(np.percentile(waited, 99)), float(waited.max())],
-           "collections": clock.probe.collections, "components": component,
+           "collections": clock.probe.collections, "components": component, "plant_timing": plant_timing,
            "tap": None if hook is None else dict(hook.summary(), run_s=run_wall),
            "gc_ms": [float(1e3 * rows[:, C["gc"]].sum()), float(1e3 * rows[:, C["gc"]].max())],
            "worst": causes(rows, period, clock.probe.places, paced, witnesses=witnesses),
@@ -586,6 +587,10 @@ def scene_rate(stamps: np.ndarray) -> tuple[float, int]:
     return rate, fewest
 
 
+PLANT_TIMES = {"wake": "its wake-up to a SYNC", "confirm": "the loop's wait for the samples",
+               "step": "the commands to the state", "collect": "the loop's wait for the state"}
+
+
 def report(name: str, r: dict) -> None:
     wp, wm = r["work_p99"], r["work_max"]
     line = f"  {name:11s} {r['ticks']} ticks in {r['wall_s']:.1f} s; "
@@ -607,6 +612,10 @@ def report(name: str, r: dict) -> None:
               f"{k['ics']:5.1f}/s; " + "; ".join(
                   f"{name} {100 * cpu:.2f} % {vcs:.0f}/s {ics:.1f}/s nice {nice} {pol}"
                   for name, cpu, vcs, ics, nice, pol in k["threads"][:6] if cpu > 1e-4 or vcs > 0.5))
+    if r.get("plant_timing"):
+        print("      the plant's hand-over per SYNC, p50 / p99 / worst ms: " + "; ".join(
+            f"{PLANT_TIMES[k]} {v['p50_ms']:.3f} / {v['p99_ms']:.3f} / {v['worst_ms']:.3f}"
+            for k, v in r["plant_timing"].items() if v.get("count")))
     if r.get("tap"):
         t = r["tap"]
         print(f"      the tap in the loop's thread: {t['calls']} calls, CPU mean {t['cpu_us'][0]:.1f} us p99 "
