@@ -63,9 +63,9 @@ def test_the_plant_answers_the_same_states_paced_or_unpaced():
     states = []
     for paced in (True, False):
         with SimBackend(ROBOT, None, seed=5, control_period=PERIOD, plant_process=True) as sim:
-            for k in range(60):
-                if paced and k % 2:
-                    time.sleep(1.5 * CHILD_POLL)  # beyond the poll: the child blocks, then polls again
+            for k in range(80):
+                if paced and (k // 20) % 2:  # 20 SYNCs at once (the child starts polling), 20 beyond its poll
+                    time.sleep(1.5 * CHILD_POLL)
                 sim.tick()
             states.append(sim.physics.state)
     assert states[0] == states[1]
