@@ -571,7 +571,7 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
     rows = clock.probe.table()
     late, work = rows[:, C["late"]] * 1e3, rows[:, [C["work_wall"], C["work_cpu"]]] * 1e3
     waited = work[:, 0] - work[:, 1]
-    res = {"ticks": len(rows), "rt": rt, "loop_cpu": loop_cpu, "minflt": int(rows[:, C["minflt"]].sum()),
+    res = {"ticks": len(rows), "rt": rt, "rate": rate, "loop_cpu": loop_cpu, "minflt": int(rows[:, C["minflt"]].sum()),
            "majflt": int(rows[:, C["majflt"]].sum()),
            "wall_s": time.perf_counter() - t0, "load": [load0, os.getloadavg()[0]],
            "overruns": clock.overruns.count if paced else None, "late": late.tolist() if paced else None,
@@ -621,7 +621,9 @@ def report(name: str, r: dict) -> None:
     line = f"  {name:11s} {r['ticks']} ticks in {r['wall_s']:.1f} s; "
     if r["late"] is not None:
         late = np.array(r["late"])
-        line += (f"overruns {r['overruns']}; lateness p50 {np.median(late):.3f} ms p99 "
+        half = 500.0 / r.get("rate", 200.0)
+        line += (f"overruns {r['overruns']} (ticks woken more than {half:.2f} ms late: {int((late > half).sum())}); "
+                 f"lateness p50 {np.median(late):.3f} ms p99 "
                  f"{np.percentile(late, 99):.3f} ms p99.9 {np.percentile(late, 99.9):.3f} ms worst "
                  f"{late.max():.3f} ms; ")
     print(line + f"tick work p99 {wp[0]:.3f} ms (cpu {wp[1]:.3f}) worst {wm[0]:.3f} ms (cpu {wm[1]:.3f}); "
