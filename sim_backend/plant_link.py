@@ -55,12 +55,8 @@ _OK, _FAILED = 0, 1
 _STATE_AT = 512  # byte offset of the state block in the shared page
 _ERROR_AT = 2048  # byte offset of the error message
 _PAGE = 4096
-# s the child polls for the next command before blocking, when its last CHILD_SHORT waits for that kind of message
-# (a SYNC's samples, or the SYNC's commands) each ended sooner (a lockstep run unpaced, and the commands after a
-# SYNC's samples); otherwise (a run paced in real time: the next SYNC comes a period later, and sooner only
-# while a late loop catches up) it blocks at once
-CHILD_POLL = 2e-3
-CHILD_SHORT = 8
+CHILD_POLL = 2e-3  # s the child polls for a message before blocking, once its last CHILD_SHORT waits for that
+CHILD_SHORT = 8  # kind each ended sooner (unpaced lockstep); else (paced: a SYNC a period later) it blocks at once
 PARENT_POLL = 1e-3  # s the parent polls for the state before blocking
 # at byte 8: wall times (perf_counter, s) of a SYNC's hand-over: the parent's emit, the child's wake-up to it, the
 # parent's advance, the child's state posted (the link's timing, never the simulation's)
@@ -321,9 +317,8 @@ class ChildPlantLink:
         self._unsent: int | None = None  # the SYNC whose emit is out and not yet confirmed
         self._exit: int | None = None  # the child's wait status once reaped
         self.waited = 0.0  # s the parent spent waiting for the child's answers (beyond a first look)
-        # per SYNC, s: the child's wake-up to its samples (the parent's emit to the child running), the parent's
-        # wait for their confirmation (from its sent), the step (the parent's advance to the state posted), the
-        # parent's wait for the state (from its collect)
+        # per SYNC, s: the emit to the child running, the wait in sent, the advance to the state posted, the wait
+        # for the state (SimBackend.plant_timing)
         self.timing = {k: Durations() for k in ("wake", "confirm", "step", "collect")}
         parent = os.getpid()
         keep = sorted({0, 1, 2, *core.fds()})
@@ -496,8 +491,7 @@ def _child_main(core: PlantCore, page: mmap.mmap, sems: tuple, parent: int, comm
     them, otherwise the command block is read: advance the core and post the state (or the error), or stop.
     ``sems``: (to the child, the state to the parent, the samples sent)."""
     to_child, to_parent, sent = sems
-    # the last waits in a row that ended within CHILD_POLL, by what they waited for: [a SYNC's samples, the
-    # SYNC's commands]; and what the next wait is for
+    # waits in a row that ended within CHILD_POLL, by what they waited for (a SYNC's samples, its commands)
     short, awaited = [0, 0], 0
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the run and closes us
     sys.setswitchinterval(1e-4)  # the serial devices' threads get the interpreter soon while this one polls
