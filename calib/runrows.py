@@ -40,8 +40,10 @@ def run_rows(run: Any, noise: str = "estimate", method: str = "tlse", stride: in
     from calib.selfcal import measurement_rows, noise_levels, run_signals, sensor_noise, solve
 
     robot = run.robot
+    # the rounds' 'first' sizing of a model-error level: the diagnosis reads its leftover chi2 as the model's
+    # misfit (calib.selfcal.SolveOptions.estimate_rounds; at settled rounds chi2 is inside its band by design)
     sol = solve(robot, run, method=method, noise="estimate" if noise == "accuracy" else noise, stride=stride,
-                reference_sample=reference_sample)
+                reference_sample=reference_sample, estimate_rounds="first")
     sig = run_signals(robot, run)
     meas = measurement_rows(sig, sol.windows, method, stride, sol.reference_sample)[0]
     # the estimate-noise solve's own sigmas: the kinematic ones without the motion the rows' poses absorb

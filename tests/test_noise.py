@@ -121,8 +121,9 @@ def test_each_cables_swivel_rows_get_their_own_component_where_they_carry_it():
     band, leaves the group pooled."""
     from calib.selfcal.lm import levenberg_marquardt
     from calib.selfcal.model import MeasurementModel
-    from calib.selfcal.noise import MISFIT_FACTOR, VCE_MIN_REDUNDANCY, cable_factors, rescaled_sigma, variance_factors
+    from calib.selfcal.noise import MISFIT_FACTOR, VCE_MIN_REDUNDANCY, rescaled_sigma, variance_factors
     from calib.selfcal.problem import Problem
+    from calib.selfcal.shrinkage import cable_factors
     from sim_backend.config import sim_config_from_dict
     from sim_backend.equilibrium_rows import simulated_rows
 
@@ -167,7 +168,7 @@ def test_empirical_bayes_cable_factors_are_never_worse_than_the_better_of_pooled
     dof solves var(log v) - mean trigamma(r / 2) = trigamma(d0 / 2) (scipy's trigamma)."""
     from scipy.special import digamma, polygamma
 
-    from calib.selfcal.noise import cable_factors, prior_dof
+    from calib.selfcal.shrinkage import cable_factors, prior_dof
 
     true = np.array([1.82, 0.77, 0.79, 1.82])
     rng = np.random.default_rng(1)

@@ -47,6 +47,7 @@ import numpy as np
 from calib.chi2 import chi2_sf
 from calib.robot import Robot
 from calib.selfcal.quantisation import quantisation_variance
+from calib.selfcal.shrinkage import cable_factors
 
 QUANTISED = 0.5  # fewer non-zero second differences than this share: a quantised reading, not noise
 RHO_MAX = 0.98  # an AR(1) coefficient above this is a drift, not noise: cap the correction (N / f >= ~1)
@@ -296,6 +297,7 @@ MISFIT_MIN_REDUNDANCY = 5.0
 # only a group whose level is a noise's, not a model error's). grid2 (about 3 degrees of freedom a cable) pools
 # on most runs; the real runs, whose swivel rows sit hundreds of times above their noise, are not split
 PER_CABLE: tuple[str, ...] = ("swivel",)
+_GROUP_SLICE = {"tilt": ("orientation", slice(0, 2)), "yaw": ("orientation", slice(2, 3))}  # group -> channel rows
 NOISE_LEVEL = 0.01  # a group's rows scatter as noise while its factor x redundancy is inside this two-sided chi2 band
 VCE_SETTLED = 0.98  # a factor above this is 1: nothing left to shrink
 # a factor above this: the group's rows scatter around the fit by more than ~3 times the noise of a window mean
@@ -361,7 +363,7 @@ def variance_factors(problem, theta: np.ndarray, poses: np.ndarray, per_cable: t
 
 def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float, float]],
                    floor: dict[str, np.ndarray] | None = None, within: dict[str, np.ndarray] | None = None,
-                   lower: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray] | None:
+                   lower: dict[str, np.ndarray] | None = None, follow: bool = True) -> dict[str, np.ndarray] | None:
     """The sigmas rescaled by the groups' variance factors (groups with at least VCE_MIN_REDUNDANCY degrees
     of freedom): a group whose rows scatter less than its sigma says (factor < VCE_SETTLED) is scaled by
     sqrt(factor); a group whose rows scatter by more than sqrt(MISFIT_FACTOR) times its sigma is dominated by
@@ -379,7 +381,9 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     real sc_27_medium_a the swivel rows scatter ~2200x their within-window variance, cable 1's 2-4x the others').
     No channel is brought below ``lower`` (the quantisation error of its window means,
     :attr:`PoseFreeNoise.quantisation`): the rows' own poses absorb part of their scatter, never the error a
-    reading that does not dither keeps. None when nothing changes."""
+    reading that does not dither keeps. A level raised to model error in an earlier round (above
+    sqrt(MISFIT_FACTOR) times ``within``) follows its rows' scatter both ways, floored at ``within``, unless
+    ``follow`` is off (then it keeps the dead band of a noise level). None when nothing changes."""
     out = {c: np.array(v, float) for c, v in sigma.items()}
     changed = False
 
@@ -394,14 +398,22 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     groups = {c: v for c, v in factors.items() if "." not in c}
     misfit = any(red >= MISFIT_MIN_REDUNDANCY and f > MISFIT_FACTOR for f, red in groups.values())
     for c, (f, red) in groups.items():
+        ch, sl = _GROUP_SLICE.get(c, (c, slice(None)))
         if red < VCE_MIN_REDUNDANCY or (f > MISFIT_FACTOR and red < MISFIT_MIN_REDUNDANCY):
             if misfit and floor is not None:
-                ch, sl = ("orientation", slice(0, 2)) if c == "tilt" else ("orientation", slice(2, 3)) \
-                    if c == "yaw" else (c, slice(None))
                 low = out[ch][sl] < np.asarray(floor[ch], float)[sl]
                 if low.any():
                     out[ch][sl] = np.maximum(out[ch][sl], np.asarray(floor[ch], float)[sl])
                     changed = True
+            continue
+        if follow and within is not None and \
+                np.any(sigma[ch][sl] > math.sqrt(MISFIT_FACTOR) * np.asarray(within[ch], float)[sl]):
+            # a level raised to a model error's in an earlier round follows its rows' scatter both ways (Helmert's
+            # fixed point, sigma^2 = ssq / r): sized first at a poorly fitted pose, it is re-sized at each better
+            # one instead of staying where the first round put it (the dead band below is for noise levels)
+            if abs(f - 1.0) > 1.0 - VCE_SETTLED:
+                out[ch][sl] = np.maximum(out[ch][sl] * math.sqrt(f), np.asarray(within[ch], float)[sl])
+                changed = True
             continue
         if not VCE_SETTLED <= f <= MISFIT_FACTOR:
             scale(c, math.sqrt(max(f, 1e-6)))
@@ -428,60 +440,9 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     return out if changed else None
 
 
-def _digamma(x: float) -> float:
-    """psi(x) for x > 0: the recurrence up to 10, then the asymptotic series (error < 1e-12)."""
-    acc = 0.0
-    while x < 10.0:
-        acc -= 1.0 / x
-        x += 1.0
-    r = 1.0 / (x * x)
-    return acc + math.log(x) - 0.5 / x - r * (1.0 / 12.0 - r * (1.0 / 120.0 - r * (1.0 / 252.0 - r / 240.0)))
-
-
-def _trigamma(x: float) -> float:
-    """psi'(x) for x > 0: the recurrence up to 10, then the asymptotic series (error < 1e-12)."""
-    acc = 0.0
-    while x < 10.0:
-        acc += 1.0 / (x * x)
-        x += 1.0
-    r = 1.0 / (x * x)
-    return acc + 1.0 / x + 0.5 * r + r / x * (1.0 / 6.0 - r * (1.0 / 30.0 - r * (1.0 / 42.0 - r / 30.0)))
-
-
-def prior_dof(variances: np.ndarray, dof: np.ndarray) -> float:
-    """Empirical-Bayes degrees of freedom d0 of a scaled inverse-chi2 prior shared by k variance estimates
-    (``variances`` with ``dof`` degrees of freedom each; Smyth 2004, the moments of log s^2): the spread of the
-    logs beyond what their own chi2 sampling makes, Var = trigamma(d0 / 2). inf when they spread no more than
-    sampling does (one common variance: pool them), 0 for a spread no prior can hold (keep each its own)."""
-    v, r = np.asarray(variances, float), np.asarray(dof, float)
-    if v.size < 2 or np.any(v <= 0) or np.any(r <= 0):
-        return math.inf
-    z = np.log(v) - np.array([_digamma(x / 2.0) - math.log(x / 2.0) for x in r])
-    excess = float(np.var(z, ddof=1)) - float(np.mean([_trigamma(x / 2.0) for x in r]))
-    if excess <= 0.0:
-        return math.inf
-    lo, hi = 1e-3, 1e6  # trigamma(d0 / 2) decreases in d0: bisect on a log scale
-    if excess >= _trigamma(lo / 2.0):
-        return 0.0
-    for _ in range(100):
-        mid = math.sqrt(lo * hi)
-        lo, hi = (mid, hi) if _trigamma(mid / 2.0) > excess else (lo, mid)
-    return math.sqrt(lo * hi)
-
-
-def cable_factors(factors: np.ndarray, dof: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """The cables' variance factors of one group (``factors`` f_i on ``dof`` r_i degrees of freedom, against
-    the cables' current ``sigma``) shrunk toward the group's pooled variance by empirical Bayes: each cable's
-    variance f_i sigma_i^2 is averaged with the pooled one, sum r_i f_i sigma_i^2 / sum r_i, weighed r_i
-    against the prior's d0 (:func:`prior_dof`); returned as factors against ``sigma``. With a few degrees of
-    freedom a cable (grid2: about 3) keeps its own factor only as far as the cables' factors differ by more
-    than their sampling does; identical cables pool (d0 = inf)."""
-    f, r, s2 = np.asarray(factors, float), np.asarray(dof, float), np.asarray(sigma, float) ** 2
-    v = f * s2
-    pooled = float(np.sum(r * v) / np.sum(r))
-    d0 = prior_dof(v, r)
-    post = np.full_like(v, pooled) if math.isinf(d0) else (d0 * pooled + r * v) / (d0 + r)
-    return post / s2
+def sigma_change(old: dict[str, np.ndarray], new: dict[str, np.ndarray]) -> float:
+    """The largest relative change of any channel's sigma from ``old`` to ``new`` (|new / old - 1|)."""
+    return max(float(np.max(np.abs(np.asarray(new[c], float) / np.asarray(old[c], float) - 1.0))) for c in old)
 
 
 def reference_sigma(rows: dict[str, np.ndarray], within: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

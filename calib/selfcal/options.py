@@ -17,6 +17,7 @@ METHODS = ("tlse", "lse", "hybrid")
 NOISE = ("paper", "estimate", "sensors")
 # where an estimate solve (noise "estimate", method tlse) starts: see SolveOptions
 ESTIMATE_STARTS = ("within", "likelier")
+ESTIMATE_ROUNDS = ("settle", "first")
 
 
 def default_noise(method: str) -> str:
@@ -40,6 +41,11 @@ class SolveOptions:
     estimate_start: an estimate solve's start. 'within' (default): the within-window first pass, again from
         the paper's weights when it ends unusable; 'likelier': both, the end whose weights make the rows more
         likely (restricted likelihood), at twice the cost (docs/windows.md: what each does on the real runs).
+    estimate_rounds: how an estimate solve's variance-component rounds treat a group raised to model error.
+        'settle' (default): it follows its rows' scatter around each new fit, up and down, to Helmert's fixed
+        point (chi2 ends inside its band); 'first': it keeps the size its first round gave it, at a poorly
+        fitted pose (the rounds before issue 29 r, whose leftover chi2 the diagnosis's tests read as the
+        model's misfit: calib.runrows keeps it until that test is made against the window-scatter noise).
     """
 
     method: str = "tlse"
@@ -53,12 +59,16 @@ class SolveOptions:
     reference_pose: np.ndarray | None = None
     max_iter: int = 200
     estimate_start: str = "within"
+    estimate_rounds: str = "settle"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise SelfCalInputError(f"method '{self.method}' is not one of {', '.join(METHODS)}.")
         if int(self.stride) < 1:
             raise SelfCalInputError(f"stride {self.stride} must be a positive integer.")
+        if self.estimate_rounds not in ESTIMATE_ROUNDS:
+            raise SelfCalInputError(
+                f"estimate_rounds '{self.estimate_rounds}' is not one of {', '.join(ESTIMATE_ROUNDS)}.")
         if self.estimate_start not in ESTIMATE_STARTS:
             raise SelfCalInputError(
                 f"estimate_start '{self.estimate_start}' is not one of {', '.join(ESTIMATE_STARTS)}.")
