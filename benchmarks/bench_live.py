@@ -2,6 +2,7 @@
 
     python benchmarks/bench_live.py [--rate 200] [--grid 2] [--hold 2] [--repeat 1] [--unpaced] [--rt-priority N]
                                     [--spin MS] [--serial-lines socket|pty] [--mlock auto|on|off] [--affinity]
+                                    [--plant-poll adaptive|always]
 
 Runs the real startup routine (StartupRoutine on the simulated prototype, RealClock in lockstep: what
 ``cdpr startup --backend sim --realtime`` runs) without the live view, then with it (``--live``:
@@ -55,6 +56,7 @@ from acquisition.plans import Plan
 from acquisition.safety import SafetyLimits
 from acquisition.startup import StartupConfig, StartupRoutine
 from calib.robot import load_robot
+from sim_backend import plant_link
 from sim_backend.backend import SimBackend
 
 CLIENT = r"""
@@ -187,6 +189,22 @@ def _stolen(fd: int | None) -> tuple[float, float]:
 
 
 _CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def cpu_times() -> dict[str, np.ndarray]:
+    """Per CPU ("cpu0", ...), s so far (/proc/stat, clock ticks of 10 ms): busy (user, nice, system, irq, softirq),
+    idle (idle, iowait) and stolen by the VM's host; {} without /proc/stat."""
+    out = {}
+    try:
+        with open("/proc/stat") as f:
+            for line in f:
+                name, *v = line.split()
+                if name.startswith("cpu") and name != "cpu":
+                    t = np.array([int(x) for x in v[:8]], float) / _CLK_TCK
+                    out[name] = np.array([t[0] + t[1] + t[2] + t[5] + t[6], t[3] + t[4], t[7]])
+    except (OSError, ValueError):
+        pass
+    return out
 
 
 def _open_schedstat(path: str) -> int | None:
@@ -494,12 +512,16 @@ def _pin_threads(cpus: set[int]) -> None:
 
 
 def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: Path, rt: int | None = None,
-            spin: float = 0.0, lines: str = "socket", lock: bool | None = None, affinity: bool = False) -> dict:
+            spin: float = 0.0, lines: str = "socket", lock: bool | None = None, affinity: bool = False,
+            plant_poll: str = "adaptive") -> dict:
     """One startup in this process; its figures (ms) and, with the live view, what the client received. ``rt``:
     the loop's thread and the simulated plant's process under SCHED_FIFO at that priority; ``spin``: the clock's
     hybrid wait (s); ``lines``: the simulated serial lines (``socket`` or ``pty``); ``lock``: the loop's memory
     locked (StartupConfig.lock_memory; None: with ``rt``); ``affinity``: this process (the loop and its log
-    worker) alone on the last CPU, the plant, the publisher and the client on the others."""
+    worker) alone on the last CPU, the plant, the publisher and the client on the others; ``plant_poll``:
+    ``always``, the plant's child polls 2 ms for every message before it blocks (as until 2026-11-28, for an A/B
+    of its spin; the simulated samples are the same either way), ``adaptive`` (sim_backend/plant_link.py)."""
+    plant_link.CHILD_SHORT = 0 if plant_poll == "always" else plant_link.CHILD_SHORT  # read by the forked child
     robot = load_robot("irma4u")
     cfg = StartupConfig(rate=rate, hold_time=hold, rt_priority=rt, lock_memory=lock)
     cpus = os.sched_getaffinity(0)
@@ -532,11 +554,14 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
                                     "publisher": None if view.process is None else view.process.pid,
                                     "client": None if client is None else client.pid})
             costs.start()
+            machine0 = cpu_times()
             cpu0, wall0 = time.thread_time(), time.perf_counter()
             view.started(routine).run()
             run_wall = time.perf_counter() - wall0
             loop_cpu = (time.thread_time() - cpu0) / run_wall
             component = costs.stop()
+            machine = {c: ((t - machine0[c]) / run_wall).tolist() for c, t in cpu_times().items() if c in machine0}
+            plant_timing = sim.plant_timing()
         finally:
             view.close()
             rig.close()
@@ -546,13 +571,14 @@ def startup(rate: float, grid: int, hold: float, live: bool, paced: bool, out: P
     rows = clock.probe.table()
     late, work = rows[:, C["late"]] * 1e3, rows[:, [C["work_wall"], C["work_cpu"]]] * 1e3
     waited = work[:, 0] - work[:, 1]
-    res = {"ticks": len(rows), "rt": rt, "loop_cpu": loop_cpu, "minflt": int(rows[:, C["minflt"]].sum()),
+    res = {"ticks": len(rows), "rt": rt, "rate": rate, "loop_cpu": loop_cpu, "minflt": int(rows[:, C["minflt"]].sum()),
            "majflt": int(rows[:, C["majflt"]].sum()),
            "wall_s": time.perf_counter() - t0, "load": [load0, os.getloadavg()[0]],
            "overruns": clock.overruns.count if paced else None, "late": late.tolist() if paced else None,
            "work_p99": np.percentile(work, 99, axis=0).tolist(), "work_max": work.max(axis=0).tolist(),
            "waited": [float(np.percentile(waited, 99)), float(waited.max())],
-           "collections": clock.probe.collections, "components": component,
+           "collections": clock.probe.collections, "components": component, "plant_timing": plant_timing,
+           "machine": machine,
            "tap": None if hook is None else dict(hook.summary(), run_s=run_wall),
            "gc_ms": [float(1e3 * rows[:, C["gc"]].sum()), float(1e3 * rows[:, C["gc"]].max())],
            "worst": causes(rows, period, clock.probe.places, paced, witnesses=witnesses),
@@ -570,7 +596,7 @@ def child(args: argparse.Namespace, live: bool) -> dict:
            str(args.grid), "--hold", str(args.hold)] + (["--unpaced"] if args.unpaced else []) + (
         ["--rt-priority", str(args.rt_priority)] if args.rt_priority else []) + [
         "--spin", str(args.spin), "--serial-lines", args.serial_lines, "--mlock", args.mlock] + (
-        ["--affinity"] if args.affinity else [])
+        ["--affinity"] if args.affinity else []) + ["--plant-poll", args.plant_poll]
     done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -586,12 +612,18 @@ def scene_rate(stamps: np.ndarray) -> tuple[float, int]:
     return rate, fewest
 
 
+PLANT_TIMES = {"wake": "its wake-up to a SYNC", "confirm": "the loop's wait for the samples",
+               "step": "the commands to the state", "collect": "the loop's wait for the state"}
+
+
 def report(name: str, r: dict) -> None:
     wp, wm = r["work_p99"], r["work_max"]
     line = f"  {name:11s} {r['ticks']} ticks in {r['wall_s']:.1f} s; "
     if r["late"] is not None:
         late = np.array(r["late"])
-        line += (f"overruns {r['overruns']}; lateness p50 {np.median(late):.3f} ms p99 "
+        half = 500.0 / r.get("rate", 200.0)
+        line += (f"overruns {r['overruns']} (ticks woken more than {half:.2f} ms late: {int((late > half).sum())}); "
+                 f"lateness p50 {np.median(late):.3f} ms p99 "
                  f"{np.percentile(late, 99):.3f} ms p99.9 {np.percentile(late, 99.9):.3f} ms worst "
                  f"{late.max():.3f} ms; ")
     print(line + f"tick work p99 {wp[0]:.3f} ms (cpu {wp[1]:.3f}) worst {wm[0]:.3f} ms (cpu {wm[1]:.3f}); "
@@ -607,6 +639,14 @@ def report(name: str, r: dict) -> None:
               f"{k['ics']:5.1f}/s; " + "; ".join(
                   f"{name} {100 * cpu:.2f} % {vcs:.0f}/s {ics:.1f}/s nice {nice} {pol}"
                   for name, cpu, vcs, ics, nice, pol in k["threads"][:6] if cpu > 1e-4 or vcs > 0.5))
+    if r.get("machine"):
+        print("      each CPU over the run, s/s (10 ms steps; the whole machine, neighbours included): " + "; ".join(
+            f"{c} busy {b:.3f} idle {i:.3f} stolen by the VM's host {st:.4f}"
+            for c, (b, i, st) in r["machine"].items()))
+    if r.get("plant_timing"):
+        print("      the plant's hand-over per SYNC, p50 / p99 / worst ms: " + "; ".join(
+            f"{PLANT_TIMES[k]} {v['p50_ms']:.3f} / {v['p99_ms']:.3f} / {v['worst_ms']:.3f}"
+            for k, v in r["plant_timing"].items() if v.get("count")))
     if r.get("tap"):
         t = r["tap"]
         print(f"      the tap in the loop's thread: {t['calls']} calls, CPU mean {t['cpu_us'][0]:.1f} us p99 "
@@ -657,13 +697,16 @@ def main() -> int:
     ap.add_argument("--affinity", action="store_true",
                     help="the loop's process alone on the last CPU; the plant, the publisher and the client on "
                          "the others")
+    ap.add_argument("--plant-poll", choices=("adaptive", "always"), default="adaptive",
+                    help="the simulated plant's wait for the next SYNC: adaptive (blocks when paced; default) or "
+                         "always (polls 2 ms first, as until 2026-11-28: an A/B of its spin)")
     ap.add_argument("--one", choices=("plain", "live"), help=argparse.SUPPRESS)  # one run, its JSON on stdout
     args = ap.parse_args()
     if args.one:
         with tempfile.TemporaryDirectory() as tmp:
             res = startup(args.rate, args.grid, args.hold, args.one == "live", not args.unpaced, Path(tmp) / "run",
                           args.rt_priority, args.spin * 1e-3, args.serial_lines,
-                          {"auto": None, "on": True, "off": False}[args.mlock], args.affinity)
+                          {"auto": None, "on": True, "off": False}[args.mlock], args.affinity, args.plant_poll)
         print(json.dumps(res))
         return 0
     runs: dict[bool, list[dict]] = {False: [], True: []}
@@ -676,7 +719,8 @@ def main() -> int:
           + (f"the loop and the plant under SCHED_FIFO {args.rt_priority}" if args.rt_priority else "normal priority")
           + f", serial lines: {args.serial_lines}"
           + (f", hybrid wait: poll the last {args.spin:g} ms" if args.spin else "")
-          + f", memory lock: {args.mlock}" + (", the loop's process alone on the last CPU" if args.affinity else ""))
+          + f", memory lock: {args.mlock}" + (", the loop's process alone on the last CPU" if args.affinity else "")
+          + f", the plant's poll: {args.plant_poll}")
     for live in (False, True):
         for r in runs[live]:
             report("with --live" if live else "without", r)

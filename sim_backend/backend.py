@@ -380,6 +380,13 @@ class SimBackend:
         """Seconds the SYNC handler has waited so far for the plant's child process to answer (0 in process)."""
         return float(getattr(self._link, "waited", 0.0))
 
+    def plant_timing(self) -> dict[str, dict[str, float]]:
+        """The plant child's hand-over per SYNC so far ({} in process): ``wake`` (the emit to the child running),
+        ``confirm`` (the SYNC handler's wait for the samples), ``step`` (the commands to the state posted),
+        ``collect`` (the handler's wait for the state), each ``plant_link.Durations.summary``."""
+        timing = getattr(self._link, "timing", {})
+        return {k: d.summary() for k, d in timing.items()}
+
     def _record(self) -> None:
         self._history.append((self.sync_count, self.physics.state))
 

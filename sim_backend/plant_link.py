@@ -15,12 +15,16 @@ in a child process (:class:`ChildPlantLink`, forked, with its serial emulators' 
 overlaps the master's work on tick n. The two processes share one page (commands in, state out) and hand
 it over with POSIX semaphores, whose atomic operations order the page's reads and writes; the waiting
 side first polls its semaphore (the other side answers within microseconds in a lockstep run), then
-blocks. The serial samples of SYNC n are needed at SYNC n: the child confirms each emit once its bytes are
-on the lines (a third semaphore), and the SYNC handler waits for that confirmation (:meth:`PlantLink.sent`)
-after its CAN nodes have answered, so that the master's reads after the SYNC find them however late the
-child ran (a loaded machine, a stopped process): a lockstep run never depends on timing. Nothing waits on
-wall time but the link's own guard against a child that died or hung. :class:`InProcessPlantLink` makes the
-same calls in the same order in this process: both links give the same bytes on every wire for the same seed.
+blocks. The child polls for a kind of message (a SYNC's samples, its commands) only once its last
+:data:`CHILD_SHORT` waits for that kind each ended within the poll (:data:`CHILD_POLL`): paced in real time
+the next SYNC comes a period later, and it blocks at once instead of spinning on a CPU for nothing (timing
+never changes what is simulated). The serial samples of SYNC n are needed at SYNC n: the child confirms each
+emit once its bytes are on the lines (a third semaphore), and the SYNC handler waits for that confirmation
+(:meth:`PlantLink.sent`) after its CAN nodes have answered, so that the master's reads after the SYNC find
+them however late the child ran (a loaded machine, a stopped process): a lockstep run never depends on timing.
+Nothing waits on wall time but the link's own guard against a child that died or hung.
+:class:`InProcessPlantLink` makes the same calls in the same order in this process: both links give the same
+bytes on every wire for the same seed.
 An exception of the core is raised by the next :meth:`collect` in both, and again at every later one.
 """
 
@@ -51,8 +55,13 @@ _OK, _FAILED = 0, 1
 _STATE_AT = 512  # byte offset of the state block in the shared page
 _ERROR_AT = 2048  # byte offset of the error message
 _PAGE = 4096
-CHILD_POLL = 2e-3  # s the child polls for the next command before blocking (a lockstep SYNC comes sooner)
+CHILD_POLL = 2e-3  # s the child polls for a message before blocking, once its last CHILD_SHORT waits for that
+CHILD_SHORT = 8  # kind each ended sooner (unpaced lockstep); else (paced: a SYNC a period later) it blocks at once
 PARENT_POLL = 1e-3  # s the parent polls for the state before blocking
+# at byte 8: wall times (perf_counter, s) of a SYNC's hand-over: the parent's emit, the child's wake-up to it, the
+# parent's advance, the child's state posted (the link's timing, never the simulation's)
+_TIMES = struct.Struct("<4d")
+_TIMES_AT = 8
 # s without an answer from a living child before the link gives up; the time the child spends stopped (SIGSTOP,
 # a debugger) does not count: a stopped plant is late, not broken, and a lockstep run waits for it
 ANSWER_TIMEOUT = 30.0
@@ -193,6 +202,26 @@ class PlantCore:
             self.physics.slip_cable(f.target, f.length)
 
 
+class Durations:
+    """The last ``size`` values of a duration (s), kept in a preallocated array (no object per value)."""
+
+    def __init__(self, size: int = 1 << 16) -> None:
+        self.values = np.zeros(size)
+        self.count = 0
+
+    def add(self, value: float) -> None:
+        self.values[self.count % len(self.values)] = value
+        self.count += 1
+
+    def summary(self) -> dict[str, float]:
+        """``count`` (all added) and the p50, p99 and worst of those kept, ms."""
+        v = self.values[:min(self.count, len(self.values))]
+        if not len(v):
+            return {"count": 0}
+        p50, p99 = np.percentile(v, [50, 99])
+        return {"count": self.count, "p50_ms": 1e3 * p50, "p99_ms": 1e3 * p99, "worst_ms": 1e3 * float(v.max())}
+
+
 class PlantLink(Protocol):
     """Hands the commands of a SYNC to a :class:`PlantCore` and brings back the state of the next one."""
 
@@ -288,6 +317,9 @@ class ChildPlantLink:
         self._unsent: int | None = None  # the SYNC whose emit is out and not yet confirmed
         self._exit: int | None = None  # the child's wait status once reaped
         self.waited = 0.0  # s the parent spent waiting for the child's answers (beyond a first look)
+        # per SYNC, s: the emit to the child running, the wait in sent, the advance to the state posted, the wait
+        # for the state (SimBackend.plant_timing)
+        self.timing = {k: Durations() for k in ("wake", "confirm", "step", "collect")}
         parent = os.getpid()
         keep = sorted({0, 1, 2, *core.fds()})
         self.pid = os.fork()
@@ -314,6 +346,7 @@ class ChildPlantLink:
         if self._error is not None:
             return
         _EMIT.pack_into(self._page, 0, count)
+        struct.pack_into("<d", self._page, _TIMES_AT, time.perf_counter())
         self._unsent = count
         self._to_child.release()
 
@@ -321,7 +354,11 @@ class ChildPlantLink:
         if self._unsent != count or self._error is not None or self._closed:
             return
         self._unsent = None
-        self._await(self._emitted, f"the serial samples of SYNC {count}")
+        start = time.perf_counter()
+        if self._await(self._emitted, f"the serial samples of SYNC {count}"):
+            posted, woke, _, _ = _TIMES.unpack_from(self._page, _TIMES_AT)
+            self.timing["confirm"].add(time.perf_counter() - start)
+            self.timing["wake"].add(woke - posted)
 
     def advance(self, count: int, torques, brakes) -> None:
         if self._error is not None or self._closed:
@@ -330,6 +367,7 @@ class ChildPlantLink:
             self._receive()
         _HEADER.pack_into(self._page, _COMMAND_AT, _OP_ADVANCE, count)
         self._command.pack_into(self._page, _COMMAND_AT + _HEADER.size, *torques, *brakes)
+        struct.pack_into("<d", self._page, _TIMES_AT + 16, time.perf_counter())
         self._waiting = True
         self._to_child.release()
 
@@ -350,8 +388,12 @@ class ChildPlantLink:
 
     def _receive(self) -> None:
         self._waiting = False
+        start = time.perf_counter()
         if not self._await(self._to_parent, "the state of the next SYNC"):
             return
+        self.timing["collect"].add(time.perf_counter() - start)
+        _, _, posted, done = _TIMES.unpack_from(self._page, _TIMES_AT)
+        self.timing["step"].add(done - posted)
         block = self._state.unpack_from(self._page, _STATE_AT)  # status, then the state
         if block[0] != _OK:
             (size,) = struct.unpack_from("<q", self._page, _ERROR_AT)
@@ -449,6 +491,8 @@ def _child_main(core: PlantCore, page: mmap.mmap, sems: tuple, parent: int, comm
     them, otherwise the command block is read: advance the core and post the state (or the error), or stop.
     ``sems``: (to the child, the state to the parent, the samples sent)."""
     to_child, to_parent, sent = sems
+    # waits in a row that ended within CHILD_POLL, by what they waited for (a SYNC's samples, its commands)
+    short, awaited = [0, 0], 0
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the run and closes us
     sys.setswitchinterval(1e-4)  # the serial devices' threads get the interpreter soon while this one polls
     core.start()
@@ -461,9 +505,18 @@ def _child_main(core: PlantCore, page: mmap.mmap, sems: tuple, parent: int, comm
         struct.pack_into(f"<q{len(msg)}s", page, _ERROR_AT, len(msg), msg)
 
     try:
-        while _wait_for_command(to_child, parent):
+        while True:
+            start = time.perf_counter()
+            if not _wait_for_command(to_child, parent, CHILD_POLL if short[awaited] >= CHILD_SHORT else 0.0):
+                break
+            woke = time.perf_counter()
+            # a poll that runs out (a paced run's next SYNC comes a period later) costs a busy CPU and answers no
+            # sooner than a block
+            short[awaited] = short[awaited] + 1 if woke - start < CHILD_POLL else 0
             (count,) = _EMIT.unpack_from(page, 0)
             if count != emitted:  # a SYNC: its samples first; its commands come with the next message
+                awaited = 1
+                struct.pack_into("<d", page, _TIMES_AT + 8, woke)
                 emitted = count
                 if not failed:
                     try:
@@ -473,6 +526,7 @@ def _child_main(core: PlantCore, page: mmap.mmap, sems: tuple, parent: int, comm
                         fail(exc)
                 sent.release()  # the bytes are in the lines' buffers (or the failure is on the page)
                 continue
+            awaited = 0
             op, count = _HEADER.unpack_from(page, _COMMAND_AT)
             if op == _OP_STOP:
                 break
@@ -484,16 +538,17 @@ def _child_main(core: PlantCore, page: mmap.mmap, sems: tuple, parent: int, comm
                 except Exception as exc:
                     failed = True
                     fail(exc)
+            struct.pack_into("<d", page, _TIMES_AT + 24, time.perf_counter())
             to_parent.release()
     finally:
         core.close()
 
 
-def _wait_for_command(sem, parent: int) -> bool:
-    """Poll, then block for the next command; False when the parent has gone."""
+def _wait_for_command(sem, parent: int, poll: float) -> bool:
+    """Poll for ``poll`` s, then block for the next command; False when the parent has gone."""
     if sem.acquire(False):
         return True
-    end = time.perf_counter() + CHILD_POLL
+    end = time.perf_counter() + poll
     while time.perf_counter() < end:
         for _ in range(64):
             if sem.acquire(False):
