@@ -30,7 +30,7 @@ def _by_pose(res: Residuals, k: int, T: np.ndarray) -> tuple[np.ndarray, np.ndar
     idx = np.full((k, max(int(counts.max(initial=0)), 1)), e)  # e: the zero row
     idx[pose[order], np.arange(e) - np.repeat(np.cumsum(counts) - counts, counts)] = order
     X = np.vstack([res.A[np.arange(e)[:, None], 6 * pose[:, None] + _DIAG6], np.zeros((1, 6))])
-    return X[idx], np.vstack([T[:e], np.zeros((1, T.shape[1]))])[idx], np.r_[res.r[:e], 0.0][idx], idx
+    return X[idx], np.vstack([T[:e], np.zeros((1, T.shape[1]))])[idx], np.concatenate([res.r[:e], [0.0]])[idx], idx
 
 
 @dataclass
@@ -81,7 +81,7 @@ class Arrow:
         scale[scale == 0] = 1.0
         out = cls([], [], [], [], [], scale, cols, qq, parts)
         for (U, W, V, gp, gt), (so, sp) in zip(raw, cols, strict=True):
-            sp_, st = scale[sp].reshape(-1, 6), np.r_[scale[so], scale[:qq]]
+            sp_, st = scale[sp].reshape(-1, 6), np.concatenate([scale[so], scale[:qq]])
             out.U.append(U / (sp_[:, :, None] * sp_[:, None, :]))
             out.W.append(W / (sp_[:, :, None] * st[None, None, :]))
             out.V.append(V / np.outer(st, st))
@@ -100,8 +100,8 @@ class Arrow:
         vectors rs (one per run, in the order of the runs' Residuals)."""
         gps, gts = [], []
         for (X, T, idx, e), r, (so, sp) in zip(self.parts, rs, self.cols, strict=True):
-            rp = np.r_[r[:e], 0.0][idx]
-            sp_, st = self.scale[sp].reshape(-1, 6), np.r_[self.scale[so], self.scale[:self.q]]
+            rp = np.concatenate([r[:e], [0.0]])[idx]
+            sp_, st = self.scale[sp].reshape(-1, 6), np.concatenate([self.scale[so], self.scale[:self.q]])
             gps.append(np.einsum("kei,ke->ki", X, rp) / sp_)
             gts.append((T.T @ r) / st)
         return gps, gts
@@ -162,7 +162,7 @@ class Arrow:
             o, no = slice(at[j], at[j + 1]), at[j + 1] - at[j]  # the run's own block, then the shared one
             rhs[o] += rr[:no]
             rhs[:qq] += rr[no:]
-            parts.append((np.r_[np.arange(at[j], at[j + 1]), np.arange(qq)], Y, y))
+            parts.append((np.concatenate([np.arange(at[j], at[j + 1]), np.arange(qq)]), Y, y))
         if pins and self.pinned is not None:
             rhs[np.flatnonzero(self.pinned)] = 0.0
         return M, rhs, parts

@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 RIDGE = 1e-9  # relative Tikhonov term of the folds' normal equations (unit-norm columns)
 LEVEL = 0.05  # one-sided level at which one model predicts the left-out poses better than another
@@ -45,6 +44,8 @@ class Prediction:
         d = d[d != 0]
         if d.size < 2:
             return 1.0
+        from scipy import stats  # here: scipy.stats costs the diagnosis's import ~0.45 s CPU, needed with one run only
+
         return float(stats.wilcoxon(d, alternative="greater").pvalue)
 
     def clearly_better_than(self, other: Prediction) -> bool:

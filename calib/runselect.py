@@ -31,14 +31,14 @@ runs that disagree to a model error that each run's fit absorbs differently.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
-from scipy.optimize import lsq_linear
 
+from calib.chi2 import chi2_sf
 from calib.effects import Effect, Implausible, Projected
 from calib.fitting import residuals
 from calib.multirun import (
@@ -49,7 +49,6 @@ from calib.multirun import (
     held_out_score,
     misfit_j,
     score_of,
-    stack,
 )
 from calib.prediction import leave_one_pose_out
 from calib.runrows import RunRows
@@ -104,7 +103,7 @@ def _n_params(effects: Sequence[Effect], robot) -> int:
 
 
 Z_RANGE = 2.0  # a value is implausible when it leaves its plausible range by more than this many sigma
-RANGE_P = 2.0 * float(stats.norm.sf(Z_RANGE))  # the same level for an effect's values taken together (0.0455)
+RANGE_P = math.erfc(Z_RANGE / math.sqrt(2.0))  # the same level for an effect's values taken together (0.0455)
 
 
 def box_chi2(values: np.ndarray, cov: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[float, int]:
@@ -119,9 +118,42 @@ def box_chi2(values: np.ndarray, cov: np.ndarray, lo: np.ndarray, hi: np.ndarray
     A = (U[:, keep] / np.sqrt(w[keep])).T
     if np.all((values >= lo) & (values <= hi)):
         return 0.0, int(keep.sum())
-    big = 1e9 * np.maximum(np.abs(values), 1.0)
-    b = lsq_linear(A, A @ values, bounds=(np.where(np.isfinite(lo), lo, -big), np.where(np.isfinite(hi), hi, big)))
-    return float(np.sum((A @ (values - b.x)) ** 2)), int(keep.sum())
+    b = box_least_squares(A, A @ values, np.asarray(lo, float), np.asarray(hi, float))
+    return float(np.sum((A @ (values - b)) ** 2)), int(keep.sum())
+
+
+def box_least_squares(A: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """argmin |A x - c|^2 over lo <= x <= hi (bounds may be infinite) by a primal active-set method (Nocedal
+    and Wright, Numerical Optimization, algorithm 16.3, on bounds): from c's least-squares solution clipped
+    into the box, each iteration solves for the free values with the held ones fixed (least squares, minimum
+    norm where A is rank-deficient), steps to the first bound it meets (held), or at the free minimum frees
+    the held value whose multiplier has the wrong sign; exact in finitely many steps (a few for the small
+    effects here; scipy's lsq_linear costs the diagnosis scipy.optimize's import, ~0.2 s CPU)."""
+    n = A.shape[1]
+    x = np.clip(np.linalg.lstsq(A, c, rcond=None)[0], lo, hi)
+    side = np.where(x <= lo, -1, np.where(x >= hi, 1, 0))  # the bound a value is held at (0: free)
+    scale = max(float(np.linalg.norm(c)), float(np.linalg.norm(A @ x)), 1e-300)
+    for _ in range(10 * n + 10):
+        free = side == 0
+        step = np.linalg.lstsq(A[:, free], c - A @ x, rcond=None)[0] if free.any() else np.zeros(0)
+        if np.linalg.norm(A[:, free] @ step) <= 1e-12 * scale:  # the free values at their minimum
+            g = A.T @ (A @ x - c)  # at a held bound the gradient must push outwards
+            wrong = ((side < 0) & (g < 0)) | ((side > 0) & (g > 0))
+            if not wrong.any():
+                return x
+            side[np.flatnonzero(wrong)[np.argmax(np.abs(g[wrong]))]] = 0
+            continue
+        xf, lf, hf = x[free], lo[free], hi[free]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            room = np.where(step > 0, (hf - xf) / step, np.where(step < 0, (lf - xf) / step, np.inf))
+        j = int(np.argmin(room))
+        alpha = min(1.0, float(room[j]))
+        x[free] = np.clip(xf + alpha * step, lf, hf)
+        if alpha < 1.0:  # the first bound met is held, exactly at it
+            i = np.flatnonzero(free)[j]
+            side[i] = 1 if step[j] > 0 else -1
+            x[i] = hi[i] if step[j] > 0 else lo[i]
+    return x
 
 
 def _implausible(f: JointFit) -> list[Implausible]:
@@ -143,7 +175,7 @@ def _implausible(f: JointFit) -> list[Implausible]:
                 vals, cov, specs = e.full_values(robot, vals), e.covariance(cov), e.inner.params(robot)
             d2, k = box_chi2(vals, cov, np.array([s.plausible[0] for s in specs], float),
                              np.array([s.plausible[1] for s in specs], float))
-            if k and stats.chi2.sf(d2, k) < RANGE_P:
+            if k and chi2_sf(d2, k) < RANGE_P:
                 alone = outside
         out.extend(alone)
         q += nq
@@ -220,40 +252,7 @@ class Judge:
         return t
 
     def _leave_one_run_out(self, t: Trial) -> None:
-        """Linearised leave-one-run-out from the joint fit: the shared values learned without run j (one
-        Gauss-Newton step on the normal equations less run j's rows), then run j's own unknowns refitted
-        with them frozen (least squares on its own columns); the figure is run j's held-out score."""
-        f = t.fit
-        q = f.values.shape[0]
-        blocks = [rf.residuals() for rf in f.runs]
-        r, A, cols = stack(f.runs, q, blocks=blocks)
-        scale = np.linalg.norm(A, axis=0)
-        scale[scale == 0] = 1.0
-        As = A / scale
-        N, g = As.T @ As, As.T @ r
-        bounds = np.cumsum([0] + [b.r.shape[0] for b in blocks])
-        total, folds = 0.0, []
-        for j, (rf, res) in enumerate(zip(f.runs, blocks, strict=True)):
-            rows = slice(bounds[j], bounds[j + 1])
-            own = np.r_[np.arange(cols[j][0].start, cols[j][0].stop), np.arange(cols[j][1].start, cols[j][1].stop)]
-            keep = np.setdiff1d(np.arange(A.shape[1]), own)
-            Aj, rj = As[rows], r[rows]
-            Nt = (N - Aj.T @ Aj)[np.ix_(keep, keep)]
-            gt = (g - Aj.T @ rj)[keep]
-            delta = -np.linalg.solve(Nt + 1e-9 * np.diag(np.maximum(np.diag(Nt), 1e-12)), gt)
-            e = rj + Aj[:, keep[keep < q]] @ delta[: int((keep < q).sum())]
-            P = Aj[:, own]
-            step, *_ = np.linalg.lstsq(P, e, rcond=1e-10)
-            e = e - P @ step
-            with np.errstate(divide="ignore", invalid="ignore"):
-                unit = np.where(res.r != 0, res.si / res.r, 0.0)  # physical units per weighted unit
-            phys = e * unit
-            s = score_of(phys, res.channel, self.floor)
-            rms = {c: float(np.sqrt(np.mean(phys[res.channel == c] ** 2))) for c in GROUPS
-                   if (res.channel == c).any()}
-            folds.append({"run": rf.name, "score": s, "rms": rms, "J": misfit_j(rms)})
-            total += s
-        t.score, t.folds = total, folds
+        t.score, t.folds = leave_one_run_out(t.fit, self.floor)
 
     def _leave_one_pose_out(self, t: Trial) -> None:
         rf: RunFit = t.fit.runs[0]
@@ -262,6 +261,51 @@ class Judge:
         pred = leave_one_pose_out(res.r, res.A, res.row, rf.poses.shape[0])
         t.score = pred.total
         t.folds = [{"pose": i + 1, "score": float(v)} for i, v in enumerate(pred.rows)]
+
+
+def leave_one_run_out(f: JointFit, floor: dict[str, np.ndarray]) -> tuple[float, list[dict[str, Any]]]:
+    """Linearised leave-one-run-out from the joint fit f: the shared values learned without run j (one
+    Gauss-Newton step on the normal equations less run j's rows, unit-norm columns of the joint Jacobian, a
+    relative ridge of 1e-9), then run j's own unknowns refitted with them frozen (least squares on its own
+    columns); the figure is run j's held-out score (:func:`calib.multirun.score_of`), summed over the runs,
+    and per fold the run, score, rms per channel and J. By blocks: each run's own and pose columns meet only
+    its own rows, so every run's normal matrix is reduced once to the shared columns (its Schur complement)
+    and fold j sums the others' (the dense joint normal matrix, (6k + p)^2 per row, is never formed)."""
+    q = f.values.shape[0]
+    blocks = [rf.residuals() for rf in f.runs]
+    # unit-norm columns of the joint Jacobian: a run's own and pose columns from its rows, the shared from all
+    shared2 = sum(np.sum(b.A[:, b.A.shape[1] - q:] ** 2, axis=0) for b in blocks) if q else np.zeros(0)
+    parts = []  # per run: its scaled Jacobian, the shared block, gradient and Schur complement on the shared
+    for b in blocks:
+        sc = np.r_[np.linalg.norm(b.A[:, :b.A.shape[1] - q], axis=0), np.sqrt(shared2)]
+        sc[sc == 0] = 1.0
+        As = b.A / sc
+        own = As.shape[1] - q
+        N, g = As.T @ As, As.T @ b.r
+        B = N[:own, :own] + 1e-9 * np.diag(np.maximum(np.diag(N)[:own], 1e-12))
+        X = np.linalg.solve(B, np.c_[N[:own, own:], g[:own]])
+        parts.append((As, own, N[own:, own:] - N[own:, :own] @ X[:, :q], g[own:] - N[own:, :own] @ X[:, q],
+                      np.diag(N)[own:]))
+    total, folds = 0.0, []
+    for j, (rf, res) in enumerate(zip(f.runs, blocks, strict=True)):
+        As, own = parts[j][0], parts[j][1]
+        e = res.r
+        if q:
+            others = [p for i, p in enumerate(parts) if i != j]
+            M = sum(p[2] for p in others)
+            d = sum(p[4] for p in others)
+            delta = -np.linalg.solve(M + 1e-9 * np.diag(np.maximum(d, 1e-12)), sum(p[3] for p in others))
+            e = e + As[:, own:] @ delta
+        step, *_ = np.linalg.lstsq(As[:, :own], e, rcond=1e-10)
+        e = e - As[:, :own] @ step
+        with np.errstate(divide="ignore", invalid="ignore"):
+            unit = np.where(res.r != 0, res.si / res.r, 0.0)  # physical units per weighted unit
+        phys = e * unit
+        s = score_of(phys, res.channel, floor)
+        rms = {c: float(np.sqrt(np.mean(phys[res.channel == c] ** 2))) for c in GROUPS if (res.channel == c).any()}
+        folds.append({"run": rf.name, "score": s, "rms": rms, "J": misfit_j(rms)})
+        total += s
+    return total, folds
 
 
 def _better_on_most(t: Trial, ref: Trial) -> bool:

@@ -195,3 +195,95 @@ def test_a_singular_pose_block_leaves_the_covariance_to_the_dense_svd():
     with pytest.raises(np.linalg.LinAlgError):
         np.linalg.inv(arrow.U[0][1])  # what the reduction would do with it undamped
     assert arrow.covariance() is None
+
+
+def _shared_runs(names: list[str], rng, values: np.ndarray | None = None) -> tuple[list[RunFit], list, int]:
+    """Three runs of one robot: the effects ``names`` shared (the same instances, last in every model) at
+    ``values`` (None: absent + 0.5 typical size, within bounds), noisy rigid-model readings."""
+    shared = make_effects(names)
+    specs = [sp for e in shared for sp in e.params(ROBOT)]
+    if values is None:
+        values = np.clip([sp.absent + 0.5 * sp.scale for sp in specs], [sp.lower for sp in specs],
+                         [sp.upper for sp in specs])
+    runs = []
+    for j in range(3):
+        zeta0 = np.r_[POSES[j, :3], 0.01, -0.02, 0.03]
+        poses = POSES[j + 1:] + 0.002 * rng.standard_normal((POSES.shape[0] - j - 1, 6))
+        prob = Problem(EffectModel(ROBOT, shared), _problem(zeta0, poses, [], rng).meas, SIGMA)
+        runs.append(RunFit(f"r{j}", None, prob, np.r_[zeta0 + 1e-3, values], poses.copy(), SIGMA))
+    return runs, shared, len(specs)
+
+
+def test_an_evaluation_without_jacobian_has_the_same_residuals_for_every_effect():
+    """multirun's geodesic trial point needs residuals only: EffectModel.physical(columns=False) computes no
+    derivative (kinematic Jacobians, the statics' pose derivatives, the robot effects' finite-difference theta
+    columns: a model call per parameter), and with every effect of the library the residuals are bitwise
+    those of the evaluation with its Jacobian (the swivel entry with robot effects too)."""
+    from calib.effects import available_effects
+
+    sets = [["tension_offset", name] if name != "tension_offset" else [name] for name in available_effects()]
+    for names in [*sets, ["swivel_entry", "swivel_tilt"], ["swivel_entry", "pulley_position"]]:
+        # (the swivel entry's columns follow the robot effects' geometry: Context.robot_at, None without them)
+        runs, shared, q = _shared_runs(names, np.random.default_rng(6))
+        name = ",".join(names)
+        assert multirun.one_robot(runs, shared)
+        full, c_full = multirun._evaluate(runs, q, batch=True, jacobian=True)
+        bare, c_bare = multirun._evaluate(runs, q, batch=True, jacobian=False)
+        assert c_full == c_bare, name
+        for a, b in zip(full, bare, strict=True):
+            np.testing.assert_array_equal(a.r, b.r, err_msg=name)
+            assert np.abs(a.A).max() > 1.0  # the Jacobian the other evaluation has
+    runs, _, _ = _shared_runs(["pulley_position"], np.random.default_rng(6))
+    z = np.vstack([runs[0].theta[None, :6], runs[0].poses])
+    _, ph = runs[0].problem.model.physical(runs[0].theta, z, columns=False)
+    assert not ph.tL.any() and not ph.ttau.any() and not ph.dL.any() and not ph.dtau.any()
+    _, ph = runs[0].problem.model.physical(runs[0].theta, z)
+    assert ph.tL.any() and ph.ttau.any() and ph.dL.any() and ph.dtau.any()
+
+
+def _dense_leave_one_run_out(runs: list[RunFit], q: int, floor) -> list[float]:
+    """The fold scores from the dense joint normal equations (the plain computation the blocks replace)."""
+    from calib.multirun import score_of
+
+    blocks = [rf.residuals() for rf in runs]
+    r, A, cols = stack(runs, q, blocks=blocks)
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    As = A / scale
+    N, g = As.T @ As, As.T @ r
+    bounds = np.cumsum([0] + [b.r.shape[0] for b in blocks])
+    out = []
+    for j, res in enumerate(blocks):
+        rows = slice(bounds[j], bounds[j + 1])
+        own = np.r_[np.arange(cols[j][0].start, cols[j][0].stop), np.arange(cols[j][1].start, cols[j][1].stop)]
+        keep = np.setdiff1d(np.arange(A.shape[1]), own)
+        Aj, rj = As[rows], r[rows]
+        Nt = (N - Aj.T @ Aj)[np.ix_(keep, keep)]
+        delta = -np.linalg.solve(Nt + 1e-9 * np.diag(np.maximum(np.diag(Nt), 1e-12)), (g - Aj.T @ rj)[keep])
+        e = rj + Aj[:, :q] @ delta[:q]
+        step, *_ = np.linalg.lstsq(Aj[:, own], e, rcond=1e-10)
+        e = e - Aj[:, own] @ step
+        unit = np.where(res.r != 0, res.si / np.where(res.r != 0, res.r, 1.0), 0.0)
+        out.append(score_of(e * unit, res.channel, floor))
+    return out
+
+
+def test_leave_one_run_out_by_blocks_is_the_dense_computation():
+    """runselect.leave_one_run_out reduces each run's normal matrix to the shared columns once; its fold scores
+    equal those of the dense joint normal equations less the left-out run's rows (three runs sharing
+    cable_sag and tension offsets, theta away from the readings' so that the folds differ)."""
+    from calib.multirun import JointFit
+    from calib.runselect import leave_one_run_out
+    from calib.selfcal import sensor_noise
+
+    rng = np.random.default_rng(8)
+    values = np.r_[rng.normal(0.0, 2.0, 4), 0.03]
+    runs, shared, _ = _shared_runs(["tension_offset", "cable_sag"], rng, values)
+    q, floor = values.size, sensor_noise(ROBOT)
+    fit = JointFit(shared, values, np.eye(q), runs, 0.0, True, 0)
+    total, folds = leave_one_run_out(fit, floor)
+    ref = _dense_leave_one_run_out(runs, q, floor)
+    np.testing.assert_allclose([f["score"] for f in folds], ref, rtol=1e-9)
+    assert total == pytest.approx(sum(ref), rel=1e-9)
+    assert np.ptp(ref) > 1.0  # the folds see different runs
+    assert [f["run"] for f in folds] == ["r0", "r1", "r2"] and all(f["J"] > 0 for f in folds)

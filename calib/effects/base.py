@@ -5,10 +5,9 @@ parameters (:class:`ParamSpec`: name, unit, the value meaning "absent", bounds) 
 stages:
 
 * ``robot`` effects change the robot description itself (pulley radii and positions, centre of mass, mass):
-  ``modify(robot, values) -> Robot``; the absolute physical quantities (cable lengths L, swivel angles,
-  modelled tensions) are then recomputed with the modified robot. ``physical_columns`` gives
-  dL/dq, dsigma/dq and dtau/dq (k, n, q) at k poses; the default is central differences, built-in effects
-  override it analytically (or exactly, where the dependence is linear).
+  ``modify(robot, values) -> Robot``; the physical quantities (cable lengths L, swivel angles, modelled
+  tensions) are recomputed with it; ``physical_columns`` gives dL/dq, dsigma/dq and dtau/dq (k, n, q) at k
+  poses (default: forward differences; built-in effects analytic, or exact where the dependence is linear).
 * ``reading`` effects change what a sensor reports of the physical quantities (cable elasticity between
   the motor encoder and the geometric length, transmission ratio errors, load-cell offsets and gains, the
   AHRS mounting): ``transform(ctx, values, preds)`` edits the channel predictions in place, value, pose
@@ -90,6 +89,7 @@ class Physical:
     ahrs: np.ndarray | None = None  # (k, 3) the orientations in the AHRS's convention, rad
     dahrs: np.ndarray | None = None  # (k, 3, 3) their derivatives with respect to the poses' angles
     terms: dict | None = None  # effect name -> its per-pose terms (``Effect.pose_terms``), all rows at once
+    derivatives: bool = True  # False: the derivatives are zero (computed for residuals only, no Jacobian)
 
 
 @dataclass
@@ -102,7 +102,7 @@ class Context:
     the way its tension last changed (+1 rising, -1 falling), [..., 2] the way its swivel last turned (+1 up),
     [..., 3] the way it last turned before the reference sample; 0 or None: unknown (older callers pass the
     first two only). ``robot_cols``: the theta columns of the robot effects, and ``robot_at(theta)`` the robot
-    with them at theta, for a reading effect whose edit depends on the geometry they change."""
+    with them at theta, for a reading effect whose edit depends on the geometry they change (None: no columns)."""
 
     robot: Robot
     poses: np.ndarray
@@ -127,8 +127,7 @@ class Effect:
     order: int = 50
     description: str = ""
     fd_steps: float = 1e-6  # relative to each parameter's scale
-    # a reading effect that edits the physical quantities (``Context.at``/``ref``: L, sigma and their
-    # derivatives) rather than the readings: ``absolute_readings`` runs its transform at zeta_0
+    # an effect editing the physical quantities (Context.at/ref), not readings: absolute_readings runs it at zeta_0
     edits_physical: bool = False
     # the effect's readings of other channels use the modelled tensions (``Context.at.tau``, e.g. a stretch):
     # a model predicting no tension skips the statics only when none of its reading effects does
@@ -214,23 +213,25 @@ def base_quantities(recompute, values: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return recompute(values) if base is None else base
 
 
-def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True, held: np.ndarray | None = None
-             ) -> Physical:
-    """L, swivel and modelled tensions with pose derivatives at poses (k, 6); theta columns zero (p). Without
-    ``tension`` the tensions and derivatives are NaN (no statics). ``held``: calib.selfcal.model.held_tensions."""
+def physical(robot: Robot, poses: np.ndarray, p: int, tension: bool = True, held: np.ndarray | None = None,
+             derivatives: bool = True) -> Physical:
+    """L, swivel and modelled tensions with pose derivatives at poses (k, 6) (zero without ``derivatives``: the
+    same values, no Jacobians); theta columns zero (p). Without ``tension`` the tensions and derivatives are
+    NaN (no statics). ``held``: calib.selfcal.model.held_tensions."""
     kin = inverse_kinematics(robot, poses)
-    jac = kinematic_jacobians(robot, kin)
     k, n = kin.lengths.shape
+    jac = kinematic_jacobians(robot, kin) if derivatives else None
+    dL, ds = (np.zeros((k, n, 6)), np.zeros((k, n, 6))) if jac is None else (jac.lengths, jac.swivel)
     if tension or np.any(robot.compliance):  # an elastic cable's encoder length needs its tension
-        tm = tension_model(robot, kin=kin, jac=jac)
-        tau, dtau = tm.tau, tm.jacobian
+        tm = tension_model(robot, kin=kin, jac=jac, derivatives=derivatives)
+        tau, dtau = tm.tau, tm.jacobian if derivatives else np.zeros((k, n, 6))
     else:
         tau, dtau = np.full((k, n), np.nan), np.full((k, n, 6), np.nan)
     tau, dtau = held_tensions(tau, dtau, held)
     z = np.zeros((k, n, p))
     ahrs, dahrs = convert_euler(kin.poses[:, 3:], robot.orientation, robot.ahrs_convention, kin.R, kin.H)
-    L, dL = encoder_lengths(robot, kin.lengths, tau, jac.lengths, dtau)
-    return Physical(L, kin.swivel, tau, dL, jac.swivel, dtau, z, z.copy(), z.copy(), ahrs, dahrs)
+    L, dL = encoder_lengths(robot, kin.lengths, tau, dL, dtau)
+    return Physical(L, kin.swivel, tau, dL, ds, dtau, z, z.copy(), z.copy(), ahrs, dahrs, derivatives=derivatives)
 
 
 def _dataclass_rows(d, rows: slice):
@@ -244,7 +245,7 @@ def physical_rows(ph: Physical, rows: slice) -> Physical:
     return Physical(ph.L[rows], ph.sigma[rows], ph.tau[rows], ph.dL[rows], ph.dsigma[rows], ph.dtau[rows],
                     ph.tL[rows], ph.tsigma[rows], ph.ttau[rows], ph.ahrs[rows] if a else None,
                     ph.dahrs[rows] if a else None,
-                    None if t is None else {n: _dataclass_rows(v, rows) for n, v in t.items()})
+                    None if t is None else {n: _dataclass_rows(v, rows) for n, v in t.items()}, ph.derivatives)
 
 
 def wrap(a: np.ndarray) -> np.ndarray:
@@ -325,14 +326,14 @@ class EffectModel:
         return "tension" in channels or any(e.stage == "reading" and e.reads_tension for e in self.effects)
 
     def _physical(self, theta: np.ndarray, poses: np.ndarray, tension: bool = True,
-                  held: np.ndarray | None = None) -> tuple[Robot, Physical]:
+                  held: np.ndarray | None = None, columns: bool = True) -> tuple[Robot, Physical]:
         p = theta.shape[0]
         robot = self.true_robot(theta)
-        ph = physical(robot, poses, p, tension, held)
+        ph = physical(robot, poses, p, tension, held, columns)
         ph.terms = {e.name: t for e in self.effects if e.stage == "reading"
                     and (t := e.pose_terms(robot, poses)) is not None}
         for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
-            if e.stage != "robot":
+            if e.stage != "robot" or not columns:  # no columns: the robot effects' theta columns stay zero
                 continue
 
             def recompute(vals, idx=idx, sl=sl):
@@ -351,11 +352,11 @@ class EffectModel:
             ph.tL[..., sl], ph.tsigma[..., sl], ph.ttau[..., sl] = dL, ds, dt
         return robot, ph
 
-    def physical(self, theta: np.ndarray, poses: np.ndarray) -> tuple[Robot, Physical]:
+    def physical(self, theta: np.ndarray, poses: np.ndarray, columns: bool = True) -> tuple[Robot, Physical]:
         """The robot with the robot effects at theta applied, and the physical quantities at poses (k, 6) with
-        their theta columns (p,): what ``predict`` computes for its poses and zeta_0 (problems that share the
-        robot and its robot effects can compute them for all their poses at once, ``physical=``)."""
-        return self._physical(np.asarray(theta, dtype=float), np.asarray(poses, dtype=float).reshape(-1, 6))
+        their pose and theta (p,) derivatives (``columns`` False: zero, the values the same): what ``predict``
+        computes for its poses and zeta_0 (problems sharing the robot and its effects: ``physical=``)."""
+        return self._physical(np.asarray(theta, float), np.asarray(poses, float).reshape(-1, 6), columns=columns)
 
     def cable_tensions(self, theta: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """The tensions (k, n) N the statics give the cables at poses (k, 6), the robot effects at theta."""
@@ -396,12 +397,11 @@ class EffectModel:
                 out[name] = orientation_prediction(robot, z, theta, (at.ahrs, at.dahrs, ref.ahrs, ref.dahrs))
             else:
                 raise ValueError(f"unknown channel {name!r} (known: {', '.join(CHANNELS)})")
-        readers = sorted(
-            (i for i, e in enumerate(self.effects) if e.stage == "reading"), key=lambda i: self.effects[i].order
-        )
+        readers = sorted((i for i, e in enumerate(self.effects) if e.stage == "reading"),
+                         key=lambda i: self.effects[i].order)
         for i in readers:
             ctx = Context(robot, z, theta, self.slices[i], at, ref, times, approach, self._robot_cols,
-                          self.true_robot)
+                          self.true_robot if both.derivatives else None)  # no derivatives: no robot_at columns
             self.effects[i].transform(ctx, np.asarray(theta[self.slices[i]]), out)
         return out
 

@@ -39,7 +39,7 @@ from calib.selfcal.model import ChannelPrediction
 def _tilt_matrices(values: np.ndarray, n: int) -> np.ndarray:
     """(n, 3, 3) rotations S_i = Rx(a_i) Ry(b_i) of the pulleys' frames, values = [a_1, b_1, a_2, ...]."""
     ab = np.asarray(values, float).reshape(n, 2)
-    return rotation(np.c_[ab, np.zeros(n)], "xyz")
+    return rotation(np.column_stack([ab, np.zeros(n)]), "xyz")
 
 
 class SwivelTilt(Effect):

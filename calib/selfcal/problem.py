@@ -282,7 +282,7 @@ class Problem:
             g0[:, :6] += np.concatenate([pred0[c].d_pose[0] for c in self.ref_channels], 0)
             g0 = self.ref_weight[:, None] * g0
         if self.prior_idx.size:
-            r0 = np.r_[r0, (theta[self.prior_idx] - self.prior_mean) / self.prior_sd]
+            r0 = np.concatenate([r0, (theta[self.prior_idx] - self.prior_mean) / self.prior_sd])
             if derivatives:
                 g0 = np.vstack([g0, self._prior_jac])
         return Evaluation(out, r0, g0)
