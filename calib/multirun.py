@@ -289,7 +289,7 @@ def _evaluate(runs: list[RunFit], q: int = 0, batch: bool = False, jacobian: boo
     if batch and all(np.array_equal(rf.theta[rf.theta.shape[0] - q:], t0[t0.shape[0] - q:]) for rf in runs):
         rows = [np.vstack([rf.theta[None, :6], rf.poses[rf.problem.groups[0].idx], rf.theta[None, :6]])
                 for rf in runs]
-        robot, ph = runs[0].problem.model.physical(t0, np.vstack(rows), columns=jacobian)
+        robot, ph = runs[0].problem.model.physical(t0, np.vstack(rows), derivatives=jacobian)
         ends = np.cumsum([0] + [z.shape[0] for z in rows])
         blocks = [residuals(rf.problem, rf.theta, rf.poses, jacobian,
                             physical=(robot, _rows_of(ph, slice(a, b), t0.shape[0], rf.theta.shape[0], q)))

@@ -215,7 +215,7 @@ def _shared_runs(names: list[str], rng, values: np.ndarray | None = None) -> tup
 
 
 def test_an_evaluation_without_jacobian_has_the_same_residuals_for_every_effect():
-    """multirun's geodesic trial point needs residuals only: EffectModel.physical(columns=False) computes no
+    """multirun's geodesic trial point needs residuals only: EffectModel.physical(derivatives=False) computes no
     derivative (kinematic Jacobians, the statics' pose derivatives, the robot effects' finite-difference theta
     columns: a model call per parameter), and with every effect of the library the residuals are bitwise
     those of the evaluation with its Jacobian (the swivel entry with robot effects too)."""
@@ -235,7 +235,7 @@ def test_an_evaluation_without_jacobian_has_the_same_residuals_for_every_effect(
             assert np.abs(a.A).max() > 1.0  # the Jacobian the other evaluation has
     runs, _, _ = _shared_runs(["pulley_position"], np.random.default_rng(6))
     z = np.vstack([runs[0].theta[None, :6], runs[0].poses])
-    _, ph = runs[0].problem.model.physical(runs[0].theta, z, columns=False)
+    _, ph = runs[0].problem.model.physical(runs[0].theta, z, derivatives=False)
     assert not ph.tL.any() and not ph.ttau.any() and not ph.dL.any() and not ph.dtau.any()
     _, ph = runs[0].problem.model.physical(runs[0].theta, z)
     assert ph.tL.any() and ph.ttau.any() and ph.dL.any() and ph.dtau.any()

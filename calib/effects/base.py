@@ -30,6 +30,7 @@ import numpy as np
 
 from calib.kinematics import convert_euler, inverse_kinematics, kinematic_jacobians
 from calib.robot import Robot
+from calib.selfcal import model as rigid
 from calib.selfcal.model import CHANNELS, ChannelPrediction, encoder_lengths, held_tensions, orientation_prediction
 from calib.statics import tension_model
 
@@ -326,14 +327,14 @@ class EffectModel:
         return "tension" in channels or any(e.stage == "reading" and e.reads_tension for e in self.effects)
 
     def _physical(self, theta: np.ndarray, poses: np.ndarray, tension: bool = True,
-                  held: np.ndarray | None = None, columns: bool = True) -> tuple[Robot, Physical]:
+                  held: np.ndarray | None = None, derivatives: bool = True) -> tuple[Robot, Physical]:
         p = theta.shape[0]
         robot = self.true_robot(theta)
-        ph = physical(robot, poses, p, tension, held, columns)
+        ph = physical(robot, poses, p, tension, held, derivatives)
         ph.terms = {e.name: t for e in self.effects if e.stage == "reading"
                     and (t := e.pose_terms(robot, poses)) is not None}
         for idx, (e, sl) in enumerate(zip(self.effects, self.slices, strict=True)):
-            if e.stage != "robot" or not columns:  # no columns: the robot effects' theta columns stay zero
+            if e.stage != "robot" or not derivatives:  # the robot effects' theta columns stay zero
                 continue
 
             def recompute(vals, idx=idx, sl=sl):
@@ -352,16 +353,15 @@ class EffectModel:
             ph.tL[..., sl], ph.tsigma[..., sl], ph.ttau[..., sl] = dL, ds, dt
         return robot, ph
 
-    def physical(self, theta: np.ndarray, poses: np.ndarray, columns: bool = True) -> tuple[Robot, Physical]:
-        """The robot with the robot effects at theta applied, and the physical quantities at poses (k, 6) with
-        their pose and theta (p,) derivatives (``columns`` False: zero, the values the same): what ``predict``
-        computes for its poses and zeta_0 (problems sharing the robot and its effects: ``physical=``)."""
-        return self._physical(np.asarray(theta, float), np.asarray(poses, float).reshape(-1, 6), columns=columns)
+    def physical(self, theta: np.ndarray, poses: np.ndarray, derivatives: bool = True) -> tuple[Robot, Physical]:
+        """The robot with its robot effects at theta, the physical quantities at poses (k, 6) with their pose and theta
+        (p,) derivatives (zero without ``derivatives``): what ``predict`` computes at its poses and zeta_0."""
+        z = np.asarray(poses, float).reshape(-1, 6)
+        return self._physical(np.asarray(theta, float), z, derivatives=derivatives)
 
     def cable_tensions(self, theta: np.ndarray, poses: np.ndarray) -> np.ndarray:
         """The tensions (k, n) N the statics give the cables at poses (k, 6), the robot effects at theta."""
-        robot = self.true_robot(np.asarray(theta, float))
-        return tension_model(robot, kin=inverse_kinematics(robot, np.asarray(poses, float)), derivatives=False).tau
+        return rigid.statics_tensions(self.true_robot(np.asarray(theta, float)), poses)
 
     def predict(
         self, poses: np.ndarray, theta: np.ndarray, channels: Sequence[str], times: np.ndarray | None = None,
