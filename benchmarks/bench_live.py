@@ -48,6 +48,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 from acquisition.clock import RealClock, set_realtime
 from acquisition.connect import ahrs_rate_for, connect
@@ -192,19 +193,11 @@ _CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
 def cpu_times() -> dict[str, np.ndarray]:
-    """Per CPU ("cpu0", ...), s so far (/proc/stat, clock ticks of 10 ms): busy (user, nice, system, irq, softirq),
-    idle (idle, iowait) and stolen by the VM's host; {} without /proc/stat."""
-    out = {}
-    try:
-        with open("/proc/stat") as f:
-            for line in f:
-                name, *v = line.split()
-                if name.startswith("cpu") and name != "cpu":
-                    t = np.array([int(x) for x in v[:8]], float) / _CLK_TCK
-                    out[name] = np.array([t[0] + t[1] + t[2] + t[5] + t[6], t[3] + t[4], t[7]])
-    except (OSError, ValueError):
-        pass
-    return out
+    """Per CPU ("cpu0", ...), s so far (psutil; Linux's /proc/stat in 10 ms clock ticks): busy (user, nice, system,
+    irq, softirq), idle (idle, iowait) and stolen by the VM's host (0 where the system does not say)."""
+    return {f"cpu{i}": np.array([t.user + t.nice + t.system + getattr(t, "irq", 0.0) + getattr(t, "softirq", 0.0),
+                                 t.idle + getattr(t, "iowait", 0.0), getattr(t, "steal", 0.0)])
+            for i, t in enumerate(psutil.cpu_times(percpu=True))}
 
 
 def _open_schedstat(path: str) -> int | None:
@@ -440,20 +433,8 @@ class ComponentCosts:
         self._a: dict[str, dict] = {}
 
     def _children(self) -> dict[str, int]:
-        found = {}
-        me, known = os.getpid(), set(self.pids.values())
-        for d in os.listdir("/proc"):
-            if not d.isdigit() or int(d) in known:
-                continue
-            try:
-                with open(f"/proc/{d}/stat") as f:
-                    stat = f.read()
-            except OSError:
-                continue
-            rest = stat[stat.rindex(")") + 2:].split()
-            if int(rest[1]) == me:
-                found[f"{stat[stat.index('(') + 1:stat.rindex(')')]} {d}"] = int(d)
-        return found
+        known = set(self.pids.values())
+        return {f"{c.name()} {c.pid}": c.pid for c in psutil.Process().children() if c.pid not in known}
 
     def start(self) -> None:
         self.pids |= self._children()
