@@ -204,11 +204,12 @@ class PoseFreeNoise:
     noise: WindowNoise
     sample: dict[str, float]
     quantisation: dict[str, np.ndarray] = field(default_factory=dict)
+    sway: object = None  # calib.selfcal.sway.SwayOffset when asked for (pose_free_noise's ``sway``)
 
 
 def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, np.ndarray]],
                     ref: dict[str, np.ndarray], theta: np.ndarray, base: WindowNoise,
-                    rounds: int = VCE_ROUNDS) -> PoseFreeNoise:
+                    rounds: int = VCE_ROUNDS, sway: bool = False) -> PoseFreeNoise:
     """Noise of the length and swivel-angle window means (:data:`KINEMATIC`) without the platform's
     motion inside the windows (roll, pitch and yaw keep ``base``'s group figures: the AHRS channels only weigh
     the per-sample pose fits). The force control moves winches and platform together: every kinematic
@@ -224,7 +225,9 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     correlation in each window gives the AR(1) factor of their window mean, as in :func:`window_mean_noise`.
     A reading that sat on one count for a whole window keeps its quantisation error in the mean: the
     share of such readings adds q^2/12 times that share. Tensions keep ``base``'s figures (the force
-    control holds them; their jitter is not a pose motion)."""
+    control holds them; their jitter is not a pose motion); with ``sway`` (opt-in, SolveOptions.sway) they
+    also carry the offset of a window-mean pose from the equilibrium of its held tensions, sized from these
+    per-sample poses (:mod:`calib.selfcal.sway`)."""
     from calib.selfcal.lm import solve_poses
     from calib.selfcal.problem import Measurements, Problem
 
@@ -280,7 +283,13 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
         groups[c] = ChannelNoise(math.sqrt(gamma0), rho, nh / f, mean, float(np.max(floor[c])))
         sigma_out[c] = np.sqrt(gamma0 * f / nh + var_q)  # per cable: the group's noise, the cable's quantisation
     sigma_out["orientation"] = np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean])
-    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, quant)
+    offset = None
+    if sway:  # the platform's sway about the equilibrium of the held tensions, in the statics rows
+        from calib.selfcal.sway import sway_offset, tension_sigma
+
+        offset = sway_offset(Z, owner)
+        sigma_out["tension"] = tension_sigma(robot, base.sigma["tension"], np.array([z for _, z in spans]), offset)
+    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, quant, offset)
 
 
 VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")
