@@ -151,7 +151,11 @@ def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust:
     for _ in range(REFINE):
         spans = [(ref_win.slice, res.theta[:6])] + [
             (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
-        pose_free = pose_free_noise(model, sig, spans, ref, res.theta, base, sway=sway)
+        pose_free = pose_free_noise(model, sig, spans, ref, res.theta, base)
+        if sway:  # the platform's sway about the equilibrium of the held tensions, in the statics rows
+            from calib.selfcal.sway import with_sway
+
+            pose_free, _ = with_sway(robot, pose_free, np.array([z for _, z in spans]))
         noise = pose_free.noise
         sigma = judged_noise(problem, res.theta, res.poses, noise.sigma, sensor_noise(robot)) if robust \
             else noise.sigma

@@ -199,17 +199,19 @@ class PoseFreeNoise:
     """What :func:`pose_free_noise` estimates: per kinematic group the sigma of one sample's pose-free part
     (``sample``, SI), its window-mean figures (``groups``, as :class:`ChannelNoise`) and per channel the quantisation
     error of a window mean (``quantisation``: (n,) SI, :func:`quantisation_variance` averaged over the
-    windows), which no later rescaling may go below."""
+    windows), which no later rescaling may go below; the per-sample poses it fitted and their windows
+    (``poses``, ``owner``: what calib.selfcal.sway sizes the sway from)."""
 
     noise: WindowNoise
     sample: dict[str, float]
     quantisation: dict[str, np.ndarray] = field(default_factory=dict)
-    sway: object = None  # calib.selfcal.sway.SwayOffset when asked for (pose_free_noise's ``sway``)
+    poses: np.ndarray | None = None  # (N, 6) the per-sample poses of the still windows (m, rad)
+    owner: np.ndarray | None = None  # (N,) the window (index into the spans) of each of them
 
 
 def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, np.ndarray]],
                     ref: dict[str, np.ndarray], theta: np.ndarray, base: WindowNoise,
-                    rounds: int = VCE_ROUNDS, sway: bool = False) -> PoseFreeNoise:
+                    rounds: int = VCE_ROUNDS) -> PoseFreeNoise:
     """Noise of the length and swivel-angle window means (:data:`KINEMATIC`) without the platform's
     motion inside the windows (roll, pitch and yaw keep ``base``'s group figures: the AHRS channels only weigh
     the per-sample pose fits). The force control moves winches and platform together: every kinematic
@@ -225,9 +227,7 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
     correlation in each window gives the AR(1) factor of their window mean, as in :func:`window_mean_noise`.
     A reading that sat on one count for a whole window keeps its quantisation error in the mean: the
     share of such readings adds q^2/12 times that share. Tensions keep ``base``'s figures (the force
-    control holds them; their jitter is not a pose motion); with ``sway`` (opt-in, SolveOptions.sway) they
-    also carry the offset of a window-mean pose from the equilibrium of its held tensions, sized from these
-    per-sample poses (:mod:`calib.selfcal.sway`)."""
+    control holds them; their jitter is not a pose motion)."""
     from calib.selfcal.lm import solve_poses
     from calib.selfcal.problem import Measurements, Problem
 
@@ -283,13 +283,7 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
         groups[c] = ChannelNoise(math.sqrt(gamma0), rho, nh / f, mean, float(np.max(floor[c])))
         sigma_out[c] = np.sqrt(gamma0 * f / nh + var_q)  # per cable: the group's noise, the cable's quantisation
     sigma_out["orientation"] = np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean])
-    offset = None
-    if sway:  # the platform's sway about the equilibrium of the held tensions, in the statics rows
-        from calib.selfcal.sway import sway_offset, tension_sigma
-
-        offset = sway_offset(Z, owner)
-        sigma_out["tension"] = tension_sigma(robot, base.sigma["tension"], np.array([z for _, z in spans]), offset)
-    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, quant, offset)
+    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, quant, Z, owner)
 
 
 VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")

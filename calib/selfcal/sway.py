@@ -15,17 +15,19 @@ mean of a window of the windows' harmonic mean size, and the wander's correlatio
 sideways swing tilts the platform too) makes it a covariance Sigma (6, 6). :func:`tension_sigma` adds
 diag(D Sigma D^T), averaged over the windows' poses, to the tension rows' variance. A platform that does not
 sway gives a wander of the sensors' white noise only, whose mean over a window is a few hundredths of a
-millimetre. Opt-in: ``SolveOptions.sway`` (``cdpr solve --noise estimate+sway``; docs/windows.md, "Sway in
-the statics rows").
+millimetre. :func:`with_sway` puts it into a pose-free noise estimate (calib.selfcal._solve, when asked:
+``SolveOptions.sway``, ``cdpr solve --noise estimate+sway``; docs/windows.md, "Sway in the statics rows").
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from calib.robot import Robot
+from calib.selfcal.noise import PoseFreeNoise, WindowNoise, _pooled, ar1_factor
 from calib.statics import tension_model
 
 
@@ -44,8 +46,6 @@ class SwayOffset:
 def sway_offset(poses: np.ndarray, owner: np.ndarray) -> SwayOffset:
     """The offset of a window-mean pose from equilibrium, from per-sample poses (N, 6) m, rad of still windows
     (``owner`` (N,) the window of each sample): see the module doc."""
-    from calib.selfcal.noise import _pooled, ar1_factor
-
     poses = np.asarray(poses, float)
     blocks = [poses[owner == j] for j in np.unique(owner)]
     var, rho = np.zeros(6), np.zeros(6)
@@ -73,3 +73,12 @@ def sway_tension_variance(robot: Robot, window_poses: np.ndarray, offset: SwayOf
 def tension_sigma(robot: Robot, sigma: np.ndarray, window_poses: np.ndarray, offset: SwayOffset) -> np.ndarray:
     """The tension rows' sigma (n,) N with the sway added: sqrt(sigma^2 + :func:`sway_tension_variance`)."""
     return np.sqrt(np.asarray(sigma, float) ** 2 + sway_tension_variance(robot, window_poses, offset))
+
+
+def with_sway(robot: Robot, pose_free: PoseFreeNoise, window_poses: np.ndarray) -> tuple[PoseFreeNoise, SwayOffset]:
+    """``pose_free`` (calib.selfcal.noise.pose_free_noise) with its tension rows' sigma carrying the sway, sized
+    from its per-sample poses; ``window_poses`` (k, 6): the poses of the windows it was estimated at."""
+    offset = sway_offset(pose_free.poses, pose_free.owner)
+    noise = pose_free.noise
+    sigma = dict(noise.sigma) | {"tension": tension_sigma(robot, noise.sigma["tension"], window_poses, offset)}
+    return dataclasses.replace(pose_free, noise=WindowNoise(sigma, noise.window_size, noise.groups)), offset
