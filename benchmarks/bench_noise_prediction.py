@@ -155,7 +155,8 @@ def one_run(name: str, run, models: list[str], z0: np.ndarray | None) -> dict:
                 failed += 1
                 continue
             folds.append(predict_window(run, sol, w, ref_win, ref_sample, start[(w.first, w.last)]) |
-                         {"window": [w.first, w.last]})
+                         {"window": [w.first, w.last], "fold_chi2_dof": sol.chi2 / sol.dof,
+                          "fold_sigma": {c: float(np.mean(v)) for c, v in sol.noise.items()}})
         res = {
             "J": float(sum(f["J"] for f in folds)), "nlpd": float(sum(f["nlpd"] for f in folds)),
             "chi2_per_row": float(np.mean([f["chi2_per_row"] for f in folds])), "folds": folds, "failed": failed,
@@ -186,6 +187,13 @@ def report(results: dict, models: list[str]) -> list[str]:
         J = sum(r["models"][m]["J"] for r in results.values())
         nl = sum(r["models"][m]["nlpd"] for r in results.values())
         lines.append(f"  {m:<14} J {J:9.1f}   NLPD {nl:10.1f}")
+    lines.append("folds whose own solve ends with chi2/dof above 2 (its sigma then not what its rows scatter by):")
+    for name, r in results.items():
+        for m in models:
+            hi = [f"[{f['window'][0]}, {f['window'][1]}] {f['fold_chi2_dof']:.2f}" for f in r["models"][m]["folds"]
+                  if f["fold_chi2_dof"] > 2.0]
+            if hi and m != "paper":
+                lines.append(f"  {name} {m}: " + "; ".join(hi))
     if "estimate" in models and "estimate+sway" in models:
         better = sum(f2["J"] < f1["J"] for r in results.values() for f1, f2 in
                      zip(r["models"]["estimate"]["folds"], r["models"]["estimate+sway"]["folds"], strict=True))
