@@ -20,11 +20,13 @@ Each finished seed is appended to ``--out`` (JSON lines; seeds already there are
 interrupted measure resumes. Exit code 1 on a miss.
 
     python benchmarks/bench_rest_windows.py [--seeds 100] [--first 0] [--workers 2] [--out FILE]
-        [--config settling_sway] [--settle-p P] [--keep DIR]
+        [--config settling_sway] [--settle-p P] [--keep DIR] [--sway]
 
 ``--settle-p``: the settle test's false-alarm probability in the offline search (``WindowOptions.settle_test_p``;
 default: the solve's, the same as the startups' online detector). ``--keep DIR``: the startups are kept there
 and solved again by a later call (a change of the solve measured on the same startups, in minutes).
+``--sway``: the solve's estimate noise carries the sway term (``SolveOptions.sway``, `cdpr solve --noise
+estimate+sway`; docs/windows.md, "Sway in the statics rows").
 """
 
 from __future__ import annotations
@@ -69,10 +71,12 @@ def resting_offset(robot, poses: np.ndarray, tensions: np.ndarray, push: np.ndar
     return float(np.linalg.norm(np.linalg.solve(jac[0], (r - w).mean(axis=0))[:3]))
 
 
-def one(seed: int, config: str, grid: int, settle_p: float | None = None, keep: str | None = None) -> dict | None:
+def one(seed: int, config: str, grid: int, settle_p: float | None = None, keep: str | None = None,
+        sway: bool = False) -> dict | None:
     """One simulated startup and the default solve of its run: per used window its offset from rest (m), the
     chi2 and dof, the position error and printed sigma (m). ``keep``: a folder where the startup is kept as
-    ``seed-N`` (and taken from, when it is there already: the solve of a kept startup again)."""
+    ``seed-N`` (and taken from, when it is there already: the solve of a kept startup again). ``sway``: the
+    estimate noise with the sway term."""
     from acquisition.cli.errors import OperationError, UsageError
     from acquisition.runlog import read_run
     from acquisition.session import simulated_startup
@@ -93,7 +97,7 @@ def one(seed: int, config: str, grid: int, settle_p: float | None = None, keep: 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             opt = None if settle_p is None else WindowOptions(settle_test_p=settle_p)
-            sol = solve(run.robot, run, noise="estimate", window_options=opt)
+            sol = solve(run.robot, run, noise="estimate", window_options=opt, sway=sway)
     true_robot = load_sim_config(path, run.robot.n).true_robot(run.robot)
     poses, mean_poses, tensions, push = (np.asarray(truth[k], float)
                                          for k in ("poses", "mean_poses", "tensions", "push"))
@@ -136,6 +140,7 @@ def main() -> int:
     ap.add_argument("--out", help="JSON lines of the finished seeds (resumed when it exists)")
     ap.add_argument("--settle-p", type=float, help="the offline settle test's false-alarm probability")
     ap.add_argument("--keep", help="keep the startups in this folder (seed-N) and solve the kept ones again")
+    ap.add_argument("--sway", action="store_true", help="the estimate noise with the sway term (SolveOptions.sway)")
     args = ap.parse_args()
     t0 = time.perf_counter()
     done: dict[int, dict] = {}
@@ -147,7 +152,8 @@ def main() -> int:
     todo = [s for s in range(args.first, args.first + args.seeds) if s not in done]
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         n = len(todo)
-        for r in pool.map(one, todo, [args.config] * n, [args.grid] * n, [args.settle_p] * n, [args.keep] * n):
+        for r in pool.map(one, todo, [args.config] * n, [args.grid] * n, [args.settle_p] * n, [args.keep] * n,
+                          [args.sway] * n):
             done[r["seed"]] = r
             if out is not None:
                 with out.open("a") as f:

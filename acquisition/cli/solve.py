@@ -25,9 +25,11 @@ def register(sub) -> None:
     p.add_argument("run", type=Path, metavar="RUN", help="run folder")
     p.add_argument("--method", choices=METHODS, default="tlse", help="tlse (default), lse or hybrid")
     p.add_argument(
-        "--noise", choices=("paper", "estimate", "sensors"), default=None,
+        "--noise", choices=("paper", "estimate", "estimate+sway", "sensors"), default=None,
         help="weights: estimate (the run's own noise of a window mean: the honest 1-sigma; default for tlse and "
-             "hybrid), paper (eq. 18; default for lse, whose rows are single samples), sensors (specifications)",
+             "hybrid), estimate+sway (the same, its tension rows also carrying the platform's sway under force "
+             "control, opt-in: docs/windows.md), paper (eq. 18; default for lse, whose rows are single samples), "
+             "sensors (specifications)",
     )
     p.add_argument("--stride", type=int, default=1, help="lse/hybrid: use every S-th sample (default 1)")
     p.add_argument("--reference-sample", type=int, default=None, help="sample whose pose is the initial pose")
@@ -78,6 +80,10 @@ def _solve(args) -> int:
                       "of them enters the model.", stacklevel=1)
     if args.noise is None:
         args.noise = default_noise(args.method)
+    sway = args.noise == "estimate+sway"  # the estimate noise with the sway term (SolveOptions.sway)
+    if sway and (with_effects or getattr(args, "model", None) is not None):
+        raise UsageError("--noise estimate+sway is a plain solve's weighting; with --effects or --model the "
+                         "weights are the diagnosis's (use --noise estimate).")
     model = None if with_effects else _effects_model(run.robot, getattr(args, "effects", None))
     table = ""
     try:
@@ -96,8 +102,8 @@ def _solve(args) -> int:
             sol, table = solve_with_effects(args, run, reference, kw)
         else:
             sol = solve(
-                run.robot, run, method=args.method, noise=args.noise, stride=args.stride,
-                reference_sample=args.reference_sample, reference_pose=reference, model=model,
+                run.robot, run, method=args.method, noise="estimate" if sway else args.noise, stride=args.stride,
+                reference_sample=args.reference_sample, reference_pose=reference, model=model, sway=sway,
             )
     except SelfCalInputError as exc:
         raise UsageError(f"{args.run}: {exc}") from exc
@@ -163,7 +169,7 @@ def format_solution(sol: Solution) -> str:
     lines.append(f"  yaw [deg]      {math.degrees(off['yaw']):.3f}")
     lines.extend(format_windows(sol))
     lines.append(f"chi2 {sol.chi2:.3g} on {sol.dof} dof")
-    if sol.noise_source in ("estimate", "sensors") and k > 1:  # the chi2 test rejects the model (sigma_scale)
+    if sol.noise_source in ("estimate", "estimate+sway", "sensors") and k > 1:  # the chi2 test rejects the model
         lines.append(f"the model does not fit these readings within their own noise (p = "
                      f"{chi2_sf(sol.chi2, sol.dof):.2g}): the 1-sigma bounds hold only for a model that does; "
                      "`cdpr diagnose RUN` says where it fails and what is missing, and --noise paper weighs the "

@@ -127,14 +127,16 @@ def neg_log_likelihood(problem: Problem, res) -> float:
     return 2.0 * ev.cost - 2.0 * float(sum(np.sum(x) for x in logw)) + float(logdet)
 
 
-def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust: bool, follow: bool = True):
+def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust: bool, follow: bool = True,
+                     sway: bool = False):
     """The passes of an estimate solve from the prepared problem (weights: the run's within-window noise):
     a first LM pass, REFINE passes on the pose-free noise at the solution, then VCE_ROUNDS_ROWS
     variance-component rounds. ``robust``: the first pass weighs with the paper's eq. 18 (a documented robust
     start, wide against every model error the real runs show) and each refine pass's within-window sigmas
     are judged at the previous solution first (:func:`judged_noise`). ``follow``: a group raised to model
     error follows its rows' scatter in every round (SolveOptions.estimate_rounds 'settle'), else it keeps its
-    first round's size ('first'). Returns (LM result, problem, model)."""
+    first round's size ('first'). ``sway``: the pose-free noise's tension rows carry the sway term
+    (SolveOptions.sway). Returns (LM result, problem, model)."""
     model, meas, wins, ref, ref_sample = problem.model, problem.meas, pre.windows, pre.ref, pre.ref_sample
     if robust:
         problem = Problem(model, meas, paper_noise(robot))
@@ -150,6 +152,10 @@ def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust:
         spans = [(ref_win.slice, res.theta[:6])] + [
             (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
         pose_free = pose_free_noise(model, sig, spans, ref, res.theta, base)
+        if sway:  # the platform's sway about the equilibrium of the held tensions, in the statics rows
+            from calib.selfcal.sway import with_sway
+
+            pose_free, _ = with_sway(robot, pose_free, np.array([z for _, z in spans]))
         noise = pose_free.noise
         sigma = judged_noise(problem, res.theta, res.poses, noise.sigma, sensor_noise(robot)) if robust \
             else noise.sigma
@@ -188,16 +194,18 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
     t_start, t_rows, t_guess = pre.marks
     estimate = source == "estimate" and method == "tlse" and ref is not None and max_iter > 0
     if estimate:
-        follow = opts.estimate_rounds == "settle"
+        follow, sway = opts.estimate_rounds == "settle", opts.sway
+        source = "estimate+sway" if sway else source
         if opts.estimate_start == "likelier":
             # both starts, the within-window first pass and the paper's weights (eq. 18) with judged passes:
             # under one weighting a real run's rows have one minimum (LM from either end, or from the paper
             # solve, lands on it), but the variance components end at other weights from each start; the end
             # kept is the more likely (REML), a usable one first (docs/windows.md)
-            ends = [_estimate_passes(robot, pre, pre.problem, max_iter, robust, follow) for robust in (False, True)]
+            ends = [_estimate_passes(robot, pre, pre.problem, max_iter, robust, follow, sway)
+                    for robust in (False, True)]
             res, problem, model = _likelier([e for e in ends if e[0].converged] or ends[:1])
         else:
-            end = _estimate_passes(robot, pre, problem, max_iter, False, follow)
+            end = _estimate_passes(robot, pre, problem, max_iter, False, follow, sway)
             # settled rounds bring chi2 into its band: beyond it, the pose is suspect ('first' rounds leave
             # chi2/dof at 2-3 on the real runs: there only an unusable end is)
             suspect = not (_consistent if follow else _usable)(end[1], end[0])
@@ -206,7 +214,7 @@ def solve_run(robot: Robot, run: Any, opts: SolveOptions) -> Solution:
                 # their rest: 41 mm off, chi2/dof 165, the covariance not finite; sc_27_medium_a with three samples
                 # cut off a few windows' heads: 35 mm off, chi2/dof 5.9 at settled components, REML 856 against
                 # -453): again from the robust start, the more likely end kept (a usable one first)
-                other = _estimate_passes(robot, pre, pre.problem, max_iter, True, follow)
+                other = _estimate_passes(robot, pre, pre.problem, max_iter, True, follow, sway)
                 end = _likelier([e for e in (end, other) if e[0].converged])
             res, problem, model = end
     else:

@@ -199,11 +199,14 @@ class PoseFreeNoise:
     """What :func:`pose_free_noise` estimates: per kinematic group the sigma of one sample's pose-free part
     (``sample``, SI), its window-mean figures (``groups``, as :class:`ChannelNoise`) and per channel the quantisation
     error of a window mean (``quantisation``: (n,) SI, :func:`quantisation_variance` averaged over the
-    windows), which no later rescaling may go below."""
+    windows), which no later rescaling may go below; the per-sample poses it fitted and their windows
+    (``poses``, ``owner``: what calib.selfcal.sway sizes the sway from)."""
 
     noise: WindowNoise
     sample: dict[str, float]
     quantisation: dict[str, np.ndarray] = field(default_factory=dict)
+    poses: np.ndarray | None = None  # (N, 6) the per-sample poses of the still windows (m, rad)
+    owner: np.ndarray | None = None  # (N,) the window (index into the spans) of each of them
 
 
 def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, np.ndarray]],
@@ -280,7 +283,7 @@ def pose_free_noise(model, sig: dict[str, np.ndarray], spans: list[tuple[slice, 
         groups[c] = ChannelNoise(math.sqrt(gamma0), rho, nh / f, mean, float(np.max(floor[c])))
         sigma_out[c] = np.sqrt(gamma0 * f / nh + var_q)  # per cable: the group's noise, the cable's quantisation
     sigma_out["orientation"] = np.array([groups["tilt"].mean, groups["tilt"].mean, groups["yaw"].mean])
-    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, quant)
+    return PoseFreeNoise(WindowNoise(sigma_out, base.window_size, groups), per, quant, Z, owner)
 
 
 VCE_GROUPS = ("tension", "length", "swivel", "tilt", "yaw")

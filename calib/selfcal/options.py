@@ -46,6 +46,10 @@ class SolveOptions:
         point (chi2 ends inside its band); 'first': it keeps the size its first round gave it, at a poorly
         fitted pose (the rounds before issue 29 r, whose leftover chi2 the diagnosis's tests read as the
         model's misfit: calib.runrows keeps it until that test is made against the window-scatter noise).
+    sway: an estimate solve's statics rows also carry the platform's sway under force control (the offset of a
+        window-mean pose from the equilibrium of its held tensions, sized from the run's per-sample poses:
+        calib.selfcal.sway; ``cdpr solve --noise estimate+sway``). Off by default (docs/windows.md, "Sway in
+        the statics rows": what it does to the prediction of held-out real windows). Needs noise 'estimate'.
     """
 
     method: str = "tlse"
@@ -60,6 +64,7 @@ class SolveOptions:
     max_iter: int = 200
     estimate_start: str = "within"
     estimate_rounds: str = "settle"
+    sway: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -72,6 +77,9 @@ class SolveOptions:
         if self.estimate_start not in ESTIMATE_STARTS:
             raise SelfCalInputError(
                 f"estimate_start '{self.estimate_start}' is not one of {', '.join(ESTIMATE_STARTS)}.")
+        if self.sway and not (isinstance(self.noise, str) and self.noise == "estimate"):
+            raise SelfCalInputError(f"sway is a term of the estimate noise; noise {self.noise!r} has none "
+                                    "(use noise 'estimate').")
 
     @classmethod
     def of(cls, options: SolveOptions | None = None, **changes: Any) -> SolveOptions:
