@@ -71,3 +71,30 @@ def test_export_csv_says_the_solution_is_not_in_the_csv(run, tmp_path, capsys):
     assert "length_1" in header and not any(h.startswith(("initial", "sigma", "chi2")) for h in header)  # as said
     assert main(["export", str(run), "--format", "mat", "-o", str(tmp_path / "r.mat")]) == 0
     assert "with its solution " in capsys.readouterr().out
+
+
+# ---- one solution, printed the same way by cdpr startup and cdpr solve -------------------------------------------
+
+
+def test_startup_summary_and_solve_print_one_solution_with_the_same_numbers_and_units(run, capsys):
+    from acquisition.report import StartupSummary, render_text
+
+    sol = json.loads((run / "solution.json").read_text())
+    held = [(a + 5, b) for a, b in sol["windows"]]  # the controller's holds start after the solve's windows
+    text = render_text(StartupSummary("ok", str(run), "equilibrium", 8, solution=sol, windows=held))
+    capsys.readouterr()
+    assert main(["solve", str(run)]) == 0
+    out = capsys.readouterr().out
+    for name in ("x", "y", "z", "roll", "pitch", "yaw"):
+        start = next(line.split() for line in text.splitlines() if line.strip().startswith(name + " "))
+        solve = next(line.split() for line in out.splitlines() if line.strip().startswith(name + " "))
+        assert start[1] == solve[1] and start[3] == solve[3] and start[4] == solve[2], (start, solve)
+    swivel = next(line for line in text.splitlines() if line.strip().startswith("swivel"))
+    solved = next(line for line in out.splitlines() if line.strip().startswith("swivel [deg]")).split()[2:]
+    assert swivel.endswith(" deg") and swivel.split("[")[1].split("]")[0].split(", ") == solved, (swivel, solved)
+    yaw = next(line for line in text.splitlines() if line.strip().startswith("yaw ") and "+-" not in line)
+    assert yaw.split()[1:] == [next(line for line in out.splitlines() if "yaw [deg]" in line).split()[2], "deg"]
+    used = next(line for line in text.splitlines() if line.startswith("windows the solve used"))
+    assert used.endswith(", ".join(f"[{a}, {b}]" for a, b in sol["windows"])), used
+    same = render_text(StartupSummary("ok", str(run), "equilibrium", 8, solution=sol, windows=sol["windows"]))
+    assert "windows the solve used" not in same  # said only when they differ

@@ -150,9 +150,9 @@ def format_solution(sol: Solution) -> str:
         f"noise {sol.noise_source}, {sol.iterations} iterations, {sol.timing['solve_s'] * 1000:.1f} ms",
         "initial pose       value         1-sigma" + (f"       x {k:.3g} (*)" if k > 1 else ""),
     ]
-    for j, name in enumerate("xyz"):  # positions in m, their 1-sigma in mm (a tenth of a mm shows)
+    for j, name in enumerate("xyz"):  # positions and their 1-sigma in mm to the micrometre, as cdpr startup prints
         scaled = f"  {1000 * k * s[j]:>10.3f} mm" if k > 1 else ""
-        lines.append(f"  {name:<14} {z[j]:>10.4f} m   {1000 * s[j]:>10.3f} mm{scaled}")
+        lines.append(f"  {name:<14} {1000 * z[j]:>10.3f} mm  {1000 * s[j]:>10.3f} mm{scaled}")
     for j, name in enumerate(("roll", "pitch", "yaw")):
         scaled = f"  {math.degrees(k * s[3 + j]):>10.3f} deg" if k > 1 else ""
         lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f} deg {math.degrees(s[3 + j]):>10.3f} deg{scaled}")
