@@ -98,3 +98,29 @@ def test_startup_summary_and_solve_print_one_solution_with_the_same_numbers_and_
     assert used.endswith(", ".join(f"[{a}, {b}]" for a, b in sol["windows"])), used
     same = render_text(StartupSummary("ok", str(run), "equilibrium", 8, solution=sol, windows=sol["windows"]))
     assert "windows the solve used" not in same  # said only when they differ
+
+
+# ---- argparse's own errors: one sentence, no usage block ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["solve", "R", "--method", "foo"], "argument --method: invalid choice: 'foo'"),
+    (["solve", "R", "--stride", "x"], "argument --stride: invalid int value: 'x'"),
+    (["export", "R", "--format", "xls", "-o", "a.xls"], "argument --format: invalid choice: 'xls'"),
+    (["startup"], "the following arguments are required: --backend"),
+    (["poses", "--grid", "2", "--bogus"], "unrecognized arguments: --bogus"),
+])
+def test_a_usage_error_is_one_sentence_pointing_at_the_help(argv, said, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    err = _one_sentence(capsys.readouterr().err)
+    assert said in err and err.endswith(f"see `cdpr {argv[0]} --help`.\n"), err
+
+
+def test_a_command_without_its_action_prints_its_own_help(capsys):
+    for command, action in (("import", "irma"), ("robot", "show"), ("devices", "read"), ("certify", "anchors")):
+        assert main([command]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"usage: cdpr {command} ") and action in err and "Self-calibration" not in err, err
+    assert main([]) == 2 and "Self-calibration" in capsys.readouterr().err  # no command: the whole help
