@@ -124,3 +124,17 @@ def test_a_command_without_its_action_prints_its_own_help(capsys):
         err = capsys.readouterr().err
         assert err.startswith(f"usage: cdpr {command} ") and action in err and "Self-calibration" not in err, err
     assert main([]) == 2 and "Self-calibration" in capsys.readouterr().err  # no command: the whole help
+
+
+# ---- certify simulate: --out as every other writer, and it says what it wrote -----------------------------------
+
+
+def test_certify_simulate_takes_out_as_the_other_writers_and_says_what_it_wrote(tmp_path, capsys):
+    common = ["certify", "simulate", "--robot", "reelax8", "-n", "5", "--seed", "1"]
+    capsys.readouterr()
+    for option, name in (("--out", "a.csv"), ("--output", "b.csv"), ("-o", "c.csv")):  # the old name still works
+        assert main([*common, option, str(tmp_path / name)]) == 0
+        said = capsys.readouterr().out
+        assert said == (f"{tmp_path / name}: 5 simulated poses of reelax8 (0 outliers), one a line under the "
+                        "header x,y,z,roll,pitch,yaw,l_1..l_8 (m, rad)\n"), said
+        assert len((tmp_path / name).read_text().splitlines()) == 1 + 5
