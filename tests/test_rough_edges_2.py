@@ -138,3 +138,20 @@ def test_certify_simulate_takes_out_as_the_other_writers_and_says_what_it_wrote(
         assert said == (f"{tmp_path / name}: 5 simulated poses of reelax8 (0 outliers), one a line under the "
                         "header x,y,z,roll,pitch,yaw,l_1..l_8 (m, rad)\n"), said
         assert len((tmp_path / name).read_text().splitlines()) == 1 + 5
+
+
+# ---- startup: a bad value names its option, alone ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("option, value, said", [
+    ("--hold", "-1", "--hold -1 must be positive (s)."),
+    ("--max-rate", "0", "--max-rate 0 must be positive (N/s)."),
+    ("--settle-timeout", "-2", "--settle-timeout -2 must be positive (s)."),
+    ("--rate", "50", "--rate 50 is outside the control rates 200..500 Hz."),
+    ("--rt-priority", "0", "--rt-priority 0 is outside the SCHED_FIFO priorities 1..99."),
+])
+def test_a_bad_startup_value_names_its_option_alone(option, value, said, tmp_path, capsys):
+    out = tmp_path / "R"
+    assert main(["startup", "--backend", "sim", "--no-html", "--out", str(out), option, value]) == 2
+    err = _one_sentence(capsys.readouterr().err)
+    assert err == f"cdpr: {said}\n" and not out.exists(), err
