@@ -471,4 +471,9 @@ def _loadmat(file: Path):
     """scipy.io.loadmat as the importers call it (scipy.io imported here: ~0.1 s that other commands skip)."""
     import scipy.io
 
-    return scipy.io.loadmat(str(file), squeeze_me=False, struct_as_record=True)
+    with warnings.catch_warnings():
+        # a MATLAB workspace saved whole (the authors' ws_selfcalibration_*.mat holds `st` beside function handles
+        # and objects) has variables scipy cannot name: it warns "Duplicate variable name 'None'" for each, in
+        # two lines. The importers read `st` or `out` alone, which such a variable never is.
+        warnings.filterwarnings("ignore", message="Duplicate variable name", category=scipy.io.matlab.MatReadWarning)
+        return scipy.io.loadmat(str(file), squeeze_me=False, struct_as_record=True)

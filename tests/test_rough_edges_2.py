@@ -155,3 +155,13 @@ def test_a_bad_startup_value_names_its_option_alone(option, value, said, tmp_pat
     assert main(["startup", "--backend", "sim", "--no-html", "--out", str(out), option, value]) == 2
     err = _one_sentence(capsys.readouterr().err)
     assert err == f"cdpr: {said}\n" and not out.exists(), err
+
+
+# ---- a whole MATLAB workspace that holds `st`: scipy's nameless-variable warnings stay out ------------------------
+
+
+def test_importing_the_authors_workspace_leaks_no_scipy_warning(irma_data, tmp_path, capsys):
+    out = tmp_path / "W"
+    assert main(["import", "irma", str(irma_data / "ws_selfcalibration_8_final.mat"), "-o", str(out)]) == 0
+    cap = capsys.readouterr()
+    assert cap.err == "" and cap.out.startswith(f"{out}: 1280 samples"), cap
