@@ -165,3 +165,20 @@ def test_importing_the_authors_workspace_leaks_no_scipy_warning(irma_data, tmp_p
     assert main(["import", "irma", str(irma_data / "ws_selfcalibration_8_final.mat"), "-o", str(out)]) == 0
     cap = capsys.readouterr()
     assert cap.err == "" and cap.out.startswith(f"{out}: 1280 samples"), cap
+
+
+# ---- a log handed to a command that reads runs -------------------------------------------------------------------
+
+
+def test_a_log_given_for_a_run_says_it_is_a_file_and_how_to_import_it(irma_data, tmp_path, capsys):
+    log = irma_data / "sc_8_final.log"
+    for argv in (["solve", str(log)], ["diagnose", str(log)], ["export", str(log), "--format", "mat", "-o",
+                                                                 str(tmp_path / "x.mat")]):
+        assert main(argv) == 2
+        err = _one_sentence(capsys.readouterr().err)
+        assert err == (f"cdpr: {log}: a file, not a run folder (a cdpr-run/1 folder holds run.yaml and samples.csv); "
+                       f"convert it first: cdpr import irma {log} -o RUN.\n"), err
+    note = tmp_path / "notes.txt"
+    note.write_text("x")
+    assert main(["solve", str(note)]) == 2
+    assert "notes.txt: a file, not a run folder" in _one_sentence(capsys.readouterr().err)
