@@ -308,10 +308,21 @@ def _names(t) -> str:
     return ",".join(t.names) if t.names else "(base: own unknowns only)"
 
 
-def _fmt_values(fit, name: str) -> str:
+def shared_values_text(fit, name: str) -> str:
+    """'k = value ± sigma unit, ...' of a shared effect, with the units the one-run report gives them."""
     vals = fit.shared_params().get(name, {})
     sig = fit.shared_sigmas().get(name, {})
-    return ", ".join(f"{k} = {v:.4g}" + (f" ± {sig[k]:.2g}" if k in sig else "") for k, v in vals.items())
+    units = parameter_units(fit.shared, fit.runs[0].rows.robot)
+
+    def one(k: str, v: float) -> str:
+        unit = units.get(k, UNITS.get(k, ""))
+        if k not in sig:
+            return f"{k} = {_fmt(v, unit)}"
+        if unit == "rad":
+            return f"{k} = {math.degrees(v):.4g} ± {math.degrees(sig[k]):.2g} deg"
+        return f"{k} = {v:.4g} ± {sig[k]:.2g}" + ("" if unit in ("1", "") else f" {unit}")
+
+    return ", ".join(one(k, v) for k, v in vals.items())
 
 
 def window_chi2(rf) -> tuple[float, int, float]:
@@ -449,7 +460,10 @@ def format_selection(sel, paths: Sequence[str], model_out: Path | None = None) -
     out = [f"cdpr diagnose {' '.join(paths)}: effects shared by the runs, chosen by {sel.mode} prediction",
            selection_verdict(sel), ""]
     for name in sel.selected:
-        out.append(f"  {name}: {_fmt_values(sel.final.fit, name)}")
+        out.append(f"  {name}: {shared_values_text(sel.final.fit, name)}")
+    if sel.selected:
+        out.append("  (±: the joint fit's 1-sigma of the shared value; a new run's 1-sigma, the `sigma` that "
+                   "--model-out writes and --model uses, adds the between-run spread: docs/robot-model.md)")
     out.append(f"  the joint fit of {_names(sel.final)}: {sel.final.fit.convergence_words()}")
     loose = [t for st in sel.steps for t in st["options"] if not t.fit.converged]
     if loose:

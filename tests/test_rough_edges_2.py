@@ -182,3 +182,25 @@ def test_a_log_given_for_a_run_says_it_is_a_file_and_how_to_import_it(irma_data,
     note.write_text("x")
     assert main(["solve", str(note)]) == 2
     assert "notes.txt: a file, not a run folder" in _one_sentence(capsys.readouterr().err)
+
+
+# ---- several runs: the shared values with their units, and which 1-sigma is printed --------------------------------
+
+
+def test_the_several_run_report_gives_the_shared_values_their_units():
+    from types import SimpleNamespace
+
+    from acquisition.diagnose_report import shared_values_text
+    from calib.effects import make_effects
+    from calib.robot import load_robot
+
+    robot = load_robot("irma4u")
+    fit = SimpleNamespace(
+        shared=make_effects(["cable_elasticity", "tension_offset"]),
+        runs=[SimpleNamespace(rows=SimpleNamespace(robot=robot))],
+        shared_params=lambda: {"cable_elasticity": {"EA": 7413.8, "compliance": 1.3488e-4},
+                               "tension_offset": {"o_1": 11.36, "o_2": 13.08}},
+        shared_sigmas=lambda: {"cable_elasticity": {"compliance": 3.12e-5},
+                               "tension_offset": {"o_1": 2.985, "o_2": 2.886}})
+    assert shared_values_text(fit, "cable_elasticity") == "EA = 7414 N, compliance = 0.0001349 ± 3.1e-05 1/N"
+    assert shared_values_text(fit, "tension_offset") == "o_1 = 11.36 ± 3 N, o_2 = 13.08 ± 2.9 N"
