@@ -204,3 +204,19 @@ def test_the_several_run_report_gives_the_shared_values_their_units():
                                "tension_offset": {"o_1": 2.985, "o_2": 2.886}})
     assert shared_values_text(fit, "cable_elasticity") == "EA = 7414 N, compliance = 0.0001349 ± 3.1e-05 1/N"
     assert shared_values_text(fit, "tension_offset") == "o_1 = 11.36 ± 3 N, o_2 = 13.08 ± 2.9 N"
+
+
+# ---- the workspace summary: units and millimetres, not float noise --------------------------------------------------
+
+
+def test_the_workspace_summary_gives_its_extent_in_metres_to_the_millimetre(capsys):
+    assert main(["workspace", "--step", "0.3"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("grid positions: ") and "(step 0.3 m)" in out, out
+    extent = next(line for line in out.splitlines() if line.strip().startswith("extent (m): "))
+    for part in extent.split(": ", 1)[1].split(", "):
+        axis, lo, dots, hi = part.split()
+        assert axis in "xyz" and dots == ".." and len(lo.split(".")[1]) == 3 and len(hi.split(".")[1]) == 3, part
+    assert main(["workspace", "--step", "0.3", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc) >= {"points", "in_workspace", "boundary", "extent_lower", "extent_upper"}  # JSON as before

@@ -178,6 +178,20 @@ def _workspace(args) -> int:
         json.dump(summary, sys.stdout)
         sys.stdout.write("\n")
     else:
-        for k, v in summary.items():
-            print(f"{k:>14}: {v}")
+        sys.stdout.write(workspace_text(summary, args.step))
     return 0
+
+
+def workspace_text(summary: dict, step: float) -> str:
+    """The workspace summary for a reader: counts, and the extent in m to the millimetre (the JSON keeps the
+    full floats)."""
+    lines = [f"grid positions: {summary['points']} (step {step:g} m)",
+             f"  in the static workspace: {summary['in_workspace']}, on its boundary: {summary['boundary']}"]
+    lo, hi = summary.get("extent_lower"), summary.get("extent_upper")
+    if lo is None:
+        lines.append("  extent: none (no position of the grid is in the static workspace)")
+    else:
+        lines.append("  extent (m): " + ", ".join(f"{a} {lo[j]:.3f} .. {hi[j]:.3f}" for j, a in enumerate("xyz")))
+    if "plot" in summary:
+        lines.append(f"plot: {summary['plot']}")
+    return "\n".join(lines) + "\n"
