@@ -220,3 +220,21 @@ def test_the_workspace_summary_gives_its_extent_in_metres_to_the_millimetre(caps
     assert main(["workspace", "--step", "0.3", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert set(doc) >= {"points", "in_workspace", "boundary", "extent_lower", "extent_upper"}  # JSON as before
+
+
+# ---- solve --model explores, as --effects does: the run's solution changes only with --save ------------------------
+
+
+def test_a_solve_with_a_model_does_not_become_the_runs_solution_unless_saved(irma_data, tmp_path, capsys):
+    run = tmp_path / "R"
+    assert main(["import", "irma", str(irma_data / "sc_8_final_parsed.mat"), "-o", str(run)]) == 0
+    model = tmp_path / "m.yaml"
+    model.write_text("format: cdpr-robot-model\nversion: 1\nrobot: irma4u\neffects:\n- name: tension_offset\n"
+                     "  values: {o_1: 10.0, o_2: 10.0, o_3: 5.0, o_4: 12.0}\n"
+                     "  sigma: {o_1: 3.0, o_2: 3.0, o_3: 3.0, o_4: 3.0}\n")
+    capsys.readouterr()
+    assert main(["solve", str(run), "--model", str(model)]) == 0
+    assert "not saved: the run has no solution yet" in capsys.readouterr().out
+    assert not (run / "solution.json").exists()
+    assert main(["solve", str(run), "--model", str(model), "--save", "--json"]) == 0
+    assert json.loads((run / "solution.json").read_text()) == json.loads(capsys.readouterr().out)

@@ -38,8 +38,8 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print the solution as JSON")
     p.add_argument("--save", action="store_true",
                    help="make this solve the run's solution (RUN/solution.json, what export carries); without it "
-                   "only the first solve with the default options writes it, and exploring (--effects, --noise, "
-                   "--method...) changes nothing")
+                   "only the first solve with the default options writes it, and exploring (--effects, --model, "
+                   "--noise, --method...) changes nothing")
     add_effect_options(p)
     p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
                    help="a learned robot model (cdpr diagnose --model-out): its effects as priors, this run's own "
@@ -127,7 +127,8 @@ def _default_options(args) -> bool:
     """True for a solve with every option at its default: the solve `cdpr startup` makes, not an exploration."""
     return (args.method == "tlse" and args.noise == default_noise(args.method) and args.stride == 1
             and args.reference_sample is None
-            and not getattr(args, "effects", None) and not getattr(args, "effects_from", None))
+            and not getattr(args, "effects", None) and not getattr(args, "effects_from", None)
+            and getattr(args, "model", None) is None)
 
 
 def _too_few_windows_hint(run) -> str:
