@@ -238,3 +238,28 @@ def test_a_solve_with_a_model_does_not_become_the_runs_solution_unless_saved(irm
     assert not (run / "solution.json").exists()
     assert main(["solve", str(run), "--model", str(model), "--save", "--json"]) == 0
     assert json.loads((run / "solution.json").read_text()) == json.loads(capsys.readouterr().out)
+
+
+# ---- study --force moves another study aside, as every command does, instead of deleting its results ---------------
+
+
+def test_study_force_moves_another_studys_results_aside_never_deletes_them(tmp_path, capsys):
+    import socket
+
+    out = tmp_path / "S"
+    out.mkdir()
+    (out / "config.json").write_text('{"format": "another study"}\n')
+    (out / "run-grid2-s00000.json").write_text('{"plan": "grid2", "seed": 0}\n')
+    with socket.socket() as s:  # nobody listens: the study stops after preparing its folder, nothing run
+        s.bind(("127.0.0.1", 0))
+        addr = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    argv = ["study", "--plan", "grid2", "--runs", "1", "--out", str(out), "--scheduler", addr,
+            "--connect-timeout", "1", "--no-html"]
+    assert main(argv) == 2  # refused without --force, nothing touched
+    assert "--force to move them aside" in _one_sentence(capsys.readouterr().err)
+    assert main([*argv, "--force"]) == 1
+    err = capsys.readouterr().err
+    kept = list(tmp_path.glob("S.replaced-*"))
+    assert len(kept) == 1 and f"it is kept as {kept[0]}" in err, err
+    assert (kept[0] / "run-grid2-s00000.json").read_text() == '{"plan": "grid2", "seed": 0}\n'
+    assert (out / "config.json").is_file() and not list(out.glob("run-*.json"))
