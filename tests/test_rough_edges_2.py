@@ -263,3 +263,22 @@ def test_study_force_moves_another_studys_results_aside_never_deletes_them(tmp_p
     assert len(kept) == 1 and f"it is kept as {kept[0]}" in err, err
     assert (kept[0] / "run-grid2-s00000.json").read_text() == '{"plan": "grid2", "seed": 0}\n'
     assert (out / "config.json").is_file() and not list(out.glob("run-*.json"))
+
+
+# ---- a damaged solution.json, a replay of no run ----------------------------------------------------------------------
+
+
+def test_solve_does_not_call_a_damaged_solution_the_runs_solution(run, tmp_path, capsys):
+    (run / "solution.json").write_text("{not json")
+    capsys.readouterr()
+    assert main(["solve", str(run)]) == 0
+    said = capsys.readouterr().out.splitlines()[-1]
+    assert said == (f"not saved: {run / 'solution.json'} is damaged, so the run has no solution that export can "
+                    "carry (--save to replace it)"), said
+    assert main(["export", str(run), "--format", "mat", "-o", str(tmp_path / "x.mat")]) == 2  # as said
+
+
+def test_replay_of_no_run_says_it_is_not_a_run_folder(tmp_path, capsys):
+    assert main(["replay", str(tmp_path / "nosuch"), "--out", str(tmp_path / "X")]) == 2
+    assert _one_sentence(capsys.readouterr().err) == f"cdpr: {tmp_path / 'nosuch'}: not a run folder (no such " \
+        "directory).\n"

@@ -117,10 +117,20 @@ def _solve(args) -> int:
         sys.stdout.write(json.dumps(doc) + "\n")
     else:
         said = (f"saved as the run's solution: {path}" if save else
+                f"not saved: {path} is damaged, so the run has no solution that export can carry (--save to "
+                "replace it)" if path.exists() and not _readable(path) else
                 f"not saved: {path} stays the run's solution (--save to replace it)" if path.exists() else
                 "not saved: the run has no solution yet (--save to make this one, or solve with the default options)")
         sys.stdout.write(format_solution(sol) + table + said + "\n")
     return 0
+
+
+def _readable(path: Path) -> bool:
+    """True when the saved solution reads back as JSON (what `cdpr export` needs of it)."""
+    try:
+        return isinstance(json.loads(path.read_text()), dict)
+    except (OSError, ValueError):
+        return False
 
 
 def _default_options(args) -> bool:
