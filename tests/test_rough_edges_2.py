@@ -265,7 +265,7 @@ def test_study_force_moves_another_studys_results_aside_never_deletes_them(tmp_p
     assert (out / "config.json").is_file() and not list(out.glob("run-*.json"))
 
 
-# ---- a damaged solution.json, a replay of no run ----------------------------------------------------------------------
+# ---- a damaged solution.json, a replay of no run -----------------------------------------------------------------
 
 
 def test_solve_does_not_call_a_damaged_solution_the_runs_solution(run, tmp_path, capsys):
