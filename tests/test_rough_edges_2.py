@@ -282,3 +282,12 @@ def test_replay_of_no_run_says_it_is_not_a_run_folder(tmp_path, capsys):
     assert main(["replay", str(tmp_path / "nosuch"), "--out", str(tmp_path / "X")]) == 2
     assert _one_sentence(capsys.readouterr().err) == f"cdpr: {tmp_path / 'nosuch'}: not a run folder (no such " \
         "directory).\n"
+
+
+# ---- the pose tables name the unit of the positions, as of the angles and setpoints ----------------------------------
+
+
+def test_the_pose_table_gives_the_positions_their_unit(capsys):
+    assert main(["poses", "--grid", "2"]) == 0
+    head = capsys.readouterr().out.splitlines()[1].split()
+    assert head[:7] == ["#", "x", "(m)", "y", "(m)", "z", "(m)"] and "roll°" in head, head

@@ -77,7 +77,7 @@ def _poses(args) -> int:
 
 def _table(robot, title: str, out: dict) -> None:
     print(f"{robot.name}: {title}, visiting order")
-    print(f"{'#':>3} {'x':>7} {'y':>7} {'z':>7} {'roll°':>7} {'pitch°':>7} {'yaw°':>7}   setpoint (N)")
+    print(f"{'#':>3} {'x (m)':>7} {'y (m)':>7} {'z (m)':>7} {'roll°':>7} {'pitch°':>7} {'yaw°':>7}   setpoint (N)")
     for i, (z, t) in enumerate(zip(out["poses"], out["setpoints"], strict=True)):
         ang = np.degrees(z[3:])
         print(
@@ -153,7 +153,7 @@ def _separate(args) -> int:
         return 0
     print(f"{robot.name}: {len(sep.poses)} poses that tell {names[0]} from {names[1]} (add them to the plan, "
           "run it and diagnose again)")
-    print(f"{'#':>3} {'x':>7} {'y':>7} {'z':>7}  {'expected delta chi2':>19}   setpoint (N)")
+    print(f"{'#':>3} {'x (m)':>7} {'y (m)':>7} {'z (m)':>7}  {'expected delta chi2':>19}   setpoint (N)")
     for i, (z, t, sc) in enumerate(zip(sep.poses, sep.setpoints, sep.score, strict=True)):
         print(f"{i:>3} {z[0]:7.3f} {z[1]:7.3f} {z[2]:7.3f}  {sc:19.1f}   " + " ".join(f"{v:7.2f}" for v in t))
     return 0
