@@ -343,9 +343,13 @@ def selection_verdict(sel) -> str:
     text = ""
     if sel.finding is not None:
         bad = "; ".join(str(v) for v in sel.finding.implausible)
+        # effects chosen at the steps before the finding stand: say that nothing is added to them, not that
+        # nothing is recommended (the verdict then recommends them)
+        instead = (f"added to {','.join(sel.selected)}, chosen at the steps before it" if sel.selected else
+                   "recommended in its place")
         text += (f"FINDING: {_names(sel.finding)} predicts best ({sel.mode} score {sel.finding.score:.1f}) only "
                  f"with {bad}: a likely error in the robot description or the setup (check it); nothing that "
-                 f"explains less is recommended in its place. ")
+                 f"explains less is {instead}. ")
         if sel.finding.spread is not None:
             text += finding_agreement(sel.finding) + " "
     if sel.selected:

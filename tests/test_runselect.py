@@ -100,6 +100,10 @@ def test_a_finding_on_the_real_runs_says_the_runs_agree_on_cell_3s_gain(irma_dat
     assert t.spread.p >= 0.01
     words = selection_verdict(sel)
     assert words.startswith("FINDING: ") and "do not disagree" in words and "g_3 " in words
+    # what was kept before the finding stands, and the words say so (issue30u: they said nothing was recommended)
+    assert ("nothing that explains less is added to cable_elasticity,tension_offset, chosen at the steps before it"
+            in words and "recommended in its place" not in words and words.endswith(
+                "recommended: cable_elasticity,tension_offset (by leave-one-run-out prediction)")), words
     agree = selection_json(sel, ["a", "b", "c"])["finding"]["runs_agree"]
     assert agree["agree"] is True and len(agree["values"]["tension_gain.g_3"]) == 3
     t.spread = replace(t.spread, p=1e-4)
