@@ -207,6 +207,9 @@ def format_diagnosis(diag: Diagnosis, units: dict[str, str] | None = None, run: 
     units = units or {}
     lines = [f"chi2 {diag.chi2:.3g} on {diag.dof} dof (p = {diag.p_value:.3g}), noise {diag.noise_source}"]
     where = misfit_location(diag)
+    if diag.p_value < diag.alpha and diag.noise_source == "estimate":  # one name, two weightings: say which
+        lines.append("  (noise estimate here is the windows' own scatter; cdpr solve's estimate also weighs a channel "
+                     "the model misses by that misfit, so its chi2 of this run can be smaller and its 1-sigma wider)")
     if diag.p_value < diag.alpha:
         lines.append("where the model fails: " + "; ".join(where["channels"]))
         lines.append("  worst cables: " + "; ".join(where["cables"]))

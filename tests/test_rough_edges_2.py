@@ -291,3 +291,19 @@ def test_the_pose_table_gives_the_positions_their_unit(capsys):
     assert main(["poses", "--grid", "2"]) == 0
     head = capsys.readouterr().out.splitlines()[1].split()
     assert head[:7] == ["#", "x", "(m)", "y", "(m)", "z", "(m)"] and "roll°" in head, head
+
+
+# ---- 'noise estimate' in diagnose and in solve: one name, two weightings, and the report says which -----------------
+
+
+def test_diagnose_says_its_estimate_noise_is_not_the_solves(run8, capsys):
+    capsys.readouterr()
+    assert main(["solve", str(run8), "--json"]) == 0
+    solved = json.loads(capsys.readouterr().out)
+    assert main(["diagnose", str(run8)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    chi2 = float(lines[0].split()[1])
+    assert lines[0].endswith("noise estimate") and chi2 > 2 * solved["chi2"], (lines[0], solved["chi2"])  # 178, 64
+    assert lines[1] == ("  (noise estimate here is the windows' own scatter; cdpr solve's estimate also weighs a "
+                        "channel the model misses by that misfit, so its chi2 of this run can be smaller and its "
+                        "1-sigma wider)"), lines[1]
