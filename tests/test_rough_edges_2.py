@@ -307,3 +307,20 @@ def test_diagnose_says_its_estimate_noise_is_not_the_solves(run8, capsys):
     assert lines[1] == ("  (noise estimate here is the windows' own scatter; cdpr solve's estimate also weighs a "
                         "channel the model misses by that misfit, so its chi2 of this run can be smaller and its "
                         "1-sigma wider)"), lines[1]
+
+
+# ---- the several-run diagnosis reports its progress like the one-run diagnosis ------------------------------------
+
+
+def test_a_redirected_several_run_diagnosis_reports_progress(irma_data, tmp_path, monkeypatch, capsys):
+    from acquisition.cli import progress
+
+    monkeypatch.setattr(progress.Activity.__init__, "__defaults__", (None, None, 0.01))  # a line every 10 ms
+    runs = []
+    for name in ("sc_8_final", "sc_8_medium_a"):
+        runs.append(str(tmp_path / name))
+        assert main(["import", "irma", str(irma_data / f"{name}_parsed.mat"), "-o", runs[-1]]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", *runs, "--max-effects", "0"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err and err[-1].startswith("cdpr: diagnose: 2 runs, choosing among ") and " done in " in err[-1], err

@@ -77,7 +77,10 @@ def diagnose_runs(args) -> int:
         return [*[classes[n]() for n in [e.name for e in included]], *[classes[n]() for n in names]]
 
     judge = Judge(items, make, prior)
-    sel = select(judge, cands, args.max_effects)
+    from acquisition.cli.progress import Activity
+
+    with Activity(f"diagnose: {len(items)} runs, choosing among {len(cands)} candidate effects"):
+        sel = select(judge, cands, args.max_effects)
     doc = selection_json(sel, [str(p) for p in args.run])
     if args.model_out is not None:
         model = model_document(sel.final.fit, [str(p) for p in args.run], {
