@@ -324,3 +324,20 @@ def test_a_redirected_several_run_diagnosis_reports_progress(irma_data, tmp_path
     assert main(["diagnose", *runs, "--max-effects", "0"]) == 0
     err = capsys.readouterr().err.splitlines()
     assert err and err[-1].startswith("cdpr: diagnose: 2 runs, choosing among ") and " done in " in err[-1], err
+
+
+# ---- an empty log; a log given as --targets --------------------------------------------------------------------------
+
+
+def test_an_empty_file_and_a_log_given_as_targets_say_what_they_are(irma_data, tmp_path, capsys):
+    empty = tmp_path / "x.log"
+    empty.write_bytes(b"")
+    assert main(["import", "irma", str(empty), "-o", str(tmp_path / "R")]) == 2
+    assert _one_sentence(capsys.readouterr().err) == (f"cdpr: {empty}: the file is empty (neither a MATLAB v5 "
+                                                       "*_parsed.mat nor a controller log).\n")
+    log = irma_data / "sc_8_final.log"
+    assert main(["import", "irma", str(log), "--targets", str(log), "-o", str(tmp_path / "R")]) == 2
+    err = _one_sentence(capsys.readouterr().err)
+    assert err.startswith(f"cdpr: {log}: 7956 lines, expected 4 (--targets takes a sc_control_target_*.mat, or a "
+                          "tension_target_*.csv"), err
+    assert not (tmp_path / "R").exists()
