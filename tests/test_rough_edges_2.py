@@ -190,7 +190,7 @@ def test_a_log_given_for_a_run_says_it_is_a_file_and_how_to_import_it(irma_data,
 def test_the_several_run_report_gives_the_shared_values_their_units():
     from types import SimpleNamespace
 
-    from acquisition.diagnose_report import shared_values_text
+    from acquisition.selection_report import shared_values_text
     from calib.effects import make_effects
     from calib.robot import load_robot
 

@@ -76,7 +76,7 @@ def test_a_finding_on_the_real_runs_says_the_runs_agree_on_cell_3s_gain(irma_dat
     run's value (and says the opposite when the runs disagree)."""
     from dataclasses import replace
 
-    from acquisition.diagnose_report import selection_json, selection_verdict
+    from acquisition.selection_report import selection_json, selection_verdict
     from acquisition.importers import import_irma
     from acquisition.runlog import read_run
     from calib.effects import make_effects
@@ -114,7 +114,7 @@ def test_a_findings_reported_parameters_are_listed_per_run_without_a_sigma():
     """pulley_position is fitted in deformation modes and reported as per-pulley offsets: the finding's words
     list each run's offset that left its range (from the run's own mode values), without a 1-sigma (it is
     not a fitted parameter); a fitted parameter at its hard bound is marked."""
-    from acquisition.diagnose_report import finding_agreement
+    from acquisition.selection_report import finding_agreement
     from calib.effects.builtin import PulleyPosition, TensionGain
     from calib.multirun import JointFit, RunFit
     from calib.robot import load_robot

@@ -49,7 +49,7 @@ def load_prior(path: Path | None, robot, classes) -> list:
 
 def diagnose_runs(args) -> int:
     from acquisition.cli.effect_options import effect_classes, parse_effects
-    from acquisition.diagnose_report import format_selection, selection_json
+    from acquisition.selection_report import format_selection, selection_json
     from calib.multirun import NOT_CANDIDATES
     from calib.robot_model import model_document, write_model
     from calib.runselect import Judge, select
