@@ -76,9 +76,9 @@ def test_a_finding_on_the_real_runs_says_the_runs_agree_on_cell_3s_gain(irma_dat
     run's value (and says the opposite when the runs disagree)."""
     from dataclasses import replace
 
-    from acquisition.selection_report import selection_json, selection_verdict
     from acquisition.importers import import_irma
     from acquisition.runlog import read_run
+    from acquisition.selection_report import selection_json, selection_verdict
     from calib.effects import make_effects
     from calib.runrows import run_rows
     from calib.runselect import Judge, finding_params, select
