@@ -4,7 +4,6 @@ its fix. The real-data tests read ../shared/data/irma4u (tests/conftest.py: irma
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
@@ -16,22 +15,6 @@ def _one_sentence(err: str) -> str:
     assert err.count("\n") == 1 and err.startswith("cdpr: ") and err.endswith(".\n"), err
     assert "Traceback" not in err and "usage:" not in err
     return err
-
-
-@pytest.fixture(scope="module")
-def run8(irma_data, tmp_path_factory) -> Path:
-    """sc_8_final (parsed) imported and solved with the default options: a run with its solution."""
-    out = tmp_path_factory.mktemp("r30u") / "R"
-    assert main(["import", "irma", str(irma_data / "sc_8_final_parsed.mat"), "-o", str(out)]) == 0
-    assert main(["solve", str(out), "--json"]) == 0
-    return out
-
-
-@pytest.fixture
-def run(run8, tmp_path) -> Path:
-    r = tmp_path / "R"
-    shutil.copytree(run8, r)
-    return r
 
 
 # ---- the verdict of a diagnosis whose finding comes after a kept effect ---------------------------------------
