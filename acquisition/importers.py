@@ -332,8 +332,9 @@ def read_tension_targets(file: str | Path) -> np.ndarray:
     file = Path(file)
     rows = [line for line in file.read_bytes().decode("ascii", errors="replace").splitlines() if line.strip()]
     if len(rows) != IRMA_CABLES:
-        raise IrmaImportError(f"{file}: {len(rows)} lines, expected {IRMA_CABLES} (one line of setpoint tensions "
-                              "per cable, as the controller reads tension_target_*.csv).")
+        raise IrmaImportError(f"{file}: {len(rows)} lines, expected {IRMA_CABLES} (--targets takes a "
+                              "sc_control_target_*.mat, or a tension_target_*.csv: one line of setpoint tensions "
+                              "per cable, as the controller reads it).")
     cells = [r.split(",") for r in rows]
     k = len(cells[0])
     for i, c in enumerate(cells, start=1):
@@ -388,6 +389,8 @@ def detect_irma_format(file: str | Path) -> str:
         return "parsed"
     if head.startswith(b"MATLAB 7.3") or head[:8] == b"\x89HDF\r\n\x1a\n":
         raise IrmaImportError(f"{file}: MATLAB v7.3 (HDF5) files are not supported; save the struct with -v7.")
+    if not head.strip():
+        raise IrmaImportError(f"{file}: the file is empty (neither a MATLAB v5 *_parsed.mat nor a controller log).")
     first = head.split(b"\n", 1)[0].strip()
     if any(line.strip()[:2] in (b"3,", b"5,", b"6,") for line in head.split(b"\n")[:-1]):
         return "log"  # a record among the first lines (a damaged first line is the reader's to skip)
@@ -471,4 +474,9 @@ def _loadmat(file: Path):
     """scipy.io.loadmat as the importers call it (scipy.io imported here: ~0.1 s that other commands skip)."""
     import scipy.io
 
-    return scipy.io.loadmat(str(file), squeeze_me=False, struct_as_record=True)
+    with warnings.catch_warnings():
+        # a MATLAB workspace saved whole (the authors' ws_selfcalibration_*.mat holds `st` beside function handles
+        # and objects) has variables scipy cannot name: it warns "Duplicate variable name 'None'" for each, in
+        # two lines. The importers read `st` or `out` alone, which such a variable never is.
+        warnings.filterwarnings("ignore", message="Duplicate variable name", category=scipy.io.matlab.MatReadWarning)
+        return scipy.io.loadmat(str(file), squeeze_me=False, struct_as_record=True)

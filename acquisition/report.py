@@ -124,8 +124,9 @@ def render_text(summary: StartupSummary) -> str:
         off = sol.get("sensor_offsets", {})
         lines.append("sensor offsets (absolute = offset + reading):")
         lines.append(f"  length  {_fmt_vec(off.get('length', []))} m")
-        lines.append(f"  swivel  {_fmt_vec(off.get('swivel', []))} rad")
-        lines.append(f"  yaw     {float(off.get('yaw', 0.0)):.4f} rad")
+        # angles in degrees to the thousandth, as cdpr solve prints them (offsets.yaml keeps radians)
+        lines.append(f"  swivel  {_fmt_vec(np.degrees(off.get('swivel', [])), 3)} deg")
+        lines.append(f"  yaw     {math.degrees(float(off.get('yaw', 0.0))):.3f} deg")
         res = sol.get("residuals", {})
         if res:
             lines.append(f"residuals (chi2 {float(sol.get('chi2', float('nan'))):.3g}, dof {sol.get('dof')}):")
@@ -138,6 +139,11 @@ def render_text(summary: StartupSummary) -> str:
     if summary.windows:
         lines.append("equilibrium windows held (first, last sample): "
                      + ", ".join(f"[{a}, {b}]" for a, b in summary.windows))
+    if sol and sol.get("windows") and [list(w) for w in sol["windows"]] != [list(w) for w in summary.windows]:
+        # the solve finds its windows in the samples (docs/windows.md), each the whole stretch at rest around a
+        # hold, so they differ from the held ones: say which the solve used
+        lines.append("windows the solve used (first, last sample; solution.json, cdpr solve): "
+                     + ", ".join(f"[{a}, {b}]" for a, b in sol["windows"]))
     for e in summary.events:
         lines.append(f"event at {float(e['t']):.2f} s: {e['kind']}: {e['message']}")
     for k, v in summary.files.items():

@@ -120,6 +120,11 @@ def _fail(file: Path, what: str) -> RunFormatError:
 
 def _read_meta(folder: Path) -> dict[str, Any]:
     f = folder / RUN_YAML
+    if folder.is_file():  # a log handed to solve/diagnose/export as it came from the controller or the parser
+        hint = (f"; convert it first: cdpr import irma {folder} -o RUN" if folder.suffix.lower() in (".log", ".mat")
+                else "")
+        raise RunFormatError(f"{folder}: a file, not a run folder (a cdpr-run/1 folder holds run.yaml and "
+                             f"samples.csv){hint}.")
     if not folder.is_dir():
         raise RunFormatError(f"{folder}: not a run folder (no such directory).")
     if not f.is_file():

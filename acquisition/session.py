@@ -189,9 +189,14 @@ class StartupSession:
 
 def startup_config(req: StartupRequest, robot) -> StartupConfig:
     """The routine's settings of a request. Raises StartupRefused."""
-    if min(req.max_rate, req.hold, req.speed, req.settle_timeout) <= 0:
-        raise StartupRefused(f"--max-rate {req.max_rate}, --hold {req.hold}, --speed {req.speed} and "
-                             f"--settle-timeout {req.settle_timeout} must be positive.")
+    for option, value, unit in (("--max-rate", req.max_rate, "N/s"), ("--hold", req.hold, "s"),
+                                ("--speed", req.speed, "m/s"), ("--settle-timeout", req.settle_timeout, "s")):
+        if not value > 0:  # the one option that is wrong, named alone
+            raise StartupRefused(f"{option} {value:g} must be positive ({unit}).")
+    if not 200.0 <= req.rate <= 500.0:  # StartupConfig's own check, said with the option's name
+        raise StartupRefused(f"--rate {req.rate:g} is outside the control rates 200..500 Hz.")
+    if req.rt_priority is not None and not 1 <= req.rt_priority <= 99:
+        raise StartupRefused(f"--rt-priority {req.rt_priority} is outside the SCHED_FIFO priorities 1..99.")
     try:
         return StartupConfig(method=req.method, rate=req.rate, max_tension_rate=req.max_rate, hold_time=req.hold,
                              kinematic_speed=req.speed, rt_priority=req.rt_priority,

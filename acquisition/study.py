@@ -293,8 +293,9 @@ def failed_result(task: RunTask, status: str, message: str) -> dict[str, Any]:
 class StudyFolder:
     """The study's folder: its configuration (config.json) and one JSON file per finished run.
 
-    A folder holding the results of another configuration is refused unless ``force``, which removes them;
-    the same configuration resumes (its finished runs are kept and not run again)."""
+    A folder holding the results of another configuration, or anything else, is refused (`cdpr study --force`
+    moves it aside first, as every command does, never deleting); the same configuration resumes (its
+    finished runs are kept and not run again)."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -302,8 +303,8 @@ class StudyFolder:
     def result_path(self, plan: str, seed: int) -> Path:
         return self.path / f"run-{plan}-s{seed:05d}.json"
 
-    def prepare(self, config: StudyConfig, force: bool = False) -> None:
-        """Create the folder, or check that it holds this configuration (``force``: replace what it holds)."""
+    def prepare(self, config: StudyConfig) -> None:
+        """Create the folder, or check that it holds this configuration. Raises StudyError."""
         p = self.path
         if p.exists() and not p.is_dir():
             raise StudyError(f"--out {p} exists and is not a folder.")
@@ -316,15 +317,12 @@ class StudyFolder:
                 raise StudyError(f"{cfg_file}: not a study configuration ({exc}).") from exc
             if have == want:
                 return
-            if not force:
-                key = next((k for k in want if have.get(k) != want[k]), "format")
-                raise StudyError(f"{p} holds the results of another study ({key} {have.get(key)!r} there, "
-                                 f"{want[key]!r} now): give another --out, or --force to replace them.")
-            for f in p.glob("run-*.json"):
-                f.unlink()
-        elif p.is_dir() and any(p.iterdir()) and not force:
+            key = next((k for k in want if have.get(k) != want[k]), "format")
+            raise StudyError(f"{p} holds the results of another study ({key} {have.get(key)!r} there, "
+                             f"{want[key]!r} now): give another --out, or --force to move them aside.")
+        if p.is_dir() and any(p.iterdir()):
             raise StudyError(f"--out {p} exists and is not a study folder: give another --out, or --force to "
-                             f"write the study there.")
+                             f"move it aside.")
         p.mkdir(parents=True, exist_ok=True)
         _write_json(cfg_file, want)
 

@@ -98,11 +98,16 @@ def verdict_text(diag: Diagnosis) -> str:
     f = v.finding
     if f is None:
         return text
-    lead = (f"FINDING: {f.effect} explains the most (delta chi2 {f.delta_chi2:.1f}, predicting left-out poses "
-            f"better by {f.cv_gain:.1f}) with " + "; ".join(str(x) for x in f.implausible[:3])
+    kept = ", ".join(v.selected)
+    # after a step that kept effects, the finding's figures are those of the next step: say so, and that what
+    # was kept before it stands (nothing is added after the finding, nothing replaces it)
+    after = f" once {kept} is in the model, {f.effect} explains the most of what is left" if kept else (
+        f" {f.effect} explains the most")
+    lead = (f"FINDING:{after} (delta chi2 {f.delta_chi2:.1f}, predicting left-out poses better by "
+            f"{f.cv_gain:.1f}) with " + "; ".join(str(x) for x in f.implausible[:3])
             + ": likely an error in the robot description or the setup (check it); nothing that explains less is "
-            "recommended in its place")
-    return lead + (f"; {text}" if v.selected else "")
+            + (f"added after {kept}" if kept else "recommended in its place"))
+    return lead + (f". Before it: {text}" if kept else "")
 
 
 def _conclusion(diag: Diagnosis) -> str:

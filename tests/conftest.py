@@ -1,5 +1,8 @@
 """Shared pytest fixtures.
 
+`run8`, `run`: sc_8_final (parsed) imported and solved with the default options once per module, and a copy
+of it for one test (the rough-edge tests, tests/test_rough_edges*.py, give it careless inputs).
+
 `irma_data`: the folder of the authors' IRMA4U recordings (see /work/shared/data/irma4u/README.md).
 It is taken from the environment variable CDPR_DATA, else from `<repo>/../shared/data/irma4u`;
 tests that use it are skipped, with the reason, when the folder is absent, and FAIL instead when
@@ -10,6 +13,7 @@ The data are never copied into the repository.
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -34,3 +38,22 @@ def irma_data() -> Path:
             pytest.fail(f"{missing}, and CDPR_REQUIRE_DATA=1 requires the real-data tests to run", pytrace=False)
         pytest.skip(missing)
     return folder
+
+
+@pytest.fixture(scope="module")
+def run8(irma_data, tmp_path_factory) -> Path:
+    """sc_8_final (parsed) imported, solved with the default options once: a run with its solution."""
+    from acquisition.cli import main
+
+    out = tmp_path_factory.mktemp("r30") / "R"
+    assert main(["import", "irma", str(irma_data / "sc_8_final_parsed.mat"), "-o", str(out)]) == 0
+    assert main(["solve", str(out), "--json"]) == 0
+    return out
+
+
+@pytest.fixture
+def run(run8, tmp_path) -> Path:
+    """A copy of ``run8`` that a test may change."""
+    r = tmp_path / "R"
+    shutil.copytree(run8, r)
+    return r

@@ -99,6 +99,10 @@ def test_a_model_learned_on_two_real_runs_predicts_the_third(real_runs, tmp_path
                  "--model-out", str(model)]) == 0
     report = capsys.readouterr().out
     assert "leave-one-run-out" in report and "recommended: " in report
+    # the shared values with their units, and which 1-sigma the report prints (issue30u)
+    kept = [ln for ln in report.splitlines() if ln.startswith(("  tension_offset: ", "  cable_elasticity: "))]
+    assert kept and all(" N" in ln for ln in kept), kept
+    assert "(±: the joint fit's 1-sigma of the shared value; a new run's 1-sigma" in report
     # every candidate of the library is judged by prediction at the first step (no in-sample screen)
     from calib.effects import BUILTIN
 

@@ -30,22 +30,6 @@ def _tree(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-@pytest.fixture(scope="module")
-def run8(irma_data, tmp_path_factory) -> Path:
-    """sc_8_final (parsed) imported, solved with the default options once: a run with its solution."""
-    out = tmp_path_factory.mktemp("r30") / "R"
-    assert main(["import", "irma", str(irma_data / "sc_8_final_parsed.mat"), "-o", str(out)]) == 0
-    assert main(["solve", str(out), "--json"]) == 0
-    return out
-
-
-@pytest.fixture
-def run(run8, tmp_path) -> Path:
-    r = tmp_path / "R"
-    shutil.copytree(run8, r)
-    return r
-
-
 # ---- 1: an output that is, holds or is inside an input is refused, with or without --force ------------------
 
 

@@ -76,9 +76,9 @@ def test_a_finding_on_the_real_runs_says_the_runs_agree_on_cell_3s_gain(irma_dat
     run's value (and says the opposite when the runs disagree)."""
     from dataclasses import replace
 
-    from acquisition.diagnose_report import selection_json, selection_verdict
     from acquisition.importers import import_irma
     from acquisition.runlog import read_run
+    from acquisition.selection_report import selection_json, selection_verdict
     from calib.effects import make_effects
     from calib.runrows import run_rows
     from calib.runselect import Judge, finding_params, select
@@ -100,6 +100,10 @@ def test_a_finding_on_the_real_runs_says_the_runs_agree_on_cell_3s_gain(irma_dat
     assert t.spread.p >= 0.01
     words = selection_verdict(sel)
     assert words.startswith("FINDING: ") and "do not disagree" in words and "g_3 " in words
+    # what was kept before the finding stands, and the words say so (issue30u: they said nothing was recommended)
+    assert ("nothing that explains less is added to cable_elasticity,tension_offset, chosen at the steps before it"
+            in words and "recommended in its place" not in words and words.endswith(
+                "recommended: cable_elasticity,tension_offset (by leave-one-run-out prediction)")), words
     agree = selection_json(sel, ["a", "b", "c"])["finding"]["runs_agree"]
     assert agree["agree"] is True and len(agree["values"]["tension_gain.g_3"]) == 3
     t.spread = replace(t.spread, p=1e-4)
@@ -110,7 +114,7 @@ def test_a_findings_reported_parameters_are_listed_per_run_without_a_sigma():
     """pulley_position is fitted in deformation modes and reported as per-pulley offsets: the finding's words
     list each run's offset that left its range (from the run's own mode values), without a 1-sigma (it is
     not a fitted parameter); a fitted parameter at its hard bound is marked."""
-    from acquisition.diagnose_report import finding_agreement
+    from acquisition.selection_report import finding_agreement
     from calib.effects.builtin import PulleyPosition, TensionGain
     from calib.multirun import JointFit, RunFit
     from calib.robot import load_robot

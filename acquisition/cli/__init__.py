@@ -53,10 +53,14 @@ COMMAND_OWNERS = {
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # argparse's own usage errors: exit 2, one sentence
-        self.print_usage(sys.stderr)
-        sys.stderr.write(f"cdpr: {message}\n")
+    def error(self, message: str) -> None:
+        """argparse's own usage errors: exit 2, one sentence that points at the command's help (the usage block
+        argparse prints first took 5 to 8 lines before the sentence)."""
+        prog = self.prog if self.prog != "cdpr" else " ".join(("cdpr", *self.command[:1]))
+        sys.stderr.write(f"cdpr: {message.rstrip('.')}; see `{prog} --help`.\n")
         raise SystemExit(2)
+
+    command: tuple[str, ...] = ()  # the top parser: the command named, whose help an unknown option points at
 
 
 def _version() -> str:
@@ -193,9 +197,12 @@ def _join_signed_values(argv: list[str]) -> list[str]:
 def _main(argv: list[str] | None, started: list[str]) -> int:
     argv = _join_signed_values(sys.argv[1:] if argv is None else list(argv))
     parser = build_parser(modules_for(argv))
+    parser.command = tuple(t for t in argv if t in COMMAND_OWNERS)[:1]
     args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        build_parser().print_help(sys.stderr)
+    if not getattr(args, "func", None):  # no command, or a command without its action (`cdpr import`): its help
+        sub = next((a.choices.get(args.command) for a in parser._actions
+                    if isinstance(a, argparse._SubParsersAction)), None) if args.command else None
+        (sub or build_parser()).print_help(sys.stderr)
         return 2
     started.append(str(args.command))
     try:

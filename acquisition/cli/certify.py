@@ -54,8 +54,9 @@ def register(sub) -> None:
     _tolerance_options(sim)
     sim.add_argument("--anchor-offset", type=float, default=0.005,
                      help="largest offset of the true anchors from the nominal ones per axis, m (default 0.005)")
-    sim.add_argument("-o", "--output", required=True,
-                     help="MEASUREMENTS.csv to write; an existing file is refused unless --force")
+    sim.add_argument("-o", "--out", "--output", dest="output", required=True, metavar="FILE",
+                     help="MEASUREMENTS.csv to write (--out as in every other command; --output, its old name, "
+                     "still works); an existing file is refused unless --force")
     sim.add_argument("--truth", help="also write the ground truth (true anchors, poses, outliers) as JSON; an "
                      "existing file is refused unless --force")
     add_force(sim)
@@ -190,4 +191,7 @@ def _simulate(args) -> int:
             }) + "\n")
     except OSError as exc:
         raise OperationError(f"cannot write {exc.filename}: {exc.strerror}.") from exc
+    truth = f"; truth: {args.truth}" if args.truth else ""
+    sys.stdout.write(f"{args.output}: {args.n} simulated poses of {robot.name} ({len(ds.outliers)} outliers), one a "
+                     f"line under the header x,y,z,roll,pitch,yaw,l_1..l_{robot.n} (m, rad){truth}\n")
     return 0

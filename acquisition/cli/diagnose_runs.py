@@ -49,7 +49,7 @@ def load_prior(path: Path | None, robot, classes) -> list:
 
 def diagnose_runs(args) -> int:
     from acquisition.cli.effect_options import effect_classes, parse_effects
-    from acquisition.diagnose_report import format_selection, selection_json
+    from acquisition.selection_report import format_selection, selection_json
     from calib.multirun import NOT_CANDIDATES
     from calib.robot_model import model_document, write_model
     from calib.runselect import Judge, select
@@ -77,7 +77,10 @@ def diagnose_runs(args) -> int:
         return [*[classes[n]() for n in [e.name for e in included]], *[classes[n]() for n in names]]
 
     judge = Judge(items, make, prior)
-    sel = select(judge, cands, args.max_effects)
+    from acquisition.cli.progress import Activity
+
+    with Activity(f"diagnose: {len(items)} runs, choosing among {len(cands)} candidate effects"):
+        sel = select(judge, cands, args.max_effects)
     doc = selection_json(sel, [str(p) for p in args.run])
     if args.model_out is not None:
         model = model_document(sel.final.fit, [str(p) for p in args.run], {

@@ -77,7 +77,7 @@ def _poses(args) -> int:
 
 def _table(robot, title: str, out: dict) -> None:
     print(f"{robot.name}: {title}, visiting order")
-    print(f"{'#':>3} {'x':>7} {'y':>7} {'z':>7} {'roll°':>7} {'pitch°':>7} {'yaw°':>7}   setpoint (N)")
+    print(f"{'#':>3} {'x (m)':>7} {'y (m)':>7} {'z (m)':>7} {'roll°':>7} {'pitch°':>7} {'yaw°':>7}   setpoint (N)")
     for i, (z, t) in enumerate(zip(out["poses"], out["setpoints"], strict=True)):
         ang = np.degrees(z[3:])
         print(
@@ -153,7 +153,7 @@ def _separate(args) -> int:
         return 0
     print(f"{robot.name}: {len(sep.poses)} poses that tell {names[0]} from {names[1]} (add them to the plan, "
           "run it and diagnose again)")
-    print(f"{'#':>3} {'x':>7} {'y':>7} {'z':>7}  {'expected delta chi2':>19}   setpoint (N)")
+    print(f"{'#':>3} {'x (m)':>7} {'y (m)':>7} {'z (m)':>7}  {'expected delta chi2':>19}   setpoint (N)")
     for i, (z, t, sc) in enumerate(zip(sep.poses, sep.setpoints, sep.score, strict=True)):
         print(f"{i:>3} {z[0]:7.3f} {z[1]:7.3f} {z[2]:7.3f}  {sc:19.1f}   " + " ".join(f"{v:7.2f}" for v in t))
     return 0
@@ -178,6 +178,20 @@ def _workspace(args) -> int:
         json.dump(summary, sys.stdout)
         sys.stdout.write("\n")
     else:
-        for k, v in summary.items():
-            print(f"{k:>14}: {v}")
+        sys.stdout.write(workspace_text(summary, args.step))
     return 0
+
+
+def workspace_text(summary: dict, step: float) -> str:
+    """The workspace summary for a reader: counts, and the extent in m to the millimetre (the JSON keeps the
+    full floats)."""
+    lines = [f"grid positions: {summary['points']} (step {step:g} m)",
+             f"  in the static workspace: {summary['in_workspace']}, on its boundary: {summary['boundary']}"]
+    lo, hi = summary.get("extent_lower"), summary.get("extent_upper")
+    if lo is None:
+        lines.append("  extent: none (no position of the grid is in the static workspace)")
+    else:
+        lines.append("  extent (m): " + ", ".join(f"{a} {lo[j]:.3f} .. {hi[j]:.3f}" for j, a in enumerate("xyz")))
+    if "plot" in summary:
+        lines.append(f"plot: {summary['plot']}")
+    return "\n".join(lines) + "\n"

@@ -39,6 +39,8 @@ def run(args) -> int:
 
     if not args.debug:  # a replay ends with SDO requests the record does not answer; canopen would log each
         logging.getLogger("canopen").setLevel(logging.CRITICAL)
+    if not args.run.is_dir():  # as every command that reads a run says it, before naming the record it lacks
+        raise UsageError(f"{args.run}: not a run folder ({'a file' if args.run.exists() else 'no such directory'}).")
     for need in (can_record_path(args.run), args.run / SERIAL_RECORD):
         if not need.is_file():
             raise UsageError(f"{need}: no such file; only runs recorded by `cdpr startup` can be replayed.")

@@ -64,6 +64,7 @@ def _import_irma(args) -> int:
 
 
 def _export(args) -> int:
+    _check_extension(args.out, args.format)
     check_output_option(args.out, args.force, "-o", [args.run])
     run = read_run(args.run)
     claim_output_option(args.out, args.force, "-o", [args.run])
@@ -71,13 +72,23 @@ def _export(args) -> int:
         out = export_run(run, args.format, args.out)
     except OSError as exc:
         raise OperationError(f"{args.out}: cannot write the export ({exc.strerror}).") from exc
-    solved = _which_solution(args.run / "solution.json")
+    solved = _which_solution(args.run / "solution.json", args.format)
     sys.stdout.write(f"{out}: {len(run)} samples of {args.run}, {solved}\n")
     return 0
 
 
-def _which_solution(path: Path) -> str:
-    """What `export` says of the solution it carried: the file and how it was solved, or 'not solved'."""
+def _check_extension(out: Path, fmt: str) -> None:
+    """An output named for another format (``--format mat -o x.npz``) is refused: the reader picks its loader
+    by the name. Any other name (none, ``.txt``...) is the user's choice."""
+    ext = out.suffix.lower().lstrip(".")
+    if ext in FORMATS and ext != fmt:
+        raise UsageError(f"-o {out}: the name says {ext} but --format is {fmt}; name it {out.stem}.{fmt} or give "
+                         f"--format {ext}.")
+
+
+def _which_solution(path: Path, fmt: str = "mat") -> str:
+    """What `export` says of the solution it carried: the file and how it was solved, or 'not solved'. A CSV
+    holds samples only: the solution's absolute channels, not the solution itself."""
     import json
 
     try:
@@ -87,5 +98,8 @@ def _which_solution(path: Path) -> str:
     effects = ", ".join(doc.get("effects") or {}) or "none"
     noise = doc.get("noise")
     noise = noise.get("source", "?") if isinstance(noise, dict) else noise
-    return (f"with its solution {path} (method {doc.get('method', '?')}, noise {noise}, effects {effects}; "
-            "absolute channels)")
+    how = f"(method {doc.get('method', '?')}, noise {noise}, effects {effects})"
+    if fmt == "csv":
+        return (f"with the absolute channels of its solution {path} {how}; the solution itself (initial pose, "
+                f"1-sigma, offsets) is not in a CSV: read {path}")
+    return f"with its solution {path} {how} and the absolute channels"

@@ -40,8 +40,8 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print the solution as JSON")
     p.add_argument("--save", action="store_true",
                    help="make this solve the run's solution (RUN/solution.json, what export carries); without it "
-                   "only the first solve with the default options writes it, and exploring (--effects, --noise, "
-                   "--method...) changes nothing")
+                   "only the first solve with the default options writes it, and exploring (--effects, --model, "
+                   "--noise, --method...) changes nothing")
     add_effect_options(p)
     p.add_argument("--model", type=Path, default=None, metavar="MODEL.yaml",
                    help="a learned robot model (cdpr diagnose --model-out): its effects as priors, this run's own "
@@ -123,17 +123,28 @@ def _solve(args) -> int:
         sys.stdout.write(json.dumps(doc) + "\n")
     else:
         said = (f"saved as the run's solution: {path}" if save else
+                f"not saved: {path} is damaged, so the run has no solution that export can carry (--save to "
+                "replace it)" if path.exists() and not _readable(path) else
                 f"not saved: {path} stays the run's solution (--save to replace it)" if path.exists() else
                 "not saved: the run has no solution yet (--save to make this one, or solve with the default options)")
         sys.stdout.write(format_solution(sol) + table + said + "\n")
     return 0
 
 
+def _readable(path: Path) -> bool:
+    """True when the saved solution reads back as JSON (what `cdpr export` needs of it)."""
+    try:
+        return isinstance(json.loads(path.read_text()), dict)
+    except (OSError, ValueError):
+        return False
+
+
 def _default_options(args) -> bool:
     """True for a solve with every option at its default: the solve `cdpr startup` makes, not an exploration."""
     return (args.method == "tlse" and args.noise == default_noise(args.method) and args.stride == 1
             and args.reference_sample is None
-            and not getattr(args, "effects", None) and not getattr(args, "effects_from", None))
+            and not getattr(args, "effects", None) and not getattr(args, "effects_from", None)
+            and getattr(args, "model", None) is None)
 
 
 def _too_few_windows_hint(run) -> str:
@@ -156,9 +167,9 @@ def format_solution(sol: Solution) -> str:
         f"noise {sol.noise_source}, {sol.iterations} iterations, {sol.timing['solve_s'] * 1000:.1f} ms",
         "initial pose       value         1-sigma" + (f"       x {k:.3g} (*)" if k > 1 else ""),
     ]
-    for j, name in enumerate("xyz"):  # positions in m, their 1-sigma in mm (a tenth of a mm shows)
+    for j, name in enumerate("xyz"):  # positions and their 1-sigma in mm to the micrometre, as cdpr startup prints
         scaled = f"  {1000 * k * s[j]:>10.3f} mm" if k > 1 else ""
-        lines.append(f"  {name:<14} {z[j]:>10.4f} m   {1000 * s[j]:>10.3f} mm{scaled}")
+        lines.append(f"  {name:<14} {1000 * z[j]:>10.3f} mm  {1000 * s[j]:>10.3f} mm{scaled}")
     for j, name in enumerate(("roll", "pitch", "yaw")):
         scaled = f"  {math.degrees(k * s[3 + j]):>10.3f} deg" if k > 1 else ""
         lines.append(f"  {name:<14} {math.degrees(z[3 + j]):>10.3f} deg {math.degrees(s[3 + j]):>10.3f} deg{scaled}")

@@ -19,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+from acquisition.cli.args import claim_output_option
 from acquisition.cli.errors import OperationError, UsageError
 from acquisition.study import (
     PLANS,
@@ -51,7 +52,9 @@ def register(sub) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", help="run on the Dask cluster of this scheduler (tcp://host:port)")
     p.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per core)")
     p.add_argument("--connect-timeout", type=float, default=10.0, help="s to wait for --scheduler (default 10)")
-    p.add_argument("--force", action="store_true", help="replace the results of another study in --out")
+    p.add_argument("--force", action="store_true",
+                   help="move aside (kept as NAME.replaced-<time>) what --out holds when it is not this study: "
+                   "another study's results or other files; the same study resumes without it")
     p.add_argument("--no-html", action="store_true", help="skip DIR/study.html")
     p.add_argument("--json", action="store_true", help="print the statistics as JSON on stdout")
     p.set_defaults(func=run)
@@ -113,9 +116,16 @@ def run(args) -> int:
     folder = StudyFolder(args.out)
     seeds = range(args.seed, args.seed + args.runs)
     try:
-        folder.prepare(config, args.force)
+        folder.prepare(config)
     except StudyError as exc:
-        raise UsageError(str(exc)) from exc
+        if not args.force:
+            raise UsageError(str(exc)) from exc
+        # what --out holds (another study's results, other files) is moved aside, never deleted
+        claim_output_option(args.out, True, "--out", [args.sim_config] if args.sim_config else [])
+        try:
+            folder.prepare(config)
+        except StudyError as exc2:
+            raise UsageError(str(exc2)) from exc2
     tasks = [RunTask(p, s, config) for p in plans for s in seeds if not folder.done(p, s)]
     progress = StudyProgress(len(plans) * len(seeds), stream=sys.stderr)
     if not progress.enabled:  # redirected: plain lines instead of the terminal's bar
