@@ -366,7 +366,8 @@ def variance_factors(problem, theta: np.ndarray, poses: np.ndarray, per_cable: t
 
 def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float, float]],
                    floor: dict[str, np.ndarray] | None = None, within: dict[str, np.ndarray] | None = None,
-                   lower: dict[str, np.ndarray] | None = None, follow: bool = True) -> dict[str, np.ndarray] | None:
+                   lower: dict[str, np.ndarray] | None = None, follow: bool = True,
+                   rejected: bool = False) -> dict[str, np.ndarray] | None:
     """The sigmas rescaled by the groups' variance factors (groups with at least VCE_MIN_REDUNDANCY degrees
     of freedom): a group whose rows scatter less than its sigma says (factor < VCE_SETTLED) is scaled by
     sqrt(factor); a group whose rows scatter by more than sqrt(MISFIT_FACTOR) times its sigma is dominated by
@@ -386,7 +387,13 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     :attr:`PoseFreeNoise.quantisation`): the rows' own poses absorb part of their scatter, never the error a
     reading that does not dither keeps. A level raised to model error in an earlier round (above
     sqrt(MISFIT_FACTOR) times ``within``) follows its rows' scatter both ways, floored at ``within``, unless
-    ``follow`` is off (then it keeps the dead band of a noise level). None when nothing changes."""
+    ``follow`` is off (then it keeps the dead band of a noise level). ``rejected``: the fit's chi2 is beyond its
+    band under these sigmas (the model is rejected for its noise, :func:`rejects`): a group whose own rows reject
+    their sigma as well (their chi2, factor x redundancy, above the upper NOISE_LEVEL / 2 tail on its degrees of
+    freedom) gets the sigma its rows scatter by (Helmert's step, floored at ``within``) whatever its redundancy
+    and factor: neither the dead band nor the redundancy a misfit verdict otherwise needs holds there, since a
+    group weighed far below its scatter takes its rows' poses with it and shows little redundancy because of that
+    weight (issue 29, docs/windows.md: "Ends whose chi2 rejects their noise"). None when nothing changes."""
     out = {c: np.array(v, float) for c, v in sigma.items()}
     changed = False
 
@@ -402,6 +409,11 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     misfit = any(red >= MISFIT_MIN_REDUNDANCY and f > MISFIT_FACTOR for f, red in groups.values())
     for c, (f, red) in groups.items():
         ch, sl = _GROUP_SLICE.get(c, (c, slice(None)))
+        if rejected and rejects(f * red, red):
+            base = np.asarray(within[ch], float)[sl] if within is not None else out[ch][sl]
+            out[ch][sl] = np.maximum(out[ch][sl] * math.sqrt(f), base)
+            changed = True
+            continue
         if red < VCE_MIN_REDUNDANCY or (f > MISFIT_FACTOR and red < MISFIT_MIN_REDUNDANCY):
             if misfit and floor is not None:
                 low = out[ch][sl] < np.asarray(floor[ch], float)[sl]
@@ -441,6 +453,13 @@ def rescaled_sigma(sigma: dict[str, np.ndarray], factors: dict[str, tuple[float,
     for c, low in (lower or {}).items():
         out[c] = np.maximum(out[c], np.minimum(np.asarray(low, float), sigma[c]))  # never below it, nor raised
     return out if changed else None
+
+
+def rejects(chi2: float, dof: float) -> bool:
+    """Whether rows whose weighted squared residuals sum to ``chi2`` on ``dof`` degrees of freedom reject their
+    sigmas: chi2 above the upper NOISE_LEVEL / 2 tail of its distribution (the end of a solve judged so:
+    calib.selfcal._solve; a group's rows: :func:`rescaled_sigma`'s ``rejected``)."""
+    return dof > 0 and chi2 > dof and chi2_sf(chi2, dof) < NOISE_LEVEL / 2.0
 
 
 def sigma_change(old: dict[str, np.ndarray], new: dict[str, np.ndarray]) -> float:
