@@ -5,8 +5,9 @@ Two inputs, described in ../shared/data/irma4u/README.md:
 - the authors' ``*_parsed.mat`` (MATLAB v5 struct ``st``: absolute cable lengths and swivel angles, i.e.
   with the homing values added; roll, pitch and yaw minus its homing mean, rad; tensions and targets, N);
 - the controller's raw text ``.log``: type-3 lines (one per cable per cycle), type-5 AHRS lines in degrees,
-  type-6 extras (ignored). It starts with a recording at the homing pose, then a pause, then the
-  experiment. The homing recording gives the sensors' readings at the known homing pose.
+  type-6 extras (ignored); a cycle's lines are stamped up to 0.1 ms apart (``acquisition/logcycles.py``).
+  It starts with a recording at the homing pose, then a pause, then the experiment. The homing recording
+  gives the sensors' readings at the known homing pose.
 
 Both give a run of the prototype (robot ``irma4u``) whose relative channels are referred to the homing
 pose: dl = absolute length - homing length, dsigma = absolute swivel - homing swivel, dyaw = yaw - homing
@@ -39,13 +40,14 @@ from typing import Any
 
 import numpy as np
 
-from acquisition.damage import CONFLICT, CUT, FIELDS, FOREIGN, ORDER, REPEATED, VALUE, DamageLog, time_order
+from acquisition.damage import CUT, FIELDS, FOREIGN, VALUE, DamageLog, time_order
+from acquisition.logcycles import PARTIAL as PARTIAL
+from acquisition.logcycles import group_cycles
 from acquisition.runlog import Run, float_or_nan, read_run
 from acquisition.runwriter import new_run, write_run
 from acquisition.segmentation import SetpointSegmentation, segment_targets
 from calib.errors import CdprError
 
-PARTIAL = "logging cycles lacking a cable or AHRS line"
 MISSING = "samples missing from a field"
 MIN_HOLDS = 2  # steady setpoint holds a run needs to be solved (tlse: two equilibrium windows)
 
@@ -172,6 +174,8 @@ def read_irma_parsed(file: str | Path) -> IrmaSignals:
 def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     """Read the controller's raw log: homing recording, pause (> ``min_pause`` s), then the experiment.
 
+    A logging cycle is the 4 cable lines and the AHRS line stamped together, up to 1-2 ms apart
+    (:func:`acquisition.logcycles.group_cycles`), at its AHRS line's time; a cycle lacking a line is skipped.
     Cable lengths are the controller's (m), pulley angles change sign to become swivel angles, AHRS angles
     go from degrees to radians. The homing means of length, pulley angle and yaw define the zeros.
     """
@@ -183,10 +187,10 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
     else:
         damage.add(CUT, f"line {len(lines)}")
         lines.pop()
-    act: dict[float, dict[int, list[float]]] = {}
-    ahrs: dict[float, list[float]] = {}
-    first_line: dict[float, int] = {}
-    conflict: set[float] = set()
+    stamps: list[float] = []
+    keys: list[int] = []  # cable 0..3, AHRS 4
+    numbers: list[int] = []
+    readings: list[list[float]] = []
     ahrs_lines = 0  # type-5 lines, damaged ones included: none at all is said plainly
     for k, line in enumerate(lines, start=1):
         line = line.strip()
@@ -209,47 +213,34 @@ def read_irma_log(file: str | Path, min_pause: float = 1.0) -> IrmaSignals:
             bad = next(c for c, v in zip(cells[1:], vals, strict=True) if not math.isfinite(v))
             damage.add(VALUE, f"first: line {k} has the value {bad.strip()!r}")
             continue
-        t = vals[0]
         if kind == "3":
             cid = int(vals[1])
             if vals[1] != cid or not 0 <= cid < IRMA_CABLES:
                 damage.add(FOREIGN, f"first: line {k} has actuator id {cells[2].strip()!r}, expected 0..3")
                 continue
-            slot, key, reading = act.setdefault(t, {}), cid, vals[2:]
+            keys.append(cid)
+            readings.append(vals[2:])
         else:
-            slot, key, reading = ahrs, t, vals[1:]
-        first_line.setdefault(t, k)
-        if key in slot:
-            if slot[key] == reading:
-                damage.add(REPEATED, f"first: line {k}")
-            else:
-                conflict.add(t)
-            continue
-        slot[key] = reading
-    times = sorted(first_line)
-    if conflict:
-        damage.add(CONFLICT, f"first: the cycle at line {min(first_line[t] for t in conflict)}", len(conflict))
-    complete = [t for t in times if t in ahrs and len(act.get(t, {})) == IRMA_CABLES and t not in conflict]
-    partial = [t for t in times if t not in complete and t not in conflict]
-    if partial:
-        damage.add(PARTIAL, f"first: the cycle at line {first_line[partial[0]]}", len(partial))
-    appearance = np.array([first_line[t] for t in complete])
-    late = np.flatnonzero(appearance[1:] < np.maximum.accumulate(appearance)[:-1]) + 1 if complete else []
-    if len(late):
-        damage.add(ORDER, f"first: the cycle at line {appearance[late[0]]}", len(late))
-    if act and not ahrs_lines:
+            keys.append(IRMA_CABLES)
+            readings.append(vals[1:] + [0.0] * (len(LOG_ACTUATOR_FIELDS) - 3))  # roll, pitch, yaw; padded
+        stamps.append(vals[0])
+        numbers.append(k)
+    key = np.array(keys, dtype=int)
+    values = np.array(readings, dtype=float).reshape(len(keys), len(LOG_ACTUATOR_FIELDS))
+    cycles = group_cycles(np.array(stamps), key, np.array(numbers, dtype=int), values, IRMA_CABLES + 1, damage)
+    if np.any(key < IRMA_CABLES) and not ahrs_lines:
         raise IrmaImportError(
             f"{file}: the log has no AHRS line (type 5) at all, only cable lines, so it holds no roll, pitch or yaw "
             "and cannot be imported."
         )
-    if not complete:
+    if not cycles.t.size:
         raise IrmaImportError(
-            f"{file}: no complete logging cycle (4 type-3 lines and a type-5 line at one time)"
+            f"{file}: no complete logging cycle (4 type-3 lines and a type-5 line stamped together)"
             + (f"; damaged input: {damage.summary()}." if damage else ".")
         )
-    t_all = np.array(complete)
-    A = np.array([[act[t][i] for i in range(IRMA_CABLES)] for t in complete])  # (cycles, 4, 11)
-    E = np.radians(np.array([ahrs[t] for t in complete]))  # (cycles, 3) rad
+    t_all = cycles.t
+    A = values[cycles.rows[:, :IRMA_CABLES]]  # (cycles, 4, 11)
+    E = np.radians(values[cycles.rows[:, IRMA_CABLES], :3])  # (cycles, 3) rad
     gaps = np.flatnonzero(np.diff(t_all) > min_pause)
     if gaps.size == 0:
         raise IrmaImportError(

@@ -16,7 +16,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from acquisition.damage import DamagedInputWarning
-from acquisition.importers import IrmaImportError, irma_run
+from acquisition.importers import PARTIAL, IrmaImportError, irma_run
+from acquisition.logcycles import cycle_tolerance
 from acquisition.runlog import RunFormatError, read_run
 from acquisition.runwriter import new_run, write_run
 
@@ -141,18 +142,21 @@ def _targets(k: int) -> float:
     return 100.0 if k < 3 else 120.0 if k < 16 else 120.0 + 5 * (k - 15) if k < 19 else 140.0
 
 
-def _log_text() -> str:
+def _log_text(t0: float = 0.0, early: float = 0.0) -> str:
+    """A raw log: 5 homing cycles from ``t0`` s, a 4.5 s pause, 34 experiment cycles; cable 0's line of each
+    cycle stamped ``early`` s before the others (as the controller does); stamps printed as it prints them
+    (6 significant digits)."""
     lines = []
-    times = [round(0.1 * k, 3) for k in range(5)] + [round(5.0 + 0.1 * k, 3) for k in range(34)]
+    times = [t0 + 0.1 * k for k in range(5)] + [t0 + 5.0 + 0.1 * k for k in range(34)]
     for j, t in enumerate(times):
         k = j - 5
         target = 100.0 if k < 0 else _targets(k)
         for i in range(4):
             length = 2.27 + 0.001 * j + 0.01 * i
-            lines.append(f"3,{t},{i},10,{1000 * j + i},0,{5 + i},{length:.6f},0.0,{target + 0.1 * i:.3f},"
-                         f"{target:.3f},0,4,{0.5 + 0.001 * j:.6f}")
-        lines.append(f"5,{t},{0.1 * j:.3f},{-0.2 * j:.3f},{1.0 + 0.01 * j:.3f}")
-        lines.append(f"6,{t},1,2,3")
+            lines.append(f"3,{t - early * (i == 0):.6g},{i},10,{1000 * j + i},0,{5 + i},{length:.6f},0.0,"
+                         f"{target + 0.1 * i:.3f},{target:.3f},0,4,{0.5 + 0.001 * j:.6f}")
+        lines.append(f"5,{t:.6g},{0.1 * j:.3f},{-0.2 * j:.3f},{1.0 + 0.01 * j:.3f}")
+        lines.append(f"6,{t:.6g},1,2,3")
     return "\n".join(lines) + "\n"
 
 
@@ -182,6 +186,58 @@ def test_the_synthetic_log_imports_cleanly(tmp_path):
     f.write_text(_log_text())
     run, warned = read_quietly(irma_run, f)
     assert not warned and len(run) == 34 and len(run.setpoints) == 2
+
+
+# ---- a cycle's lines stamped apart (issue 28i) ------------------------------------------------------------
+
+SKEWED = 95.00054  # cable 0 0.1 ms early: printed 0.1 ms apart below 100 s, 1 ms apart past it ("100" / "100.001")
+
+
+def _skewed_log(tmp_path: Path, drop=(), move=None, add=()) -> Path:
+    """The skewed log with the lines holding the strings of ``drop`` removed, the line starting with
+    ``move[0]`` restamped ``move[1]``, the lines of ``add`` appended."""
+    lines = [line for line in _log_text(SKEWED, 1e-4).splitlines() if not any(d in line for d in drop)]
+    if move:
+        lines = [line.replace(move[0], move[1], 1) if line.startswith(move[0]) else line for line in lines]
+    f = tmp_path / "skewed.log"
+    f.write_text("\n".join([*lines, *add]) + "\n")
+    return f
+
+
+def test_a_cycles_lines_stamped_a_tenth_of_a_ms_apart_are_one_cycle(tmp_path):
+    """Failed before: every cycle was split in two partial ones and the log held no complete cycle."""
+    text = _log_text(SKEWED, 1e-4)
+    assert "3,95.0004,0," in text and "5,95.0005," in text and "3,100,0," in text and "5,100.001," in text
+    even = tmp_path / "even.log"
+    even.write_text(_log_text(SKEWED))  # the same log, every line of a cycle stamped alike
+    run, warned = read_quietly(irma_run, _skewed_log(tmp_path))
+    want = irma_run(even)
+    assert not warned and len(run) == 34 and run.meta["homing"]["recording"]["samples"] == 5
+    assert run.meta["time_origin"] == 100.001  # a cycle's time: its AHRS line's stamp
+    for name in LOG_COLUMNS:
+        np.testing.assert_array_equal(getattr(run, name), getattr(want, name), err_msg=name)
+    np.testing.assert_allclose(cycle_tolerance(np.array([60.0, 200.0, 2000.0])), [1.1e-3, 2e-3, 11e-3])
+
+
+def test_a_cycle_really_lacking_a_line_is_still_dropped_and_counted(tmp_path):
+    f = _skewed_log(tmp_path, drop=["3,101.001,2,"])  # cable 2 of the cycle at 101.001 s is missing
+    run, warned = read_quietly(irma_run, f)
+    assert len(run) == 33 and 1.0 not in np.round(run.t, 6)  # the cycle is gone, no neighbour's line borrowed
+    said = f"{f}: damaged input: 1 {PARTIAL} (first: the cycle at line 91); 33 samples kept."
+    assert str(warned[0].message) == said
+    f = _skewed_log(tmp_path, move=("3,102,0,", "3,102.051,0,"))  # half a period late: a cycle of its own
+    run, warned = read_quietly(irma_run, f)
+    assert len(run) == 33 and f"2 {PARTIAL}" in str(warned[0].message)
+
+
+def test_a_cable_twice_in_a_skewed_cycle_is_a_conflict_or_a_repeat(tmp_path):
+    line = next(x for x in _log_text(SKEWED, 1e-4).splitlines() if x.startswith("3,101,0,"))
+    other = line.replace("3,101,0,", "3,101.001,0,").replace(",15000,", ",15001,")  # the AHRS line's stamp
+    run, warned = read_quietly(irma_run, _skewed_log(tmp_path, add=[other]))
+    assert len(run) == 33 and "1 same time as another line with other values" in str(warned[0].message)
+    same = line.replace("3,101,0,", "3,101.001,0,")
+    run, warned = read_quietly(irma_run, _skewed_log(tmp_path, add=[same]))
+    assert len(run) == 34 and "1 repeated" in str(warned[0].message)
 
 
 # ---- the authors' parsed .mat ---------------------------------------------------------------------------

@@ -19,6 +19,7 @@ from acquisition.importers import (
     import_irma,
     irma_run,
     read_irma_log,
+    read_irma_parsed,
 )
 from acquisition.runlog import read_run
 from acquisition.segmentation import segment_targets
@@ -223,6 +224,19 @@ def test_truncated_raw_log_drops_its_last_incomplete_cycle(irma_data, tmp_path):
     assert sig.t.shape == (1279,) and sig.t[-1] == pytest.approx(385.654)
     with pytest.warns(DamagedInputWarning, match=r"cut\.log: damaged input: 1 cut short .*; 1279 samples kept"):
         irma_run(cut)
+
+
+def test_the_medium_raw_log_keeps_every_cycle_the_parsed_file_has(irma_data):
+    """sc_8_medium_a's cycles are stamped up to 1 ms apart (its cable lines before its AHRS line): the import kept
+    1362 of its 2076 experiment cycles before issue 28i, and now every one, at the parsed file's times."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DamagedInputWarning)
+        run = irma_run(irma_data / "sc_8_medium_a.log", targets=irma_data / "sc_control_target_8.mat")
+    parsed = read_irma_parsed(irma_data / "sc_8_medium_a_parsed.mat")
+    assert len(run) == len(parsed.t) == 2076 and run.meta["homing"]["recording"]["samples"] == 58
+    np.testing.assert_allclose(run.t + run.meta["time_origin"], parsed.t, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(run.tau, parsed.tension)
+    assert run.setpoints.shape == (8, 4)
 
 
 @pytest.mark.parametrize(
