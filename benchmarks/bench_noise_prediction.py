@@ -41,6 +41,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from bench_raw_parsed import zeta_0_real  # this folder: sys.path[0] when run as a script
 
 IMPORTS = {  # name: (file, targets)
     "sc_8_final raw": ("sc_8_final.log", "sc_control_target_8_final.mat"),
@@ -119,16 +120,6 @@ def run_imports(data: Path, out: Path, names: list[str]) -> dict:
         with contextlib.redirect_stderr(io.StringIO()):
             runs[name] = import_irma(data / f, out / name.replace(" ", "_"), targets=data / targets)
     return runs
-
-
-def zeta_0_real(data: Path) -> np.ndarray:
-    """The authors' reference initial position of sc_8_final (m): uncertain by several mm (data README)."""
-    from scipy.io import loadmat
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        ws = loadmat(data / "ws_selfcalibration_8_final.mat", squeeze_me=True, struct_as_record=False)
-    return np.asarray(ws["zeta_0_real"], float)[:3]
 
 
 def one_run(name: str, run, models: list[str], z0: np.ndarray | None) -> dict:

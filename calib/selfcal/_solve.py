@@ -28,6 +28,7 @@ from calib.selfcal.options import SolveOptions
 from calib.selfcal.problem import Problem
 from calib.selfcal.result import SelfCalFailure, Solution, compare_pose
 from calib.selfcal.rows import paper_noise, sensor_noise
+from calib.selfcal.sway import with_sway
 
 REFINE = 2  # estimate-noise solves: pose-free kinematic noise at the solution, then the solve again, twice
 # then variance-component rounds on the window means (noise.rescaled_sigma) until they settle: 2-3 on the
@@ -169,8 +170,6 @@ def _estimate_passes(robot: Robot, pre, problem: Problem, max_iter: int, robust:
             (slice(int(a), int(b) + 1), z) for (a, b), z in zip(meas.windows, res.poses, strict=True)]
         pose_free = pose_free_noise(model, sig, spans, ref, res.theta, base)
         if sway:  # the platform's sway about the equilibrium of the held tensions, in the statics rows
-            from calib.selfcal.sway import with_sway
-
             pose_free, _ = with_sway(robot, pose_free, np.array([z for _, z in spans]))
         noise = pose_free.noise
         sigma = judged_noise(problem, res.theta, res.poses, noise.sigma, sensor_noise(robot)) if robust \
